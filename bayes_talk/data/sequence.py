@@ -1,0 +1,60 @@
+"""One audio-visual utterance as the models see it.
+
+Every model in the package (the SGPDM family and the baselines) consumes a list of
+:class:`Sequence` objects: frame-synchronous audio features, visual features and
+phone labels at 25 Hz.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Sequence:
+    """A frame-synchronous utterance.
+
+    Attributes
+    ----------
+    name : utterance identifier (unique within a corpus).
+    mfcc : (T, D_y) float64 audio features (20 MFCCs at 25 Hz).
+    aam : (T, D_z) float64 visual features (AAM parameters at 25 fps), or None at synthesis.
+    labels : T frame-level phone labels (ARPAbet 39 + ``sil``).
+    landmarks : optional (T, P, 2) landmark coordinates in pixels.
+    audio_path : optional path of the WAV the MFCCs came from.
+    meta : free-form metadata (sentence text, voice, ...).
+    """
+
+    name: str
+    mfcc: np.ndarray
+    aam: np.ndarray | None
+    labels: list[str]
+    landmarks: np.ndarray | None = None
+    audio_path: Path | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.mfcc = np.asarray(self.mfcc, dtype=np.float64)
+        if self.mfcc.ndim != 2:
+            raise ValueError(f"sequence {self.name!r}: mfcc must be 2-D (T, D), got shape {self.mfcc.shape}")
+        T = self.mfcc.shape[0]
+        if self.aam is not None:
+            self.aam = np.asarray(self.aam, dtype=np.float64)
+            if self.aam.ndim != 2 or self.aam.shape[0] != T:
+                raise ValueError(
+                    f"sequence {self.name!r}: aam has shape {self.aam.shape}, expected ({T}, D_z) "
+                    f"to match the {T} audio frames"
+                )
+        if len(self.labels) != T:
+            raise ValueError(
+                f"sequence {self.name!r}: {len(self.labels)} frame labels for {T} audio frames"
+            )
+        for arr, what in ((self.mfcc, "mfcc"), (self.aam, "aam")):
+            if arr is not None and not np.all(np.isfinite(arr)):
+                raise ValueError(f"sequence {self.name!r}: {what} contains NaN or inf")
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.mfcc.shape[0])
