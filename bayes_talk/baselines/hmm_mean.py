@@ -1,0 +1,106 @@
+"""Per-phone mean face: the "standard HMM" baseline of englebienne2008 §4.
+
+With the frame labels known, the HMM of englebienne2008 reduces to one Gaussian per
+phone, and its most likely observation sequence is the mean visual vector of each
+frame's phone -- the "obviously wrong model" that nevertheless scores well on error
+(englebienne2008 §4, DESIGN §7):
+
+    ẑ_t = m_{π_t},        m_π = mean{ z_t : π_t = π }  over the training frames.
+
+Test log-likelihood (conditioned on the frame labels only, not on the audio):
+
+    log p(Z | π_{1:T}) = Σ_t log N(z_t; m_{π_t}, diag(s²_{π_t})),
+
+with s²_π the per-phone ML variance of each dimension, floored at ``var_floor`` times the
+global variance of that dimension (a phone seen once has zero ML variance).
+
+A label outside the phone set raises ValueError. A valid phone that never occurred in
+training is predicted by the global mean (and scored with the global variance), with a
+UserWarning.
+"""
+from __future__ import annotations
+
+import warnings
+from typing import ClassVar, Self
+
+import numpy as np
+
+from bayes_talk.baselines.base import Baseline, check_test, check_train
+from bayes_talk.data.phones import check_phone
+from bayes_talk.data.sequence import Sequence
+
+__all__ = ["HMMMean"]
+
+
+class HMMMean(Baseline):
+    """Per-phone mean visual vector (diagonal Gaussian per phone for the likelihood).
+
+    Parameters
+    ----------
+    var_floor : relative floor of the per-phone variances (fraction of the global variance).
+    """
+
+    name: ClassVar[str] = "hmm-mean"
+    has_log_likelihood: ClassVar[bool] = True
+
+    def __init__(self, var_floor: float = 1e-3) -> None:
+        if not var_floor > 0:
+            raise ValueError(f"var_floor must be > 0, got {var_floor}")
+        self.var_floor = float(var_floor)
+
+    def fit(self, train: list[Sequence]) -> Self:
+        d_y, d_z = check_train(train)
+        z = np.concatenate([s.aam for s in train])
+        labs: list[str] = []
+        for s in train:
+            for lab in s.labels:
+                check_phone(lab, where=f"sequence {s.name!r}")
+            labs.extend(s.labels)
+        classes = sorted(set(labs))
+        idx = np.searchsorted(np.array(classes), np.array(labs))
+        counts = np.bincount(idx, minlength=len(classes)).astype(np.float64)
+        sums = np.zeros((len(classes), d_z))
+        np.add.at(sums, idx, z)
+        means = sums / counts[:, None]
+        sq = np.zeros((len(classes), d_z))
+        np.add.at(sq, idx, (z - means[idx]) ** 2)
+        self.global_mean_ = z.mean(axis=0)
+        self.global_var_ = np.maximum(z.var(axis=0), np.finfo(np.float64).tiny)
+        floor = self.var_floor * self.global_var_
+        self.classes_: list[str] = classes
+        self.means_ = means
+        self.vars_ = np.maximum(sq / counts[:, None], floor)
+        self.n_audio_, self.n_visual_ = d_y, d_z
+        return self
+
+    def _params(self, seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        index = {p: i for i, p in enumerate(self.classes_)}
+        mean = np.empty((seq.n_frames, self.n_visual_))
+        var = np.empty_like(mean)
+        unseen: set[str] = set()
+        for t, lab in enumerate(seq.labels):
+            i = index.get(lab)
+            if i is None:
+                check_phone(lab, where=f"sequence {seq.name!r}")
+                unseen.add(lab)
+                mean[t], var[t] = self.global_mean_, self.global_var_
+            else:
+                mean[t], var[t] = self.means_[i], self.vars_[i]
+        if unseen:
+            warnings.warn(f"sequence {seq.name!r}: phones not seen in training "
+                          f"{sorted(unseen)} predicted by the global mean", UserWarning, stacklevel=3)
+        return mean, var
+
+    def predict(self, seq: Sequence) -> np.ndarray:
+        """ẑ_t = m_{π_t} (global mean for a phone unseen in training)."""
+        self._check_fitted()
+        check_test(seq)
+        return self._params(seq)[0]
+
+    def log_likelihood(self, seq: Sequence) -> float:
+        """Σ_t log N(z_t; m_{π_t}, diag s²_{π_t}) -- conditioned on the labels only."""
+        self._check_fitted()
+        check_test(seq, n_visual=self.n_visual_, need_aam=True)
+        mean, var = self._params(seq)
+        r = seq.aam - mean
+        return float(-0.5 * np.sum(np.log(2 * np.pi * var) + r * r / var))

@@ -1,0 +1,72 @@
+"""GP predictive distributions at new latent points (DESIGN.md §4, deena2009 §4.1).
+
+For a view with training latents X, centred outputs Y, kernel k and noise precision β,
+after training (everything fixed):
+
+    μ(x)  = k(x, X) K⁻¹ Y + ȳ
+    σ²(x) = k(x, x) − k(x, X) K⁻¹ k(X, x) + β⁻¹
+    ln p(ŷ | x) = Σ_m ln N(ŷ_m; μ_m(x), σ²(x) / w_m²)
+
+The dynamics predictive is the same object with inputs X_in, outputs X_out and w = 1:
+p(x_t | x_{t−1}) = N(x_t; μ_x(x_{t−1}), σ²_x(x_{t−1}) I).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from bayes_talk.gp.kernels import rbf, rbf_diag, train_cov
+from bayes_talk.gp.linalg import cho_solve, cholesky, solve_lower
+
+
+class GPPredictor:
+    """Predictive mean/variance of one GP mapping, differentiable in the test inputs."""
+
+    def __init__(
+        self,
+        X: torch.Tensor,
+        Y: torch.Tensor,
+        alpha: float,
+        gamma: float,
+        beta: float,
+        w: torch.Tensor | None = None,
+        mean: torch.Tensor | None = None,
+        alpha_lin: float | None = None,
+        what: str = "kernel matrix",
+    ):
+        self.X = X.detach()
+        self.Y = Y.detach()
+        self.alpha, self.gamma, self.beta, self.alpha_lin = alpha, gamma, beta, alpha_lin
+        D = Y.shape[1]
+        self.w = (w.detach() if w is not None else torch.ones(D, dtype=torch.float64))
+        self.mean = mean.detach() if mean is not None else torch.zeros(D, dtype=torch.float64)
+        self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin), what)
+        self.A = cho_solve(self.L, self.Y)
+
+    @property
+    def out_dim(self) -> int:
+        return int(self.Y.shape[1])
+
+    def mean_var(self, Xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """μ (T×D, with the training mean added back) and σ² (T,) at the rows of Xs."""
+        Ks = rbf(self.X, Xs, self.alpha, self.gamma, self.alpha_lin)  # N×T
+        mu = Ks.mT @ self.A + self.mean
+        V = solve_lower(self.L, Ks)
+        var = rbf_diag(Xs, self.alpha, self.alpha_lin) - (V * V).sum(0) + 1.0 / self.beta
+        return mu, var.clamp_min(1e-12)
+
+    def log_lik(self, Ys: torch.Tensor, Xs: torch.Tensor) -> torch.Tensor:
+        """ln p(ŷ_t | x_t) for each row pair (T,), per-dimension variance σ²/w_m²."""
+        mu, var = self.mean_var(Xs)
+        D = self.out_dim
+        r = (Ys - mu) * self.w
+        return (
+            torch.log(self.w).sum()
+            - 0.5 * D * (math.log(2.0 * math.pi) + torch.log(var))
+            - 0.5 * (r * r).sum(-1) / var
+        )
+
+    def dim_var(self, var: torch.Tensor) -> torch.Tensor:
+        """Per-dimension predictive variance σ²(x)/w_m², shape (T, D)."""
+        return var[:, None] / (self.w * self.w)[None, :]

@@ -1,0 +1,558 @@
+"""The shared Gaussian-process dynamical model (SGPDM) as a Pyro program.
+
+deena2010 §2.1.1 (eq. 1–7), deena2009 §2; conventions pinned in DESIGN.md §3.
+
+Generative model, for views v (audio MFCCs, visual AAM parameters) of N frames that come
+in sequences s of lengths T_s, sharing latent points X (N×d):
+
+    X   ~ GPDynamics                          (eq. 7; or X = g(Y_audio; φ), eq. 8)
+    Y_v ~ GPObservation(X; α_v, γ_v, β_v, W_v)  for every view v (eq. 5)
+    p(θ) ∝ 1/θ for every learned kernel hyperparameter θ, w_m ~ HalfNormal(κ² = 10⁶)
+
+MAP training maximises the log joint of that program's trace,
+
+    L = Σ_v ln p(Y_v|X) + λ·ln p(X) − Σ_θ ln θ + Σ_v Σ_m ln HalfNormal(w_m),
+
+with torch L-BFGS over log θ, log w and X (or the back-constraint weights φ). The log
+joint is taken in θ-space: log θ is only the parametrisation, no Jacobian is added.
+
+Example
+-------
+>>> import numpy as np
+>>> from bayes_talk.models.sgpdm import SGPDM
+>>> rng = np.random.default_rng(0)
+>>> t = np.linspace(0, 6, 60)[:, None]
+>>> audio = np.hstack([np.sin(t), np.cos(t), np.sin(2 * t)]) + 0.01 * rng.standard_normal((60, 3))
+>>> video = np.hstack([np.cos(t), np.sin(3 * t)]) + 0.01 * rng.standard_normal((60, 2))
+>>> m = SGPDM(latent_dim=2, max_iter=50).fit({"audio": audio, "visual": video})
+>>> m.X_.shape
+(60, 2)
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import tempfile
+import zipfile
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro import poutine
+
+from bayes_talk.gp.backconstraint import MLPBackConstraint
+from bayes_talk.gp.distributions import GPDynamics, GPObservation
+from bayes_talk.gp.predictive import GPPredictor
+from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_split
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+FORMAT_NAME = "bayes_talk.sgpdm"
+
+
+@dataclass
+class SGPDMConfig:
+    """Settings of an :class:`SGPDM` (all documented in docs/model.md).
+
+    latent_dim: d (8 in deena2009, 6 in deena2010).
+    dynamics: GP dynamics on X (eq. 7); False gives a shared GPLVM with X ~ N(0, I).
+    learn_dynamics: learn α_x, γ_x, β_x (then they carry the 1/θ prior) instead of fixing
+        them at the signal-to-noise ratio 100:1 of deena2010 §4.1.
+    dyn_alpha, dyn_gamma, dyn_beta: α_x, γ_x, β_x (precision) of the dynamics kernel.
+    dyn_linear: α_lin of an optional linear term in the dynamics kernel (None: off).
+    balanced: λ = D/d on ln p(X) (balanced GPDM, D = total observed dimension);
+        False: λ = 1 (plain GPDM).
+    back_constraint: name of the view g(·) maps from (deena2009 eq. 4–5), or None.
+    bc_hidden: hidden tanh units of the back-constraint MLP.
+    init: "pca-average" (PCA of each view to d, each scaled to unit variance per
+        dimension, then averaged: deena2010 §4.1) or "pca-concat" (PCA of the
+        concatenated standardised views).
+    init_scale: the initial latent std per dimension; None gives √α_x with dynamics
+        (the dynamics signal std, 0.1 by default) and 1 without.
+    learn_w: learn the per-dimension output scales W (else W = 1/std of the data, fixed).
+    max_iter: L-BFGS iterations; tol: stop when an outer step improves L by < tol·|L|.
+    seed: seeds the back-constraint weights and anything random in fitting.
+    """
+
+    latent_dim: int = 8
+    dynamics: bool = True
+    learn_dynamics: bool = False
+    dyn_alpha: float = 0.01
+    dyn_gamma: float = 0.2
+    dyn_beta: float = 1e6
+    dyn_linear: float | None = None
+    balanced: bool = False
+    back_constraint: str | None = None
+    bc_hidden: int = 20
+    init: str = "pca-average"
+    init_scale: float | None = None
+    learn_w: bool = True
+    max_iter: int = 300
+    tol: float = 1e-9
+    seed: int = 0
+
+
+def _pca(Y: np.ndarray, d: int) -> np.ndarray:
+    """Scores of the first d principal components, each scaled to unit variance."""
+    Yc = Y - Y.mean(0)
+    U, S, _ = np.linalg.svd(Yc, full_matrices=False)
+    Z = U[:, :d] * S[:d]
+    # fix the sign so the largest-magnitude loading is positive (deterministic init)
+    Z *= np.sign(Z[np.abs(Z).argmax(0), range(Z.shape[1])])
+    return Z / np.maximum(Z.std(0), 1e-12)
+
+
+def sgpdm_model(
+    views: Mapping[str, torch.Tensor],
+    X: torch.Tensor,
+    hyper: Mapping[str, torch.Tensor],
+    seq_lengths: Sequence[int],
+    cfg: SGPDMConfig,
+    learned: Sequence[str],
+) -> None:
+    """The SGPDM as a Pyro program; every site is observed at MAP training.
+
+    ``hyper`` maps names to constrained values: ``alpha/<v>``, ``gamma/<v>``,
+    ``beta/<v>``, ``w/<v>`` for each view and ``alpha/dyn``, ``gamma/dyn``, ``beta/dyn``
+    (and ``lin/dyn``); ``learned`` lists the kernel hyperparameters that carry the 1/θ
+    prior.
+    """
+    d = X.shape[1]
+    if cfg.dynamics:
+        lam = sum(Y.shape[1] for Y in views.values()) / d if cfg.balanced else 1.0
+        with poutine.scale(scale=lam):
+            pyro.sample(
+                "X",
+                GPDynamics(
+                    seq_lengths, d, hyper["alpha/dyn"], hyper["gamma/dyn"], hyper["beta/dyn"],
+                    hyper.get("lin/dyn"),
+                ),
+                obs=X,
+            )
+    else:
+        pyro.sample("X", dist.Normal(torch.zeros_like(X), 1.0).to_event(2), obs=X)
+    for v, Y in views.items():
+        w = hyper[f"w/{v}"]
+        if cfg.learn_w:
+            pyro.sample(
+                f"w/{v}", dist.HalfNormal(torch.full_like(w, math.sqrt(W_PRIOR_VARIANCE))).to_event(1),
+                obs=w,
+            )
+        pyro.sample(
+            f"Y/{v}",
+            GPObservation(X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
+                          what=f"{v} kernel matrix"),
+            obs=Y,
+        )
+    if learned:
+        pyro.factor("hyperprior", -sum(torch.log(hyper[k]) for k in learned))
+
+
+def _atomic_write(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+@dataclass
+class FitHistory:
+    """Objective (log joint) after each outer L-BFGS step."""
+
+    log_joint: list[float] = field(default_factory=list)
+
+
+class SGPDM:
+    """Shared GPDM with any number of observed views; scikit-learn-like ``fit``."""
+
+    def __init__(self, config: SGPDMConfig | None = None, **kwargs):
+        if config is not None and kwargs:
+            raise ValueError("give either a config or keyword settings, not both")
+        self.config = config if config is not None else SGPDMConfig(**kwargs)
+        self.view_names: list[str] = []
+        self.history = FitHistory()
+        self._fitted = False
+
+    # ------------------------------------------------------------------ validation/init
+    def _check_views(self, views: Mapping[str, np.ndarray], seq_lengths) -> tuple[dict, list[int]]:
+        if not views:
+            raise ValueError("no views given: pass e.g. {'audio': Y, 'visual': Z}")
+        arrs: dict[str, np.ndarray] = {}
+        n = None
+        for v, Y in views.items():
+            Y = np.asarray(Y, dtype=np.float64)
+            if Y.ndim != 2:
+                raise ValueError(f"view {v!r}: expected a 2-D array (frames, dims), got shape {Y.shape}")
+            if not np.all(np.isfinite(Y)):
+                bad = np.argwhere(~np.isfinite(Y))[0]
+                raise ValueError(f"view {v!r} contains NaN or inf (first at frame {bad[0]}, dim {bad[1]})")
+            if n is None:
+                n = Y.shape[0]
+            elif Y.shape[0] != n:
+                lens = {k: np.asarray(a).shape[0] for k, a in views.items()}
+                raise ValueError(f"views have different numbers of frames: {lens}")
+            arrs[v] = Y
+        assert n is not None
+        if seq_lengths is None:
+            seq_lengths = [n]
+        seq_lengths = [int(t) for t in seq_lengths]
+        if any(t < 1 for t in seq_lengths) or sum(seq_lengths) != n:
+            raise ValueError(
+                f"sequence lengths {seq_lengths[:10]}{'...' if len(seq_lengths) > 10 else ''} add up to "
+                f"{sum(seq_lengths)}, but the views have {n} frames (lengths must be >= 1)"
+            )
+        d = self.config.latent_dim
+        dims = {v: Y.shape[1] for v, Y in arrs.items()}
+        limit = sum(dims.values()) if self.config.init == "pca-concat" else min(dims.values())
+        if d > limit or d > n:
+            raise ValueError(
+                f"latent_dim={d} is larger than the data allow (view dimensions {dims}, {n} frames; "
+                f"init {self.config.init!r} needs d <= {min(limit, n)})"
+            )
+        if self.config.init not in ("pca-average", "pca-concat"):
+            raise ValueError(f"init must be 'pca-average' or 'pca-concat', got {self.config.init!r}")
+        bc = self.config.back_constraint
+        if bc is not None and bc not in arrs:
+            raise ValueError(f"back_constraint view {bc!r} is not among the views {list(arrs)}")
+        return arrs, seq_lengths
+
+    def _init_latents(self, centred: Mapping[str, np.ndarray]) -> np.ndarray:
+        cfg = self.config
+        d = cfg.latent_dim
+        if cfg.init == "pca-average":
+            X = np.mean([_pca(Y, d) for Y in centred.values()], axis=0)
+            X = X / np.maximum(X.std(0), 1e-12)
+        else:
+            Z = np.hstack([Y / np.maximum(Y.std(0), 1e-12) for Y in centred.values()])
+            X = _pca(Z, d)
+        scale = cfg.init_scale
+        if scale is None:
+            scale = math.sqrt(cfg.dyn_alpha) if cfg.dynamics else 1.0
+        return X * scale
+
+    # ------------------------------------------------------------------ parameters
+    def _hyper(self) -> dict[str, torch.Tensor]:
+        """Constrained hyperparameters from the free (log-space) ones."""
+        h = {k: torch.exp(v) for k, v in self._log.items()}
+        h.update(self._fixed)
+        return h
+
+    def _latents(self) -> torch.Tensor:
+        if self.backconstraint is not None:
+            return self.backconstraint(self._Y[self.config.back_constraint], self._bc_params)
+        return self._X
+
+    def _learned_thetas(self) -> list[str]:
+        return [k for k in self._log if not k.startswith("w/")]
+
+    def log_joint(self) -> torch.Tensor:
+        """Log joint of the Pyro trace at the current parameters (= the MAP objective)."""
+        return self.trace().log_prob_sum()
+
+    def trace(self) -> pyro.poutine.Trace:
+        """The executed Pyro trace; ``trace().nodes[site]['log_prob_sum']`` per term."""
+        tr = poutine.trace(sgpdm_model).get_trace(
+            self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
+            self._learned_thetas(),
+        )
+        tr.compute_log_prob()
+        return tr
+
+    def _free_tensors(self) -> list[torch.Tensor]:
+        free = list(self._log.values())
+        free += self._bc_params if self.backconstraint is not None else [self._X]
+        return free
+
+    # ------------------------------------------------------------------ fit
+    def fit(
+        self,
+        views: Mapping[str, np.ndarray],
+        seq_lengths: Sequence[int] | None = None,
+        X_init: np.ndarray | None = None,
+    ) -> "SGPDM":
+        """MAP training (torch L-BFGS on the log joint of :func:`sgpdm_model`).
+
+        views: name -> (N, D_v) array, rows frame-synchronous across views.
+        seq_lengths: lengths of the sequences stacked in the rows (default: one sequence).
+        X_init: optional (N, d) initial latents (default: PCA, see ``config.init``).
+        """
+        cfg = self.config
+        arrs, seq_lengths = self._check_views(views, seq_lengths)
+        torch.manual_seed(cfg.seed)
+        self.view_names = list(arrs)
+        self.seq_lengths_ = seq_lengths
+        self.means_ = {v: Y.mean(0) for v, Y in arrs.items()}
+        centred = {v: Y - self.means_[v] for v, Y in arrs.items()}
+        self._Y = {v: torch.as_tensor(Y) for v, Y in centred.items()}
+        if X_init is None:
+            X0 = self._init_latents(centred)
+        else:
+            X0 = np.asarray(X_init, dtype=np.float64)
+            if X0.shape != (sum(seq_lengths), cfg.latent_dim):
+                raise ValueError(f"X_init has shape {X0.shape}, expected {(sum(seq_lengths), cfg.latent_dim)}")
+        self._init_params(centred, X0)
+        self._optimise()
+        self._finalise()
+        return self
+
+    def _init_params(self, centred: Mapping[str, np.ndarray], X0: np.ndarray) -> None:
+        cfg = self.config
+        sq = ((X0[:, None, :] - X0[None, :, :]) ** 2).sum(-1) if len(X0) <= 2000 else None
+        med = float(np.median(sq[np.triu_indices(len(X0), 1)])) if sq is not None and len(X0) > 1 else 1.0
+        gamma0 = 1.0 / max(med, 1e-12)
+        self._log: dict[str, torch.Tensor] = {}
+        self._fixed: dict[str, torch.Tensor] = {}
+        f64 = lambda x: torch.tensor(float(x), dtype=torch.float64)  # noqa: E731
+        for v, Y in centred.items():
+            self._log[f"alpha/{v}"] = torch.log(f64(1.0))
+            self._log[f"gamma/{v}"] = torch.log(f64(gamma0))
+            self._log[f"beta/{v}"] = torch.log(f64(100.0))
+            w0 = torch.as_tensor(1.0 / np.maximum(Y.std(0), 1e-8))
+            if cfg.learn_w:
+                self._log[f"w/{v}"] = torch.log(w0)
+            else:
+                self._fixed[f"w/{v}"] = w0
+        dyn = {"alpha/dyn": cfg.dyn_alpha, "gamma/dyn": cfg.dyn_gamma, "beta/dyn": cfg.dyn_beta}
+        if cfg.dyn_linear is not None:
+            dyn["lin/dyn"] = cfg.dyn_linear
+        for k, val in dyn.items():
+            if cfg.dynamics and cfg.learn_dynamics:
+                self._log[k] = torch.log(f64(val))
+            else:
+                self._fixed[k] = f64(val)
+        for t in self._log.values():
+            t.requires_grad_(True)
+        self.backconstraint = None
+        if cfg.back_constraint is not None:
+            bc = MLPBackConstraint(centred[cfg.back_constraint].shape[1], cfg.latent_dim, cfg.bc_hidden, cfg.seed)
+            Yb = self._Y[cfg.back_constraint]
+            bc.set_input_scaling(Yb)
+            bc.fit_to(Yb, torch.as_tensor(X0))
+            self.backconstraint = bc
+            self._bc_params = [p.clone().requires_grad_(True) for p in bc.parameters()]
+        else:
+            self._X = torch.as_tensor(X0).clone().requires_grad_(True)
+
+    def _optimise(self) -> None:
+        cfg = self.config
+        free = self._free_tensors()
+        opt = torch.optim.LBFGS(free, lr=1.0, max_iter=20, history_size=50, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            loss = -self.log_joint()
+            loss.backward()
+            return loss
+
+        self.history = FitHistory([float(self.log_joint().detach())])
+        for _ in range(max(1, math.ceil(cfg.max_iter / 20))):
+            opt.step(closure)
+            with torch.no_grad():
+                cur = float(self.log_joint())
+            if not math.isfinite(cur):
+                raise RuntimeError("the SGPDM objective became non-finite during training")
+            prev = self.history.log_joint[-1]
+            self.history.log_joint.append(cur)
+            if abs(cur - prev) <= cfg.tol * max(1.0, abs(cur)):
+                break
+        log.info("SGPDM fit: log joint %.6g -> %.6g in %d steps", self.history.log_joint[0],
+                 self.history.log_joint[-1], len(self.history.log_joint) - 1)
+
+    def _finalise(self) -> None:
+        """Detach parameters and build the predictors used at synthesis."""
+        with torch.no_grad():
+            self.X_ = self._latents().detach().numpy().copy()
+            h = {k: v.detach() for k, v in self._hyper().items()}
+        if self.backconstraint is not None:
+            self.backconstraint.W1, self.backconstraint.b1, self.backconstraint.W2, self.backconstraint.b2 = (
+                p.detach() for p in self._bc_params
+            )
+        self.hyper_ = {k: (v.numpy().copy() if v.ndim else float(v)) for k, v in h.items()}
+        X = torch.as_tensor(self.X_)
+        self.predictors_ = {
+            v: GPPredictor(
+                X, self._Y[v], float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]), float(h[f"beta/{v}"]),
+                h[f"w/{v}"], torch.as_tensor(self.means_[v]), what=f"{v} kernel matrix",
+            )
+            for v in self.view_names
+        }
+        self.dynamics_predictor_ = None
+        if self.config.dynamics:
+            i_in, i_out, _ = dynamics_split(self.seq_lengths_)
+            if len(i_in) > 0:
+                lin = h.get("lin/dyn")
+                self.dynamics_predictor_ = GPPredictor(
+                    X[i_in], X[i_out], float(h["alpha/dyn"]), float(h["gamma/dyn"]), float(h["beta/dyn"]),
+                    alpha_lin=None if lin is None else float(lin), what="dynamics kernel matrix",
+                )
+        self._fitted = True
+
+    # ------------------------------------------------------------------ prediction
+    def _require_fitted(self) -> None:
+        if not self._fitted:
+            raise RuntimeError("this SGPDM is not fitted yet: call fit() or load()")
+
+    def predict_view(self, view: str, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean (T, D) and per-dimension variance σ²(x)/w² (T, D) of a view (eq. 10)."""
+        self._require_fitted()
+        if view not in self.predictors_:
+            raise ValueError(f"unknown view {view!r}; this model has {self.view_names}")
+        p = self.predictors_[view]
+        with torch.no_grad():
+            mu, var = p.mean_var(torch.as_tensor(np.asarray(X, dtype=np.float64)))
+        return mu.numpy(), p.dim_var(var).numpy()
+
+    def infer_latents(
+        self,
+        view: str,
+        Y: np.ndarray,
+        X_init: np.ndarray | str = "nn",
+        method: str = "sequence",
+        max_iter: int = 100,
+    ) -> np.ndarray:
+        """Latent points for new observations of one view (deena2009 §4.1, eq. 9).
+
+        method: "sequence" (eq. 9: observation + dynamics terms) or "point" (each frame
+        alone). X_init: an array, or the name of an initialiser ("nn", "back-constraint",
+        "hmm"; see :mod:`bayes_talk.synthesis.initialisers`).
+        """
+        from bayes_talk.synthesis.initialisers import initialise
+        from bayes_talk.synthesis.optimise import optimise_points, optimise_sequence
+
+        self._require_fitted()
+        Y = self._check_new(view, Y)
+        X0 = initialise(X_init, self, view, Y) if isinstance(X_init, str) else np.asarray(X_init, float)
+        if method == "sequence":
+            return optimise_sequence(self.predictors_[view], Y, X0, self.dynamics_predictor_, max_iter=max_iter)
+        if method == "point":
+            return optimise_points(self.predictors_[view], Y, X0, max_iter=max_iter)
+        raise ValueError(f"method must be 'sequence' or 'point', got {method!r}")
+
+    def predict(
+        self,
+        Y: np.ndarray,
+        view_in: str = "audio",
+        view_out: str = "visual",
+        X_init: np.ndarray | str = "nn",
+        method: str = "sequence",
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Visual prediction from audio (eq. 10): returns (mean, variance, latents)."""
+        X = self.infer_latents(view_in, Y, X_init, method)
+        mu, var = self.predict_view(view_out, X)
+        return mu, var, X
+
+    def _check_new(self, view: str, Y: np.ndarray) -> np.ndarray:
+        if view not in self.predictors_:
+            raise ValueError(f"unknown view {view!r}; this model has {self.view_names}")
+        Y = np.asarray(Y, dtype=np.float64)
+        D = self.predictors_[view].out_dim
+        if Y.ndim != 2 or Y.shape[1] != D:
+            raise ValueError(f"view {view!r}: expected shape (T, {D}), got {Y.shape}")
+        if not np.all(np.isfinite(Y)):
+            raise ValueError(f"view {view!r}: new observations contain NaN or inf")
+        return Y
+
+    # ------------------------------------------------------------------ persistence
+    def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(JSON-able metadata, arrays) that fully describe the fitted model."""
+        self._require_fitted()
+        meta = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "config": asdict(self.config),
+            "views": self.view_names,
+            "seq_lengths": self.seq_lengths_,
+            "history": self.history.log_joint,
+        }
+        arrays: dict[str, np.ndarray] = {"X": self.X_}
+        for v in self.view_names:
+            arrays[f"Y/{v}"] = self._Y[v].numpy()
+            arrays[f"mean/{v}"] = self.means_[v]
+        for k, val in self.hyper_.items():
+            arrays[f"hyper/{k}"] = np.asarray(val, dtype=np.float64)
+        if self.backconstraint is not None:
+            for k, val in self.backconstraint.state().items():
+                arrays[f"bc/{k}"] = val
+        return meta, arrays
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> "SGPDM":
+        if meta.get("format") != FORMAT_NAME:
+            raise ValueError(f"not an SGPDM model (format {meta.get('format')!r})")
+        if meta.get("version") != FORMAT_VERSION:
+            raise ValueError(
+                f"SGPDM model format version {meta.get('version')!r}; this bayes_talk reads version "
+                f"{FORMAT_VERSION}"
+            )
+        try:
+            obj = cls(SGPDMConfig(**meta["config"]))
+            obj.view_names = list(meta["views"])
+            obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
+            obj.history = FitHistory(list(meta.get("history", [])))
+            obj.X_ = np.asarray(arrays["X"], dtype=np.float64)
+            obj._Y = {v: torch.as_tensor(np.asarray(arrays[f"Y/{v}"], dtype=np.float64)) for v in obj.view_names}
+            obj.means_ = {v: np.asarray(arrays[f"mean/{v}"], dtype=np.float64) for v in obj.view_names}
+            hyper = {k[len("hyper/"):]: torch.as_tensor(np.asarray(a, dtype=np.float64))
+                     for k, a in arrays.items() if k.startswith("hyper/")}
+            bc_keys = {k[3:]: arrays[k] for k in arrays if k.startswith("bc/")}
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"SGPDM model is incomplete or corrupt: missing {exc}") from None
+        obj.backconstraint = MLPBackConstraint.from_state(bc_keys) if bc_keys else None
+        if obj.backconstraint is not None:
+            obj._bc_params = obj.backconstraint.parameters()
+        obj._X = torch.as_tensor(obj.X_)
+        obj._log = {}
+        obj._fixed = hyper
+        obj._finalise()
+        return obj
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""
+        path = Path(path)
+        meta, arrays = self.state()
+        _atomic_write(path.with_suffix(".npz"), lambda tmp: write_npz(tmp, arrays))
+        _atomic_write(path.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
+        return path.with_suffix(".json")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "SGPDM":
+        path = Path(path)
+        jpath, npath = path.with_suffix(".json"), path.with_suffix(".npz")
+        meta, arrays = read_model_files(jpath, npath)
+        return cls.from_state(meta, arrays)
+
+
+def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
+    """``np.savez`` to exactly ``path`` (no ``.npz`` appended)."""
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a JSON + NPZ model pair, turning every kind of damage into a ValueError."""
+    for p in (jpath, npath):
+        if not p.exists():
+            raise FileNotFoundError(f"model file {p} does not exist")
+    try:
+        meta = json.loads(jpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"model file {jpath} is truncated or not JSON ({exc})") from None
+    try:
+        with np.load(npath, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        raise ValueError(f"model file {npath} is truncated or corrupt ({exc})") from None
+    return meta, arrays
