@@ -1,6 +1,7 @@
 """Tests of the variable-length Markov model (bayes_talk.models.vlmm, deena2010 §2.2, §4)."""
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -176,6 +177,29 @@ def test_pruned_tree_and_closure_by_hand():
     assert all(len(q) == 1 for q in m3.states_)
 
 
+def test_ancestors_of_kept_nodes_are_kept_and_prefixes_added():
+    # L = 3, 5 copies each of "p y z A", "q y z B", "r z A", "s z B".
+    #   P̂(.|z) = P̂(.|y z) = {A: .5, B: .5} -> ΔH(y z, z) = 0: fails the test on its own,
+    #   P̂(.|p y z) = {A: 1}: ΔH = (5/30)·ln 2 = 0.116 >= ε = 0.05 -> passes ("q y z" alike),
+    #   P̂(.|r z) = {A: 1}:   ΔH = (5/50)·ln 2 = 0.069 -> passes ("s z" alike).
+    # Bottom-up pruning keeps "y z" because its children survive (Ron et al.). The PFSA
+    # then needs "p y" and "q y" (prefixes of kept states) so that the walk can reach
+    # "p y z": without them the state after "p y" would be "y" and "p y z" unreachable.
+    seqs = (
+        [["p", "y", "z", "A"]] * 5 + [["q", "y", "z", "B"]] * 5
+        + [["r", "z", "A"]] * 5 + [["s", "z", "B"]] * 5
+    )
+    m = VLMM(max_memory=3, epsilon=0.05, min_count=2).fit(seqs)
+    assert m.delta_h_[("y", "z")] == pytest.approx(0.0, abs=1e-15)
+    assert m.delta_h_[("p", "y", "z")] == pytest.approx(math.log(2) / 6, rel=1e-12)
+    tree = {q for q in m.states_ if len(q) >= 2 and m.in_tree_[q]}
+    assert tree == {("p", "y", "z"), ("q", "y", "z"), ("y", "z"), ("r", "z"), ("s", "z")}
+    assert {q for q in m.states_ if len(q) >= 2} == tree | {("p", "y"), ("q", "y")}
+    assert m.states(["p", "y", "z", "A"]) == [("p",), ("p", "y"), ("p", "y", "z"), ("A",)]
+    assert m.transition(("p", "y", "z"), "A") == (("A",), 1.0)
+    assert m.transition(("p", "y", "z"), "B") is None
+
+
 # --------------------------------------------------------------------------- 4. reset
 def test_unseen_pair_resets_to_start():
     m = VLMM(max_memory=3, epsilon=0.0, min_count=1).fit([["a", "a", "b", "b"], ["b", "a", "a"]])
@@ -273,7 +297,7 @@ def test_larger_epsilon_never_gives_more_states(source_seqs):
         VLMM(max_memory=4, epsilon=eps, min_count=2).fit(seqs).n_states
         for eps in (0.0, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 1e-1)
     ]
-    assert all(a >= b for a, b in zip(counts, counts[1:]))
+    assert all(a >= b for a, b in itertools.pairwise(counts))
     assert counts[0] > counts[-1] == 3  # the grid spans from everything to single labels
 
 

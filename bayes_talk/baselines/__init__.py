@@ -1,0 +1,20 @@
+"""Published baselines (DESIGN §7): Voice Puppetry, SLDS, DPDS, per-phone mean.
+
+``REGISTRY`` maps each model's ``name`` to its class::
+
+    from bayes_talk.baselines import REGISTRY
+    model = REGISTRY["dpds"]().fit(train)
+    z_hat = model.predict(test_seq)
+"""
+from __future__ import annotations
+
+from bayes_talk.baselines.base import Baseline
+from bayes_talk.baselines.hmm_mean import HMMMean
+from bayes_talk.baselines.lds import DPDS, SLDS
+from bayes_talk.baselines.voice_puppetry import VoicePuppetry
+
+REGISTRY: dict[str, type[Baseline]] = {
+    cls.name: cls for cls in (VoicePuppetry, SLDS, DPDS, HMMMean)
+}
+
+__all__ = ["Baseline", "VoicePuppetry", "SLDS", "DPDS", "HMMMean", "REGISTRY"]

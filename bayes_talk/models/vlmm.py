@@ -76,7 +76,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-__all__ = ["VLMM", "Segment", "State", "START", "FORMAT_VERSION"]
+__all__ = ["FORMAT_VERSION", "START", "VLMM", "Segment", "State"]
 
 State = tuple[str, ...]
 #: The start state (empty context). Never the state of a frame.
@@ -99,7 +99,9 @@ class Segment(NamedTuple):
 
 def _check_labels(labels: Any, what: str) -> list[str]:
     if isinstance(labels, str) or not isinstance(labels, Sequence):
-        raise ValueError(f"{what} must be a list of label strings, got {type(labels).__name__}")
+        raise ValueError(  # noqa: TRY004 - package convention: bad input is a ValueError
+            f"{what} must be a list of label strings, got {type(labels).__name__}"
+        )
     out = list(labels)
     if not out:
         raise ValueError(f"{what} is empty; a label sequence needs at least one frame")
@@ -135,7 +137,7 @@ class VLMM:
         if isinstance(max_memory, bool) or not isinstance(max_memory, (int, np.integer)) or max_memory < 1:
             raise ValueError(f"max_memory must be an integer >= 1, got {max_memory!r}")
         if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.floating, np.integer)):
-            raise ValueError(f"epsilon must be a real number >= 0, got {epsilon!r}")
+            raise ValueError(f"epsilon must be a real number >= 0, got {epsilon!r}")  # noqa: TRY004
         if not math.isfinite(float(epsilon)) or float(epsilon) < 0:
             raise ValueError(f"epsilon must be finite and >= 0, got {epsilon!r}")
         if isinstance(min_count, bool) or not isinstance(min_count, (int, np.integer)) or min_count < 1:
@@ -152,7 +154,9 @@ class VLMM:
         ``sequences`` is a list of frame-label sequences (lists of strings). Returns self.
         """
         if isinstance(sequences, str) or not isinstance(sequences, Iterable):
-            raise ValueError("sequences must be a list of label sequences (lists of strings)")
+            raise ValueError(  # noqa: TRY004
+                "sequences must be a list of label sequences (lists of strings)"
+            )
         seqs = [_check_labels(s, f"training sequence {i}") for i, s in enumerate(sequences)]
         if not seqs:
             raise ValueError("sequences is empty; fit needs at least one label sequence")
@@ -483,13 +487,17 @@ class VLMM:
         n_tree = sum(1 for q in self.states_ if self.in_tree_[q])
         lines = [
             f"VLMM(max_memory={self.max_memory}, epsilon={self.epsilon:g}, min_count={self.min_count})",
-            f"trained on {self.n_sequences_} sequences, {self.n_frames_} frames, "
-            f"{len(self.alphabet_)} labels",
-            f"{self.n_states} states ({n_tree} from the pruned tree, "
-            f"{self.n_states - n_tree} added for closure)",
+            (
+                f"trained on {self.n_sequences_} sequences, {self.n_frames_} frames, "
+                f"{len(self.alphabet_)} labels"
+            ),
+            (
+                f"{self.n_states} states ({n_tree} from the pruned tree, "
+                f"{self.n_states - n_tree} added for closure)"
+            ),
             "memory histogram: "
             + ", ".join(f"M={m}: {hist[m]}" for m in range(1, self.max_memory + 1)),
-            f"most frequent states (training frames in state):",
+            "most frequent states (training frames in state):",
         ]
         ranked = sorted(self.states_, key=lambda q: (-self.occupancy_[q], -len(q), q))
         for q in ranked[:top]:

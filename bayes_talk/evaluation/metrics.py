@@ -1,0 +1,257 @@
+"""Error, correlation and calibration metrics (DESIGN §9).
+
+Inputs are per-utterance arrays: ``truth`` and ``pred`` are lists of (T_i, D) arrays
+(a single 2-D array is one utterance, a 3-D array (n, T, D) is n utterances of equal
+length). Shapes must agree utterance by utterance and contain no NaN/inf; otherwise a
+ValueError names the problem.
+
+Per-utterance errors, with e_td = ẑ_td − z_td over T frames and D dimensions:
+
+    MSE   = (1 / TD) Σ_t Σ_d e_td²                        (deena2010 §5, "mean squared error")
+    RMS   = √MSE                                          (deena2009 §4.4)
+    L1    = (1 / T) Σ_t Σ_d |e_td|                        (englebienne2008 Fig. 4a: mean L1 distance
+                                                           between generated and real frames)
+    L∞    = (1 / T) Σ_t max_d |e_td|                      (englebienne2008 Fig. 4c: mean L∞ distance)
+    NMSE  = (1 / D) Σ_d [ (1/T) Σ_t e_td² ] / v_d         (MSE normalised by the ground-truth variance
+                                                           v_d; DESIGN §9)
+    CORR  = (1 / |D'|) Σ_{d ∈ D'} Pearson(ẑ_·d, z_·d)     (D' = dimensions where both series vary)
+
+Corpus figures (deena2010 §5): AMSE = mean over utterances of MSE; ACC = mean over
+utterances of CORR. A dimension that is constant in the truth or in the prediction has an
+undefined Pearson correlation: it is skipped (not counted as 0); an utterance with no
+usable dimension has CORR = nan and is skipped by ACC (with a warning).
+
+Calibration of Gaussian predictive bands (DESIGN §6), pooled over every scalar entry of
+every utterance: :func:`coverage`, :func:`crps_gaussian` (closed form),
+:func:`crps_ensemble` (samples), :func:`nlpd_gaussian`.
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence as Seq
+
+import numpy as np
+import scipy.stats
+
+__all__ = [
+    "mse", "rms", "l1", "linf", "normalised_mse", "correlation", "amse", "acc",
+    "summarise", "coverage", "crps_gaussian", "crps_ensemble", "nlpd_gaussian",
+]
+
+ArrayList = Seq[np.ndarray] | np.ndarray
+
+
+def _as_list(x: ArrayList, what: str, ndim: int = 2) -> list[np.ndarray]:
+    if isinstance(x, np.ndarray):
+        if x.ndim == ndim:
+            items = [x]
+        elif x.ndim == ndim + 1:
+            items = list(x)
+        else:
+            raise ValueError(f"{what}: expected a list of {ndim}-D arrays, got an array of shape {x.shape}")
+    else:
+        items = list(x)
+    if not items:
+        raise ValueError(f"{what}: no utterances")
+    out = []
+    for i, a in enumerate(items):
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != ndim:
+            raise ValueError(f"{what}[{i}]: expected a {ndim}-D array, got shape {a.shape}")
+        if a.size == 0:
+            raise ValueError(f"{what}[{i}]: empty array of shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{what}[{i}]: contains NaN or inf")
+        out.append(a)
+    return out
+
+
+def _pairs(truth: ArrayList, other: ArrayList, name: str = "pred") -> list[tuple[np.ndarray, np.ndarray]]:
+    t = _as_list(truth, "truth")
+    o = _as_list(other, name)
+    if len(t) != len(o):
+        raise ValueError(f"{len(t)} truth utterances but {len(o)} {name} utterances")
+    for i, (a, b) in enumerate(zip(t, o)):
+        if a.shape != b.shape:
+            raise ValueError(f"utterance {i}: {name} has shape {b.shape}, expected {a.shape} (truth)")
+    return list(zip(t, o))
+
+
+def mse(truth: ArrayList, pred: ArrayList) -> np.ndarray:
+    """Per-utterance mean squared error (n,)."""
+    return np.array([np.mean((p - t) ** 2) for t, p in _pairs(truth, pred)])
+
+
+def rms(truth: ArrayList, pred: ArrayList) -> np.ndarray:
+    """Per-utterance root mean squared error √MSE (n,)."""
+    return np.sqrt(mse(truth, pred))
+
+
+def l1(truth: ArrayList, pred: ArrayList) -> np.ndarray:
+    """Per-utterance mean over frames of the L1 distance Σ_d |e_td| (n,)."""
+    return np.array([np.mean(np.sum(np.abs(p - t), axis=1)) for t, p in _pairs(truth, pred)])
+
+
+def linf(truth: ArrayList, pred: ArrayList) -> np.ndarray:
+    """Per-utterance mean over frames of the L∞ distance max_d |e_td| (n,)."""
+    return np.array([np.mean(np.max(np.abs(p - t), axis=1)) for t, p in _pairs(truth, pred)])
+
+
+def normalised_mse(truth: ArrayList, pred: ArrayList, variance: np.ndarray | None = None) -> np.ndarray:
+    """Per-utterance variance-normalised MSE (n,): mean over d of MSE_d / v_d.
+
+    ``variance`` (D,) is the ground-truth variance per dimension; by default the variance
+    of the pooled truth frames of all given utterances (stable for short utterances and
+    the same normaliser for every model). Dimensions with v_d = 0 are skipped.
+    """
+    pairs = _pairs(truth, pred)
+    D = pairs[0][0].shape[1]
+    if any(t.shape[1] != D for t, _ in pairs):
+        raise ValueError("normalised_mse: utterances have different numbers of dimensions")
+    if variance is None:
+        v = np.concatenate([t for t, _ in pairs]).var(axis=0)
+    else:
+        v = np.asarray(variance, dtype=np.float64)
+        if v.shape != (D,):
+            raise ValueError(f"variance has shape {v.shape}, expected ({D},)")
+        if np.any(~np.isfinite(v)) or np.any(v < 0):
+            raise ValueError("variance must be finite and non-negative")
+    keep = v > 0
+    if not keep.any():
+        raise ValueError("normalised_mse: the ground truth is constant in every dimension")
+    return np.array([np.mean(np.mean((p - t) ** 2, axis=0)[keep] / v[keep]) for t, p in pairs])
+
+
+def correlation(truth: ArrayList, pred: ArrayList) -> np.ndarray:
+    """Per-utterance mean over dimensions of the Pearson correlation (n,).
+
+    Dimensions where the truth or the prediction is constant are skipped; nan if none remain.
+    """
+    out = []
+    for t, p in _pairs(truth, pred):
+        tc, pc = t - t.mean(axis=0), p - p.mean(axis=0)
+        st, sp_ = np.sqrt(np.sum(tc * tc, axis=0)), np.sqrt(np.sum(pc * pc, axis=0))
+        scale = np.maximum(np.abs(t).max(axis=0), np.abs(p).max(axis=0)) * np.sqrt(t.shape[0])
+        ok = (st > 1e-12 * scale) & (sp_ > 1e-12 * scale)
+        if not ok.any():
+            out.append(np.nan)
+            continue
+        r = np.sum(tc[:, ok] * pc[:, ok], axis=0) / (st[ok] * sp_[ok])
+        out.append(float(np.mean(np.clip(r, -1.0, 1.0))))
+    return np.array(out)
+
+
+def amse(truth: ArrayList, pred: ArrayList) -> float:
+    """AMSE: mean over utterances of the per-utterance MSE (deena2010 §5)."""
+    return float(np.mean(mse(truth, pred)))
+
+
+def acc(truth: ArrayList, pred: ArrayList) -> float:
+    """ACC: mean over utterances of :func:`correlation` (utterances with nan skipped)."""
+    c = correlation(truth, pred)
+    bad = np.isnan(c)
+    if bad.all():
+        warnings.warn("acc: no utterance has a usable (non-constant) dimension", RuntimeWarning, stacklevel=2)
+        return float("nan")
+    if bad.any():
+        warnings.warn(f"acc: {int(bad.sum())} utterance(s) without a usable dimension skipped",
+                      RuntimeWarning, stacklevel=2)
+    return float(np.mean(c[~bad]))
+
+
+def summarise(values: Seq[float] | np.ndarray, level: float = 0.95) -> dict[str, object]:
+    """Mean, sample std (ddof=1), t confidence interval of the mean and n.
+
+        ci = mean ± t_{(1+level)/2, n−1} · std / √n
+
+    Non-finite values (e.g. an undefined correlation) are dropped with a warning and not
+    counted in n. With n = 1 the std and the interval are nan. The key is ``"ci95"``
+    whatever ``level`` is.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    if v.size == 0:
+        raise ValueError("summarise: no values")
+    fin = np.isfinite(v)
+    if not fin.all():
+        warnings.warn(f"summarise: {int((~fin).sum())} non-finite value(s) dropped", RuntimeWarning,
+                      stacklevel=2)
+        v = v[fin]
+    n = int(v.size)
+    if n == 0:
+        raise ValueError("summarise: all values are NaN or inf")
+    mean = float(v.mean())
+    if n < 2:
+        return {"mean": mean, "std": float("nan"), "ci95": [float("nan"), float("nan")], "n": n}
+    std = float(v.std(ddof=1))
+    half = float(scipy.stats.t.ppf(0.5 + level / 2, n - 1)) * std / np.sqrt(n)
+    return {"mean": mean, "std": std, "ci95": [mean - half, mean + half], "n": n}
+
+
+def coverage(truth: ArrayList, lower: ArrayList, upper: ArrayList) -> float:
+    """Fraction of truth entries with lower ≤ z ≤ upper, pooled over all utterances."""
+    lo = _pairs(truth, lower, "lower")
+    up = _pairs(truth, upper, "upper")
+    inside = total = 0
+    for (t, l), (_, u) in zip(lo, up):
+        if np.any(l > u):
+            raise ValueError("coverage: lower bound above upper bound")
+        inside += int(np.sum((t >= l) & (t <= u)))
+        total += t.size
+    return inside / total
+
+
+def crps_gaussian(truth: ArrayList, mean: ArrayList, std: ArrayList) -> float:
+    """Mean CRPS of Gaussian predictives N(μ, σ²), closed form (Gneiting & Raftery 2007):
+
+        CRPS = σ [ w (2Φ(w) − 1) + 2 φ(w) − 1/√π ],   w = (z − μ) / σ.
+    """
+    pm, ps = _pairs(truth, mean, "mean"), _pairs(truth, std, "std")
+    tot = n = 0.0
+    for (t, m), (_, s) in zip(pm, ps):
+        if np.any(s <= 0):
+            raise ValueError("crps_gaussian: std must be > 0")
+        w = (t - m) / s
+        c = s * (w * (2 * scipy.stats.norm.cdf(w) - 1) + 2 * scipy.stats.norm.pdf(w) - 1 / np.sqrt(np.pi))
+        tot += c.sum()
+        n += c.size
+    return float(tot / n)
+
+
+def crps_ensemble(truth: ArrayList, samples: ArrayList) -> float:
+    """Mean CRPS of the empirical distribution of m samples per entry:
+
+        CRPS = (1/m) Σ_i |x_i − z| − (1 / 2m²) Σ_i Σ_j |x_i − x_j|
+
+    (the plain, not the "fair" m(m−1), estimator; exact CRPS of the sample distribution).
+    ``samples`` is a list of (m, T_i, D) arrays. The double sum uses the sorted-sample
+    identity Σ_i Σ_j |x_i − x_j| = 2 Σ_k (2k − m − 1) x_(k), k = 1..m.
+    """
+    t_list = _as_list(truth, "truth")
+    s_list = _as_list(samples, "samples", ndim=3)
+    if len(t_list) != len(s_list):
+        raise ValueError(f"{len(t_list)} truth utterances but {len(s_list)} sample sets")
+    tot = n = 0.0
+    for i, (t, s) in enumerate(zip(t_list, s_list)):
+        if s.shape[1:] != t.shape:
+            raise ValueError(f"utterance {i}: samples have shape {s.shape}, expected (m, *{t.shape})")
+        m = s.shape[0]
+        term1 = np.mean(np.abs(s - t[None]), axis=0)
+        xs = np.sort(s, axis=0)
+        k = np.arange(1, m + 1, dtype=np.float64).reshape(-1, *([1] * t.ndim))
+        term2 = np.sum((2 * k - m - 1) * xs, axis=0) / (m * m)
+        c = term1 - term2
+        tot += c.sum()
+        n += c.size
+    return float(tot / n)
+
+
+def nlpd_gaussian(truth: ArrayList, mean: ArrayList, var: ArrayList) -> float:
+    """Mean negative log predictive density per entry: ½ log(2π σ²) + (z − μ)² / (2σ²)."""
+    pm, pv = _pairs(truth, mean, "mean"), _pairs(truth, var, "var")
+    tot = n = 0.0
+    for (t, m), (_, v) in zip(pm, pv):
+        if np.any(v <= 0):
+            raise ValueError("nlpd_gaussian: var must be > 0")
+        tot += np.sum(0.5 * np.log(2 * np.pi * v) + (t - m) ** 2 / (2 * v))
+        n += t.size
+    return float(tot / n)
