@@ -17,4 +17,4 @@ REGISTRY: dict[str, type[Baseline]] = {
     cls.name: cls for cls in (VoicePuppetry, SLDS, DPDS, HMMMean)
 }
 
-__all__ = ["Baseline", "VoicePuppetry", "SLDS", "DPDS", "HMMMean", "REGISTRY"]
+__all__ = ["DPDS", "REGISTRY", "SLDS", "Baseline", "HMMMean", "VoicePuppetry"]

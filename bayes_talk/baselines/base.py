@@ -26,7 +26,7 @@ import numpy as np
 from bayes_talk.data.phones import PHONE_TO_VISEME, check_phone
 from bayes_talk.data.sequence import Sequence
 
-__all__ = ["Baseline", "LabelEncoder", "check_train", "check_test"]
+__all__ = ["Baseline", "LabelEncoder", "check_test", "check_train"]
 
 
 class Baseline(ABC):
@@ -66,14 +66,14 @@ def check_train(train: list[Sequence], *, min_sequences: int = 1) -> tuple[int, 
     has no ``aam``, is empty, or the feature dimensions differ between sequences.
     """
     if isinstance(train, Sequence):
-        raise ValueError("train must be a list of Sequence objects, got a single Sequence")
+        raise ValueError("train must be a list of Sequence objects, got a single Sequence")  # noqa: TRY004
     train = list(train)
     if len(train) < min_sequences:
         raise ValueError(f"need at least {min_sequences} training sequence(s), got {len(train)}")
     d_y = d_z = None
     for s in train:
         if not isinstance(s, Sequence):
-            raise ValueError(f"train must contain Sequence objects, got {type(s).__name__}")
+            raise ValueError(f"train must contain Sequence objects, got {type(s).__name__}")  # noqa: TRY004
         if s.aam is None:
             raise ValueError(f"training sequence {s.name!r} has no visual features (aam is None)")
         if s.n_frames < 1:
@@ -91,7 +91,7 @@ def check_test(seq: Sequence, *, n_audio: int | None = None, n_visual: int | Non
                need_aam: bool = False) -> None:
     """Validate a test sequence against the fitted dimensions (ValueError on mismatch)."""
     if not isinstance(seq, Sequence):
-        raise ValueError(f"expected a Sequence, got {type(seq).__name__}")
+        raise ValueError(f"expected a Sequence, got {type(seq).__name__}")  # noqa: TRY004
     if seq.n_frames < 1:
         raise ValueError(f"sequence {seq.name!r} has no frames")
     if n_audio is not None and seq.mfcc.shape[1] != n_audio:

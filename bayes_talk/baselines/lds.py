@@ -37,8 +37,19 @@ import scipy.optimize
 from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
 from bayes_talk.data.sequence import Sequence
 
-__all__ = ["SLDS", "DPDS", "Batch", "make_batch", "mean_trajectory", "kalman_smoother",
-           "dpds_forward", "dpds_loglik", "dpds_grad_A", "dpds_solve_mu_nu", "dpds_profile"]
+__all__ = [
+    "DPDS",
+    "SLDS",
+    "Batch",
+    "dpds_forward",
+    "dpds_grad_A",
+    "dpds_loglik",
+    "dpds_profile",
+    "dpds_solve_mu_nu",
+    "kalman_smoother",
+    "make_batch",
+    "mean_trajectory",
+]
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -374,13 +385,27 @@ def dpds_solve_mu_nu(A: np.ndarray, batch: Batch, mu_default: np.ndarray,
     H[:, srange, L[0]] = 1.0
     G = np.zeros((D, 2 * P, 2 * P))
     c = np.zeros((D, 2 * P))
+    # rows h_t of the valid frames are buffered and reduced in chunks of ~chunk_rows rows,
+    # so that Σ h hᵀ is one BLAS matrix product per dimension and chunk
+    chunk_rows = 4096
+    rows_H: list[np.ndarray] = []
+    rows_Y: list[np.ndarray] = []
+    n_rows = 0
     for t in range(T):
         if t > 0:
             H *= A[L[t]].T[:, :, None]
             H[:, srange, P + L[t]] += 1.0
-        Hm = H * M[t][None, :, None]
-        G += np.matmul(Hm.transpose(0, 2, 1), Hm)
-        c += np.einsum("dsi,sd->di", Hm, Y[t])
+        v = M[t]
+        rows_H.append(H[:, v, :])
+        rows_Y.append(Y[t][v].T)
+        n_rows += int(v.sum())
+        if n_rows >= chunk_rows or t == T - 1:
+            X = np.concatenate(rows_H, axis=1)       # (D, rows, 2Π)
+            yv = np.concatenate(rows_Y, axis=1)      # (D, rows)
+            for d in range(D):  # 2-D products go to BLAS (a batched matmul of views does not)
+                G[d] += X[d].T @ X[d]
+                c[d] += X[d].T @ yv[d]
+            rows_H, rows_Y, n_rows = [], [], 0
     mu, nu = mu_default.copy(), nu_default.copy()
     for d in range(D):
         act = np.diag(G[d]) > 0
@@ -463,7 +488,7 @@ class DPDS(Baseline):
 
         def f(theta: np.ndarray) -> tuple[float, np.ndarray]:
             A = theta.reshape(shape)
-            ll, g, mu, nu, R = dpds_profile(A, b, lmean, (1 - A) * lmean, floor)
+            ll, g, *_ = dpds_profile(A, b, lmean, (1 - A) * lmean, floor)
             cache.update(theta=theta.copy(), ll=ll)
             return -ll / N, -g.ravel() / N
 

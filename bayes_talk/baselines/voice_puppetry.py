@@ -2,8 +2,12 @@
 
 Training
 --------
-1. A Gaussian HMM (hmmlearn ``GaussianHMM``, K states, seeded k-means initialisation,
-   Baum-Welch) is fitted to the visual features with deltas, o_t = [z_t, Δz_t] (2 D_z).
+1. A Gaussian HMM (hmmlearn ``GaussianHMM``, K states, Baum-Welch) is fitted to the
+   visual features with deltas, o_t = [z_t, Δz_t] (2 D_z), standardised per column.
+   Initial state means: seeded k-means (scikit-learn) on the *static* part z only, each
+   state starting at its cluster's mean of [z, Δz]; hmmlearn initialises start
+   probabilities, transitions and covariances. (k-means on [z, Δz] tends to spend states
+   on the few large-Δz frames at transitions.)
 2. *Remapping*: with the facial-state posteriors γ_tk = p(s_t = k | O) of the training
    data (``predict_proba``), each state gets an audio emission
 
@@ -42,12 +46,18 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 from hmmlearn.hmm import GaussianHMM
+from sklearn.cluster import KMeans
 
 from bayes_talk.baselines.base import Baseline, check_test, check_train
 from bayes_talk.data.sequence import Sequence
 
-__all__ = ["VoicePuppetry", "delta_matrix", "delta_features", "trajectory_solve",
-           "sparse_to_upper_banded"]
+__all__ = [
+    "VoicePuppetry",
+    "delta_features",
+    "delta_matrix",
+    "sparse_to_upper_banded",
+    "trajectory_solve",
+]
 
 CovType = Literal["diag", "full"]
 
@@ -193,11 +203,18 @@ class VoicePuppetry(Baseline):
         # standardise the visual observations (hmmlearn's min_covar is absolute)
         loc, scale = V.mean(axis=0), V.std(axis=0)
         scale[scale <= 0] = 1.0
+        Vs = (V - loc) / scale
+        # initial state means: k-means on the static part z only, so that states start as
+        # facial configurations rather than as the large-Δz transition frames
+        km = KMeans(n_clusters=self.n_states, n_init=10, random_state=self.random_state).fit(Vs[:, :d_z])
+        init_means = np.stack([Vs[km.labels_ == k].mean(axis=0) if np.any(km.labels_ == k)
+                               else Vs.mean(axis=0) for k in range(self.n_states)])
         vis = GaussianHMM(n_components=self.n_states, covariance_type=self.visual_covariance,
                           min_covar=self.min_covar, n_iter=self.n_iter, tol=self.tol,
-                          random_state=self.random_state)
-        vis.fit((V - loc) / scale, lengths)
-        gamma = vis.predict_proba((V - loc) / scale, lengths)  # (N, K) facial-state posteriors
+                          random_state=self.random_state, init_params="stc")
+        vis.means_ = init_means
+        vis.fit(Vs, lengths)
+        gamma = vis.predict_proba(Vs, lengths)  # (N, K) facial-state posteriors
         self.visual_hmm_ = vis
         self.startprob_ = vis.startprob_.copy()
         self.transmat_ = vis.transmat_.copy()

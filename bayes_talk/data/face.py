@@ -6,7 +6,7 @@ and their reasons are collected in ``docs/face.md``). One call,
 
     intervals (start_s, end_s, phone) --Cohen-Massaro blend--> articulators (T, 6)
         + per-token target variability + low-pass noise + visual lead
-    articulators, blinks, head pose --geometry--> landmarks (T, 55, 2) in pixels
+    articulators, blinks, head pose --geometry--> landmarks (T, 57, 2) in pixels
 
 Articulators (:data:`ARTICULATORS`), in *design units* (1 unit = 1 pixel of a 136-pixel
 frame, i.e. ``image_size / 136`` pixels):
@@ -28,11 +28,14 @@ articulator ``j``, its target ``T_sj`` with dominance::
 (``theta_ant`` for ``t < c_s``: the segment's influence on what comes before it;
 ``theta_car`` for ``t >= c_s``), and the articulator track is
 ``x_j(t) = sum_s D_sj T_sj / sum_s D_sj`` (computed as a softmax of ``log D`` for
-numerical range). Bilabials and labiodentals are strongly dominant (alpha 40 / 20-25) on
-lip aperture with a slightly negative "compression" aperture target, so after clipping at
-0 the lips really close; vowels are weakly dominant on lip shape (alpha ~1) except the
-rounded ones, whose rounding spreads into neighbouring consonants (alpha 3, slower
-anticipatory decay); ``hh`` is transparent (alpha 0.05).
+numerical range). Bilabials and labiodentals are strongly but locally dominant on lip
+aperture (alpha 2000 / 1000 with theta 100/s: they win inside their segment and fall
+below a vowel's alpha 1.5 about 70 ms from their centre) with a negative "compression"
+aperture target, so after clipping at 0 the lips really close; vowels are weakly
+dominant on lip shape (alpha ~1) except the rounded ones, whose rounding spreads into
+neighbouring consonants (alpha 3, slower anticipatory decay 8/s); ``hh`` is transparent
+(alpha 0.05). The face leads the audio by 20-40 ms, except lip contact of /p b m f v/,
+which stays synchronous with the acoustic closure.
 
 All randomness comes from the ``rng`` argument, drawn in a fixed order, so the same seed
 gives bit-identical landmarks.
@@ -56,19 +59,19 @@ from bayes_talk.data.phones import (
 
 __all__ = [
     "ARTICULATORS",
+    "DESIGN_SIZE",
+    "LANDMARK_GROUPS",
     "N_ARTICULATORS",
     "N_LANDMARKS",
-    "LANDMARK_GROUPS",
-    "DESIGN_SIZE",
     "FaceTrack",
     "articulator_targets",
     "dominance_parameters",
-    "face_trajectories",
-    "shape_from_articulators",
     "face_landmarks",
+    "face_trajectories",
+    "inner_lip_aperture",
     "reference_shape",
     "rest_shape",
-    "inner_lip_aperture",
+    "shape_from_articulators",
 ]
 
 ARTICULATORS: tuple[str, ...] = ("jaw", "aperture", "spread", "protrusion", "raise", "tuck")
@@ -80,11 +83,11 @@ _J, _A, _S, _P, _R, _K = range(N_ARTICULATORS)
 DESIGN_SIZE = 136.0
 
 # --------------------------------------------------------------------------------------
-# Landmark layout (55 points). Index ranges are fixed; docs/face.md has a figure-free table.
+# Landmark layout (57 points). Index ranges are fixed; docs/face.md has a figure-free table.
 # --------------------------------------------------------------------------------------
 _GROUP_SIZES = (
     ("jaw", 9),          # left temple -> chin -> right temple
-    ("forehead", 3),     # right -> top -> left (closes the face outline)
+    ("forehead", 5),     # right -> top -> left (closes the face outline)
     ("brow_left", 3),
     ("brow_right", 3),
     ("eye_left", 6),     # outer corner, upper x2, inner corner, lower x2 (clockwise)
@@ -132,7 +135,7 @@ LOWER_TEETH_BELOW_CHIN = (_FACE_CY + _FACE_B_BOT) - (_LIP_Y0 + 3.0)
 _VISEME_TARGETS: dict[int, tuple[float, ...]] = {
     0: (0.5, -0.5, 0.0, 0.0, 0.0, 0.0),    # sil: rest, mouth closed
     1: (1.0, -1.0, 0.0, 0.05, 0.0, 0.0),   # p b m: lips pressed together
-    2: (1.0, 1.2, 0.0, 0.0, 1.6, 1.0),     # f v: lower lip under the upper teeth
+    2: (1.0, 2.2, 0.0, 0.0, 2.0, 1.0),     # f v: lower lip under the upper teeth
     3: (2.0, 2.5, 0.1, 0.0, 0.5, 0.0),     # th dh
     4: (2.0, 2.5, 0.1, 0.0, 0.3, 0.0),     # t d
     5: (2.5, 3.0, 0.0, 0.0, 0.0, 0.0),     # k g ng hh
@@ -171,8 +174,8 @@ class _Dominance:
 #: Dominance classes (alpha per articulator: jaw, aperture, spread, protrusion, raise, tuck).
 _DOMINANCE: dict[str, _Dominance] = {
     "sil": _Dominance((1.0, 1.0, 1.0, 1.0, 1.0, 1.0), 5.0, 5.0),
-    "bilabial": _Dominance((0.5, 40.0, 0.3, 0.3, 1.0, 5.0), 60.0, 60.0),
-    "labiodental": _Dominance((0.8, 20.0, 0.5, 0.5, 15.0, 25.0), 55.0, 55.0),
+    "bilabial": _Dominance((0.5, 2000.0, 0.3, 0.3, 1.0, 5.0), 100.0, 100.0),
+    "labiodental": _Dominance((0.8, 1000.0, 0.5, 0.5, 500.0, 1000.0), 100.0, 100.0),
     "rounded": _Dominance((1.0, 1.5, 3.0, 3.0, 1.0, 1.0), 8.0, 14.0),
     "vowel": _Dominance((1.5, 1.5, 1.0, 1.0, 1.0, 1.0), 11.0, 14.0),
     "protruded": _Dominance((0.8, 1.0, 1.5, 2.0, 1.0, 1.0), 16.0, 16.0),
@@ -338,7 +341,8 @@ def face_trajectories(
     motion.
     """
     if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng: expected a numpy.random.Generator, found {type(rng).__name__}")
+        # ValueError, not TypeError: the project convention for every bad input.
+        raise ValueError(f"rng: expected a numpy.random.Generator, found {type(rng).__name__}")  # noqa: TRY004
     starts, ends, phones = _validate_intervals(intervals, n_frames, fps)
     n_seg = len(phones)
     t_frame = (np.arange(n_frames) + 0.5) / fps
@@ -346,12 +350,20 @@ def face_trajectories(
     t = t_frame + lead
 
     # Per-token targets and dominance parameters.
-    targets = np.stack([_TARGET_TABLE[PHONES.index(p)] for p in phones])
-    targets = targets + _truncated_normal(rng, _TARGET_SD, (n_seg, N_ARTICULATORS), 2.5)
+    base = np.stack([_TARGET_TABLE[PHONES.index(p)] for p in phones])
+    targets = base + _truncated_normal(rng, _TARGET_SD, (n_seg, N_ARTICULATORS), 2.5)
+    # Closures stay closures: a token of a closed-lip target varies only towards more
+    # compression (lip contact is a hard constraint, not a noisy target).
+    closed = base[:, _A] <= 0
+    targets[closed, _A] = base[closed, _A] - np.abs(targets[closed, _A] - base[closed, _A])
     log_alpha = np.log(np.stack([_DOM_TABLE[p][0] for p in phones]))        # (S, 6)
     theta_ant = np.array([_DOM_TABLE[p][1] for p in phones])
     theta_car = np.array([_DOM_TABLE[p][2] for p in phones])
-    centres = 0.5 * (starts + ends)
+    # The face leads the audio by ``lead`` (anticipatory movement), except lip contact:
+    # the acoustic closure of /p b m f v/ starts when the lips meet, so the closure
+    # segments are shifted with the lead and stay synchronous with the audio.
+    contact = np.array([p in BILABIALS or p in LABIODENTALS for p in phones])
+    centres = 0.5 * (starts + ends) + np.where(contact, lead, 0.0)
 
     # Cohen-Massaro blend as a softmax over segments of log D (T, S, 6).
     tau = t[:, None] - centres[None, :]
@@ -362,7 +374,10 @@ def face_trajectories(
     art = np.einsum("tsj,sj->tj", d, targets) / d.sum(axis=1)
 
     sigma_frames = _NOISE_SIGMA_S * fps
-    art = art + _smooth_noise(rng, n_frames, _NOISE_SD, sigma_frames)
+    noise = _smooth_noise(rng, n_frames, _NOISE_SD, sigma_frames)
+    # Aperture noise fades out as the lips close (full above 1 unit, none at contact).
+    noise[:, _A] *= np.clip(art[:, _A], 0.0, 1.0)
+    art = art + noise
     art = np.clip(art, _LOWER, _UPPER)
     brow = _smooth_noise(rng, n_frames, np.array([_BROW_NOISE_SD]), sigma_frames)[:, 0]
 
@@ -388,7 +403,7 @@ def shape_from_articulators(
     brow: np.ndarray | None = None,
     image_size: int = 128,
 ) -> np.ndarray:
-    """Landmarks (T, 55, 2) in pixels (x = column, y = row) from control signals.
+    """Landmarks (T, 57, 2) in pixels (x = column, y = row) from control signals.
 
     Geometry (design units, y down, origin at the frame centre; see docs/face.md):
     jaw line points drop by ``jaw * sin(phi)**2`` (phi = 0 at the temples, pi/2 at the
@@ -424,7 +439,7 @@ def shape_from_articulators(
     jy = _FACE_CY + _FACE_B_BOT * np.sin(phi)
     out[:, G["jaw"], 0] = jx
     out[:, G["jaw"], 1] = jy + jaw * np.sin(phi) ** 2
-    psi = np.deg2rad([315.0, 270.0, 225.0])  # right -> top -> left
+    psi = np.deg2rad([340.0, 305.0, 270.0, 235.0, 200.0])  # right -> top -> left
     out[:, G["forehead"], 0] = _FACE_A * 0.95 * np.cos(psi)
     out[:, G["forehead"], 1] = _FACE_CY + _FACE_B_TOP * np.sin(psi)
 
@@ -501,7 +516,7 @@ def face_landmarks(
     image_size: int = 128,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Per-frame face landmarks (n_frames, 55, 2) float64, pixels (x = column, y = row).
+    """Per-frame face landmarks (n_frames, 57, 2) float64, pixels (x = column, y = row).
 
     Parameters
     ----------
@@ -525,13 +540,13 @@ def face_landmarks(
 
 
 def rest_shape(image_size: int = 128) -> np.ndarray:
-    """Landmarks (55, 2) of the rest face: sil targets, eyes open, frontal pose."""
+    """Landmarks (57, 2) of the rest face: sil targets, eyes open, frontal pose."""
     art = articulator_targets(SILENCE)[None, :]
     return shape_from_articulators(art, image_size=image_size)[0]
 
 
 def reference_shape(image_size: int = 128) -> np.ndarray:
-    """Landmarks (55, 2) the renderer's texture is painted in: mouth half open
+    """Landmarks (57, 2) the renderer's texture is painted in: mouth half open
     (jaw 4, aperture 6) so every lip and cavity triangle has a healthy area."""
     art = np.array([[4.0, 6.0, 0.0, 0.0, 0.0, 0.0]])
     return shape_from_articulators(art, image_size=image_size)[0]

@@ -33,14 +33,14 @@ from bayes_talk.data.phones import SILENCE, check_phone
 
 __all__ = [
     "Interval",
-    "read_lab",
-    "write_lab",
-    "read_textgrid",
-    "write_textgrid",
-    "read_labels",
-    "validate_intervals",
-    "normalize_phone",
     "frame_labels",
+    "normalize_phone",
+    "read_lab",
+    "read_labels",
+    "read_textgrid",
+    "validate_intervals",
+    "write_lab",
+    "write_textgrid",
 ]
 
 Interval = tuple[float, float, str]
@@ -250,7 +250,7 @@ def read_textgrid(path: str | Path, tier: str | None = None) -> list[Interval]:
 
 def _fmt(x: float) -> str:
     r = repr(float(x))
-    return r[:-2] if r.endswith(".0") else r
+    return r.removesuffix(".0")
 
 
 def write_textgrid(path: str | Path, intervals: list[Interval], tier: str = "phones") -> None:
@@ -258,7 +258,7 @@ def write_textgrid(path: str | Path, intervals: list[Interval], tier: str = "pho
     path = Path(path)
     validate_intervals(intervals, str(path), phones=False)
     xmin, xmax = intervals[0][0], intervals[-1][1]
-    q = lambda s: '"' + s.replace('"', '""') + '"'  # noqa: E731
+    q = lambda s: '"' + s.replace('"', '""') + '"'
     lines = [
         'File type = "ooTextFile"', 'Object class = "TextGrid"', "",
         f"xmin = {_fmt(xmin)} ", f"xmax = {_fmt(xmax)} ", "tiers? <exists> ", "size = 1 ",

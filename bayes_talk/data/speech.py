@@ -14,9 +14,13 @@ We drive the ``libespeak-ng.so`` shipped in the ``espeakng-loader`` wheel throug
 Reproducibility. espeak-ng's output drifts with the number of syntheses already run in a
 process (measured: 59816, 60033, 60037 samples for the same sentence three times in a
 row), and neither ``espeak_ng_SetRandSeed`` nor re-initialising resets it. Every utterance
-is therefore synthesised in a *fresh* worker process (``ProcessPoolExecutor`` with the
-``spawn`` start method and ``max_tasks_per_child=1``): the same request always gives
-byte-identical samples and timings.
+is therefore synthesised in a *fresh* worker process: a new ``python -c`` subprocess per
+utterance (``subprocess.run``; requests go in as JSON on stdin, samples and events come
+back on stdout), with up to ``n_workers`` of them running at once from a thread pool. The
+same request always gives byte-identical samples and timings. (A ``multiprocessing``
+pool with the ``spawn`` method and ``max_tasks_per_child=1`` would also give fresh
+processes, but it re-imports the caller's ``__main__``, which breaks scripts without an
+``if __name__ == "__main__"`` guard; ``fork`` would copy the caller's threads.)
 
 Timing conventions. The returned waveform is
 ``[leading silence | espeak output | trailing silence]``; the leading pad is
@@ -31,8 +35,10 @@ sample index exactly).
 from __future__ import annotations
 
 import ctypes
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,10 +48,10 @@ from bayes_talk.data.espeak_phones import espeak_to_arpabet
 from bayes_talk.data.phones import SILENCE
 
 __all__ = [
+    "DEFAULT_PITCH",
+    "DEFAULT_RATE",
     "SpeechRequest",
     "SpeechResult",
-    "DEFAULT_RATE",
-    "DEFAULT_PITCH",
     "jittered_requests",
     "synthesize",
     "synthesize_many",
@@ -169,7 +175,7 @@ def _raw_synthesis(text: str, voice: str, rate: int, pitch: int) -> tuple[bytes,
     events: list[tuple[int, str]] = []
     end_sample = [-1]
 
-    def cb(wav, n, ev):  # noqa: ANN001 - ctypes callback
+    def cb(wav, n, ev):
         if wav and n > 0:
             chunks.append(ctypes.string_at(wav, 2 * n))
         i = 0
@@ -195,8 +201,49 @@ def _raw_synthesis(text: str, voice: str, rate: int, pitch: int) -> tuple[bytes,
 
 
 def _worker(request: SpeechRequest) -> SpeechResult:
-    raw, sr, events, end = _raw_synthesis(request.text, request.voice, request.rate, request.pitch)
-    return _assemble(request, np.frombuffer(raw, dtype="<i2").copy(), sr, events, end)
+    """Synthesise ``request`` in a fresh ``python`` subprocess and assemble the result."""
+    payload = json.dumps({"text": request.text, "voice": request.voice,
+                          "rate": int(request.rate), "pitch": int(request.pitch)})
+    proc = subprocess.run([sys.executable, "-c", _CHILD], input=payload.encode("utf-8"),
+                          capture_output=True, check=False)
+    out = proc.stdout
+    nl = out.find(b"\n")
+    try:
+        head = json.loads(out[:nl].decode("utf-8")) if nl >= 0 else None
+    except ValueError:
+        head = None
+    if proc.returncode != 0 or head is None:
+        if head and "error" in head:
+            exc_type = ValueError if head.get("type") == "ValueError" else RuntimeError
+            raise exc_type(head["error"])
+        raise RuntimeError(f"espeak-ng worker failed for {request.text!r} (exit code "
+                           f"{proc.returncode}): {proc.stderr.decode(errors='replace')[-2000:]}")
+    raw = out[nl + 1:]
+    if len(raw) != head["n_bytes"]:
+        raise RuntimeError(f"espeak-ng worker returned {len(raw)} bytes, expected {head['n_bytes']}")
+    events = [(int(s), str(c)) for s, c in head["events"]]
+    return _assemble(request, np.frombuffer(raw, dtype="<i2").copy(), int(head["sample_rate"]),
+                     events, int(head["end"]))
+
+
+#: program run by each fresh worker process: JSON request on stdin; one JSON header line
+#: (sample rate, phoneme events, end sample, byte count) then raw little-endian int16 on stdout
+_CHILD = "from bayes_talk.data.speech import _child_main; _child_main()"
+
+
+def _child_main() -> None:
+    req = json.loads(sys.stdin.buffer.read().decode("utf-8"))
+    try:
+        raw, sr, events, end = _raw_synthesis(req["text"], req["voice"], req["rate"], req["pitch"])
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which re-raises it
+        sys.stdout.write(json.dumps({"error": str(exc), "type": type(exc).__name__}) + "\n")
+        sys.stdout.flush()
+        raise SystemExit(1) from None
+    if sys.byteorder != "little":  # pragma: no cover
+        raw = np.frombuffer(raw, dtype="=i2").astype("<i2").tobytes()
+    head = {"sample_rate": sr, "events": events, "end": end, "n_bytes": len(raw)}
+    sys.stdout.buffer.write(json.dumps(head).encode("utf-8") + b"\n" + raw)
+    sys.stdout.buffer.flush()
 
 
 def _assemble(request: SpeechRequest, audio: np.ndarray, sr: int,
@@ -206,8 +253,8 @@ def _assemble(request: SpeechRequest, audio: np.ndarray, sr: int,
     if n_audio == 0 or not events:
         raise RuntimeError(f"espeak-ng produced no audio/phonemes for {request.text!r}")
     stop = n_audio if end < 0 else min(end, n_audio)
-    lead = int(round(request.lead_silence * sr))
-    n_total = lead + n_audio + int(round(request.trail_silence * sr))
+    lead = round(request.lead_silence * sr)
+    n_total = lead + n_audio + round(request.trail_silence * sr)
     if request.fps > 0:
         spf = sr / request.fps
         if spf != int(spf):
@@ -247,11 +294,6 @@ def _assemble(request: SpeechRequest, audio: np.ndarray, sr: int,
     return SpeechResult(request, samples, sr, intervals, raw)
 
 
-def _pool(n_workers: int) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(max_workers=n_workers, mp_context=multiprocessing.get_context("spawn"),
-                               max_tasks_per_child=1)
-
-
 def synthesize(request: SpeechRequest) -> SpeechResult:
     """Synthesise one utterance in a fresh process (byte-reproducible)."""
     return synthesize_many([request], n_workers=1)[0]
@@ -267,7 +309,7 @@ def synthesize_many(requests: list[SpeechRequest], n_workers: int = 2) -> list[S
         return []
     if n_workers < 1:
         raise ValueError(f"n_workers: expected >= 1, found {n_workers}")
-    with _pool(min(n_workers, len(requests))) as ex:
+    with ThreadPoolExecutor(max_workers=min(n_workers, len(requests))) as ex:
         return list(ex.map(_worker, requests))
 
 

@@ -1,7 +1,32 @@
 """Evaluation: error, correlation and calibration metrics (DESIGN §9)."""
-from bayes_talk.evaluation.metrics import (acc, amse, correlation, coverage, crps_ensemble,
-                                           crps_gaussian, l1, linf, mse, nlpd_gaussian,
-                                           normalised_mse, rms, summarise)
+from bayes_talk.evaluation.metrics import (
+                                           acc,
+                                           amse,
+                                           correlation,
+                                           coverage,
+                                           crps_ensemble,
+                                           crps_gaussian,
+                                           l1,
+                                           linf,
+                                           mse,
+                                           nlpd_gaussian,
+                                           normalised_mse,
+                                           rms,
+                                           summarise,
+)
 
-__all__ = ["mse", "rms", "l1", "linf", "normalised_mse", "correlation", "amse", "acc",
-           "summarise", "coverage", "crps_gaussian", "crps_ensemble", "nlpd_gaussian"]
+__all__ = [
+                                           "acc",
+                                           "amse",
+                                           "correlation",
+                                           "coverage",
+                                           "crps_ensemble",
+                                           "crps_gaussian",
+                                           "l1",
+                                           "linf",
+                                           "mse",
+                                           "nlpd_gaussian",
+                                           "normalised_mse",
+                                           "rms",
+                                           "summarise",
+]

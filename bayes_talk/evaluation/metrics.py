@@ -34,8 +34,19 @@ import numpy as np
 import scipy.stats
 
 __all__ = [
-    "mse", "rms", "l1", "linf", "normalised_mse", "correlation", "amse", "acc",
-    "summarise", "coverage", "crps_gaussian", "crps_ensemble", "nlpd_gaussian",
+    "acc",
+    "amse",
+    "correlation",
+    "coverage",
+    "crps_ensemble",
+    "crps_gaussian",
+    "l1",
+    "linf",
+    "mse",
+    "nlpd_gaussian",
+    "normalised_mse",
+    "rms",
+    "summarise",
 ]
 
 ArrayList = Seq[np.ndarray] | np.ndarray

@@ -1,0 +1,398 @@
+"""Grayscale rendering of the synthetic landmark face (DESIGN.md §8).
+
+A frame is a piecewise-affine warp of one procedurally painted face texture from the
+:func:`~bayes_talk.data.face.reference_shape` (mouth half open) to the frame's landmarks,
+over a fixed Delaunay triangulation of the reference shape. Inside the inner-lip polygon
+the texture is replaced by a mouth cavity painted per frame in head coordinates: upper
+teeth whose edge is fixed to the skull, lower teeth fixed to the jaw, dark cavity
+between. So appearance, not only shape, changes with speech: teeth show when the upper lip
+rises (/f v/) or the lips part (/iy aa/), the cavity darkens as the jaw opens, the eyes
+close in blinks (their triangles collapse and the eyelid skin stretches over them).
+
+Speed. Warping is done by :func:`warp_piecewise_affine`, a vectorised rasteriser: for
+every destination triangle, all pixel centres of its bounding box are tested with
+barycentric coordinates in one NumPy pass over a batch of frames (no Python loop over
+triangles); covered pixels map to the source by the same barycentric weights and are
+sampled bilinearly. Degenerate (zero-area) triangles, e.g. closed lips, are skipped;
+pixels on shared edges take one of the (equal) candidate values deterministically.
+It agrees with ``skimage.transform.warp`` + ``PiecewiseAffineTransform`` on interior
+pixels (tests/test_face.py) at a fraction of its cost (benchmarks/render.py).
+"""
+from __future__ import annotations
+
+import itertools
+from functools import lru_cache
+
+import numpy as np
+from matplotlib.path import Path as MplPath
+from scipy.ndimage import gaussian_filter
+from scipy.spatial import Delaunay
+from skimage.transform import downscale_local_mean
+
+from bayes_talk.data import face as _face
+
+__all__ = [
+    "background",
+    "bilinear_sample",
+    "cavity_triangles",
+    "face_texture",
+    "face_triangles",
+    "rasterise_triangles",
+    "render_frames",
+    "warp_piecewise_affine",
+]
+
+_BATCH = 32          # frames rasterised together (amortises NumPy call overhead)
+_EDGE_TOL = 1e-7     # barycentric tolerance: pixel centres on edges belong to both
+_SUPERSAMPLE = 4     # texture is painted at 4x and box-filtered (anti-aliasing)
+_TEXTURE_BLUR_PX = 0.7
+
+
+def rasterise_triangles(
+    dst_points: np.ndarray, triangles: np.ndarray, output_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel centres covered by each triangle, for a batch of point sets.
+
+    Parameters
+    ----------
+    dst_points : (B, P, 2) vertex positions, (x = column, y = row); pixel (r, c) has its
+        centre at (x, y) = (c, r).
+    triangles : (M, 3) vertex indices.
+    output_shape : (H, W).
+
+    Returns
+    -------
+    frame : (n,) batch index of each covered (pixel, triangle) pair.
+    pixel : (n,) flat pixel index ``r * W + c``.
+    tri : (n,) triangle index.
+    bary : (n, 3) barycentric coordinates of the pixel centre in that triangle.
+    """
+    H, W = output_shape
+    B = dst_points.shape[0]
+    M = triangles.shape[0]
+    v = dst_points[:, triangles].reshape(B * M, 3, 2)
+    ax, ay = v[:, 0, 0], v[:, 0, 1]
+    e1x, e1y = v[:, 1, 0] - ax, v[:, 1, 1] - ay
+    e2x, e2y = v[:, 2, 0] - ax, v[:, 2, 1] - ay
+    det = e1x * e2y - e1y * e2x
+    ok = np.abs(det) > 1e-9
+    x0 = np.clip(np.ceil(v[..., 0].min(axis=1) - 1e-6), 0, W - 1).astype(np.int64)
+    x1 = np.clip(np.floor(v[..., 0].max(axis=1) + 1e-6), 0, W - 1).astype(np.int64)
+    y0 = np.clip(np.ceil(v[..., 1].min(axis=1) - 1e-6), 0, H - 1).astype(np.int64)
+    y1 = np.clip(np.floor(v[..., 1].max(axis=1) + 1e-6), 0, H - 1).astype(np.int64)
+    nx = np.maximum(x1 - x0 + 1, 0)
+    ny = np.maximum(y1 - y0 + 1, 0)
+    # A triangle entirely outside the frame gets clipped to an edge row/column; its
+    # pixels then fail the barycentric test, which is correct if wasteful.
+    n = np.where(ok, nx * ny, 0)
+    tid = np.repeat(np.arange(B * M), n)
+    local = np.arange(tid.size) - np.repeat(np.cumsum(n) - n, n)
+    nxt = nx[tid]
+    px = x0[tid] + local % nxt
+    py = y0[tid] + local // nxt
+    dx = px - ax[tid]
+    dy = py - ay[tid]
+    inv = 1.0 / np.where(ok, det, 1.0)[tid]
+    l1 = (dx * e2y[tid] - dy * e2x[tid]) * inv
+    l2 = (e1x[tid] * dy - e1y[tid] * dx) * inv
+    l0 = 1.0 - l1 - l2
+    inside = (l0 >= -_EDGE_TOL) & (l1 >= -_EDGE_TOL) & (l2 >= -_EDGE_TOL)
+    tid = tid[inside]
+    bary = np.stack([l0[inside], l1[inside], l2[inside]], axis=1)
+    pixel = py[inside] * W + px[inside]
+    return tid // M, pixel, tid % M, bary
+
+
+def bilinear_sample(images: np.ndarray, frame: np.ndarray | None, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of float64 images (Bi, Hs, Ws) at points (x = column, y = row).
+
+    ``frame`` (same length as x) selects the image of each point (None: image 0).
+    Coordinates are clamped to the image (edge pixels extend outwards), which matches
+    ``scipy.ndimage.map_coordinates(order=1, mode="nearest")`` inside the image.
+    """
+    _, Hs, Ws = images.shape
+    x = np.clip(x, 0.0, Ws - 1.0)
+    y = np.clip(y, 0.0, Hs - 1.0)
+    xi = np.minimum(np.floor(x).astype(np.int64), Ws - 2)
+    yi = np.minimum(np.floor(y).astype(np.int64), Hs - 2)
+    fx = x - xi
+    fy = y - yi
+    flat = images.reshape(-1)
+    base = yi * Ws + xi
+    if frame is not None:
+        base = base + frame * (Hs * Ws)
+    top = flat[base] * (1.0 - fx) + flat[base + 1] * fx
+    bot = flat[base + Ws] * (1.0 - fx) + flat[base + Ws + 1] * fx
+    return top * (1.0 - fy) + bot * fy
+
+
+def warp_piecewise_affine(
+    images: np.ndarray,
+    src_points: np.ndarray,
+    dst_points: np.ndarray,
+    triangles: np.ndarray,
+    output_shape: tuple[int, int],
+    fill: float | np.ndarray = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Piecewise-affine warp of source image(s) so that src_points land on dst_points.
+
+    Output pixel ``p`` inside destination triangle ``(i, j, k)`` with barycentric
+    coordinates ``(l0, l1, l2)`` takes the bilinear source sample at
+    ``l0 src_i + l1 src_j + l2 src_k`` (the affine map of that triangle). Pixels covered
+    by no (non-degenerate) triangle get ``fill``.
+
+    Parameters
+    ----------
+    images : (Hs, Ws) one source image for all frames, or (B, Hs, Ws) one per frame.
+    src_points : (P, 2) shared, or (B, P, 2), source vertices (x, y).
+    dst_points : (P, 2) or (B, P, 2) destination vertices (x, y).
+    triangles : (M, 3) vertex indices (the same triangulation for source and target).
+    output_shape : (H, W).
+    fill : scalar, or (H, W) image, for uncovered pixels.
+
+    Returns
+    -------
+    warped : (B, H, W) float64 (B = 1 when nothing is batched).
+    covered : (B, H, W) bool.
+    """
+    images = np.asarray(images, dtype=np.float64)
+    dst = np.asarray(dst_points, dtype=np.float64)
+    src = np.asarray(src_points, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if dst.ndim == 2:
+        dst = dst[None]
+    B = dst.shape[0]
+    if images.ndim == 2:
+        images = images[None]
+    if images.shape[0] not in (1, B):
+        raise ValueError(f"images: expected 1 or {B} source images, found {images.shape[0]}")
+    if src.ndim == 2:
+        src = src[None]
+    if src.shape[0] not in (1, B) or src.shape[1:] != dst.shape[1:] or dst.shape[2] != 2:
+        raise ValueError(
+            f"src_points/dst_points: expected matching (P, 2) or (B, P, 2) arrays, found "
+            f"{src.shape} and {dst.shape}"
+        )
+    if triangles.ndim != 2 or triangles.shape[1] != 3 or triangles.min() < 0 or triangles.max() >= dst.shape[1]:
+        raise ValueError(f"triangles: expected (M, 3) indices into {dst.shape[1]} points")
+    H, W = output_shape
+    out = np.empty((B, H * W))
+    out[:] = np.broadcast_to(np.asarray(fill, dtype=np.float64), (H, W)).reshape(-1)
+    covered = np.zeros((B, H * W), dtype=bool)
+    for b0 in range(0, B, _BATCH):
+        b1 = min(B, b0 + _BATCH)
+        frame, pixel, tri, bary = rasterise_triangles(dst[b0:b1], triangles, (H, W))
+        if src.shape[0] == 1:
+            sv = src[0][triangles[tri]]                      # (n, 3, 2)
+        else:
+            sv = src[b0 + frame[:, None], triangles[tri]]    # (n, 3, 2)
+        sx = np.einsum("nk,nk->n", bary, sv[..., 0])
+        sy = np.einsum("nk,nk->n", bary, sv[..., 1])
+        img_frame = None if images.shape[0] == 1 else frame + b0
+        vals = bilinear_sample(images, img_frame, sx, sy)
+        out[b0 + frame, pixel] = vals
+        covered[b0 + frame, pixel] = True
+    return out.reshape(B, H, W), covered.reshape(B, H, W)
+
+
+# ------------------------------------------------------------------------------------
+# The face texture
+# ------------------------------------------------------------------------------------
+def _smoothstep(edge: float, x: np.ndarray, width: float) -> np.ndarray:
+    return np.clip(0.5 + (edge - x) / width, 0.0, 1.0)
+
+
+def _poly_mask(poly: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    pts = np.stack([px.ravel(), py.ravel()], axis=1)
+    return MplPath(poly).contains_points(pts).reshape(px.shape).astype(np.float64)
+
+
+def _polyline_distance(line: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    d = np.full(px.shape, np.inf)
+    for a, b in itertools.pairwise(line):
+        ab = b - a
+        t = np.clip(((px - a[0]) * ab[0] + (py - a[1]) * ab[1]) / (ab @ ab), 0.0, 1.0)
+        d = np.minimum(d, np.hypot(px - a[0] - t * ab[0], py - a[1] - t * ab[1]))
+    return d
+
+
+@lru_cache(maxsize=4)
+def _texture_cached(image_size: int) -> np.ndarray:
+    """Paint the face in design units over the reference shape (see module docstring)."""
+    ss = _SUPERSAMPLE
+    k = image_size / _face.DESIGN_SIZE
+    sub = (np.arange(image_size * ss) + 0.5) / ss - 0.5          # pixel coordinates
+    gx, gy = np.meshgrid(sub, sub)
+    x = (gx - image_size / 2.0) / k                                # design units
+    y = (gy - image_size / 2.0) / k
+    ref = (_face.reference_shape(image_size) - image_size / 2.0) / k
+    G = _face.LANDMARK_GROUPS
+
+    # Skin: darker towards the face outline, lit forehead and cheeks.
+    cy = -2.0
+    rho2 = (x / 44.0) ** 2 + ((y - cy) / np.where(y < cy, 50.0, 50.0)) ** 2
+    img = 182.0 - 50.0 * rho2**2
+    img += 8.0 * np.exp(-(x**2 + (y + 32.0) ** 2) / (2 * 14.0**2))
+    for sx in (-22.0, 22.0):
+        img += 6.0 * np.exp(-((x - sx) ** 2 + (y - 8.0) ** 2) / (2 * 8.0**2))
+    # Nose: ridge highlight, side shadows, tip, nostrils, philtrum.
+    ridge = np.exp(-(x**2) / (2 * 1.5**2)) * _smoothstep(8.0, y, 4.0) * _smoothstep(12.0, -y, 4.0)
+    img += 12.0 * ridge
+    sides = np.exp(-((np.abs(x) - 5.0) ** 2) / (2 * 1.6**2)) * np.exp(-((y - 5.0) ** 2) / (2 * 5.0**2))
+    img -= 18.0 * sides
+    img += 10.0 * np.exp(-(x**2 + (y - 7.0) ** 2) / (2 * 2.5**2))
+    for nx_ in (-3.3, 3.3):
+        r = np.sqrt(((x - nx_) / 2.0) ** 2 + ((y - 11.8) / 1.1) ** 2)
+        img = img * (1 - _smoothstep(1.0, r, 0.3)) + 60.0 * _smoothstep(1.0, r, 0.3)
+    img -= 7.0 * np.exp(-((np.abs(x) - 2.0) ** 2) / (2 * 0.8**2)) * np.exp(-((y - 17.0) ** 2) / (2 * 2.5**2))
+    # Eye sockets, eyes, lash lines, creases.
+    for name, ex in (("eye_left", -19.0), ("eye_right", 19.0)):
+        pts = ref[G[name]]
+        img -= 16.0 * np.exp(-((x - ex) ** 2 / (2 * 7.0**2) + (y + 12.5) ** 2 / (2 * 4.0**2)))
+        inside = _poly_mask(pts, x, y)
+        r = np.hypot(x - ex, y + 11.0)
+        eye = 218.0 - 20.0 * (np.abs(x - ex) / 8.5) ** 2
+        eye = eye * _smoothstep(3.6, r, 0.5) + 80.0 * (1 - _smoothstep(3.6, r, 0.5))
+        eye = eye * _smoothstep(1.6, r, 0.4) + 25.0 * (1 - _smoothstep(1.6, r, 0.4))
+        hl = np.hypot(x - ex - 1.0, y + 12.0)
+        eye = eye * _smoothstep(0.7, hl, 0.3) + 235.0 * (1 - _smoothstep(0.7, hl, 0.3))
+        img = img * (1 - inside) + eye * inside
+        upper = pts[[0, 1, 2, 3]]
+        lash = _smoothstep(0.7, _polyline_distance(upper, x, y), 0.5)
+        img = img * (1 - lash) + 45.0 * lash
+        crease = _smoothstep(0.5, _polyline_distance(upper + [0.0, -3.2], x, y), 0.6)
+        img -= 22.0 * crease
+    # Brows: tapered dark strokes.
+    for name in ("brow_left", "brow_right"):
+        pts = ref[G[name]]
+        brow = _smoothstep(1.7, _polyline_distance(pts, x, y), 0.7)
+        img = img * (1 - brow) + 68.0 * brow
+    # Lips: darker than skin, upper lip darker, lower-lip highlight, chin crease.
+    outer = ref[G["outer_lip"]]
+    inner = ref[G["inner_lip"]]
+    lips = _poly_mask(outer, x, y)
+    lip_tone = np.where(y < inner[:, 1].mean(), 108.0, 124.0)
+    lip_tone = lip_tone + 16.0 * np.exp(-(x**2 / (2 * 5.0**2) + (y - (inner[6, 1] + 3.0)) ** 2 / (2 * 1.5**2)))
+    img = img * (1 - lips) + lip_tone * lips
+    img -= 14.0 * np.exp(-(x**2 / (2 * 9.0**2) + (y - (outer[9, 1] + 4.0)) ** 2 / (2 * 1.8**2)))
+    cavity = _poly_mask(inner, x, y)
+    img = img * (1 - cavity) + 40.0 * cavity
+    img = downscale_local_mean(img, (ss, ss))
+    # A slight blur (sd 0.7 px) keeps edges below the sampling limit, so sub-pixel
+    # motion does not alias into texture variation the AAM would have to model.
+    img = gaussian_filter(img, _TEXTURE_BLUR_PX)
+    return np.clip(img, 0.0, 255.0)
+
+
+def face_texture(image_size: int = 128) -> np.ndarray:
+    """The face texture (image_size, image_size) float64 in [0, 255], painted on
+    :func:`~bayes_talk.data.face.reference_shape`. Deterministic, cached; a copy."""
+    _face._check_image_size(image_size)
+    return _texture_cached(int(image_size)).copy()
+
+
+@lru_cache(maxsize=4)
+def _triangles_cached(image_size: int) -> np.ndarray:
+    tri = Delaunay(_face.reference_shape(image_size)).simplices.astype(np.int64)
+    return tri[np.lexsort(tri.T[::-1])]
+
+
+def face_triangles(image_size: int = 128) -> np.ndarray:
+    """(M, 3) Delaunay triangulation of the reference shape (sorted rows, a copy)."""
+    return _triangles_cached(int(image_size)).copy()
+
+
+def cavity_triangles(image_size: int = 128) -> np.ndarray:
+    """Boolean (M,) mask of the triangles inside the inner-lip polygon (the mouth)."""
+    tri = _triangles_cached(int(image_size))
+    inner = _face.LANDMARK_GROUPS["inner_lip"]
+    ref = _face.reference_shape(image_size)
+    all_inner = np.isin(tri, inner).all(axis=1)
+    centroids = ref[tri].mean(axis=1)
+    inside = MplPath(ref[inner]).contains_points(centroids)
+    return all_inner & inside
+
+
+@lru_cache(maxsize=4)
+def _background_cached(image_size: int) -> np.ndarray:
+    r = np.arange(image_size)[:, None] / image_size
+    c = np.arange(image_size)[None, :] / image_size
+    return 70.0 + 40.0 * r + 10.0 * c
+
+
+def background(image_size: int = 128) -> np.ndarray:
+    """The static backdrop (image_size, image_size) float64: a soft vertical gradient."""
+    return _background_cached(int(image_size)).copy()
+
+
+def _cavity_colour(lm: np.ndarray, frame: np.ndarray, px: np.ndarray, py: np.ndarray, k: float) -> np.ndarray:
+    """Teeth / dark cavity grey levels at pixel centres (px, py) of frames ``frame``.
+
+    Head axes come from the (blink-invariant) eye corners; the upper-teeth edge is fixed
+    to the subnasale (skull), the lower-teeth top to the chin (jaw). 1-pixel soft edges.
+    """
+    G = _face.LANDMARK_GROUPS
+    el = lm[:, G["eye_left"][[0, 3]]].mean(axis=1)
+    er = lm[:, G["eye_right"][[0, 3]]].mean(axis=1)
+    d = er - el
+    dist = np.linalg.norm(d, axis=1)
+    u = d / dist[:, None]
+    v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    unit = dist / (2 * 19.0)                                    # pixels per design unit
+    nose = lm[:, G["nose"][4]]
+    chin = lm[:, G["jaw"][4]]
+    mid = lm[:, G["inner_lip"][[0, 4]]].mean(axis=1)
+    e_up = nose + ((_face.UPPER_TEETH_Y - 13.5) * unit)[:, None] * v
+    e_lo = chin - (_face.LOWER_TEETH_BELOW_CHIN * unit)[:, None] * v
+    f = frame
+    vx, vy, ux, uy = v[f, 0], v[f, 1], u[f, 0], u[f, 1]
+    h_up = (px - e_up[f, 0]) * vx + (py - e_up[f, 1]) * vy         # pixels, + below edge
+    h_lo = (px - e_lo[f, 0]) * vx + (py - e_lo[f, 1]) * vy
+    q = ((px - mid[f, 0]) * ux + (py - mid[f, 1]) * uy) / unit[f]  # design units, lateral
+    a_up = np.clip(0.5 - h_up, 0.0, 1.0)
+    a_lo = np.clip(0.5 + h_lo, 0.0, 1.0)
+    side = np.clip((q / 10.0) ** 2, 0.0, 1.0)
+    teeth_up = 228.0 - 70.0 * side
+    teeth_lo = 196.0 - 70.0 * side
+    dark = 32.0 + 10.0 * (1.0 - side)
+    return a_up * teeth_up + (1.0 - a_up) * (a_lo * teeth_lo + (1.0 - a_lo) * dark)
+
+
+def render_frames(landmarks: np.ndarray, image_size: int = 128) -> np.ndarray:
+    """Grayscale frames (T, image_size, image_size) uint8 of the face at the landmarks.
+
+    Deterministic (no randomness; the texture and triangulation are fixed functions of
+    ``image_size``). Landmarks are (T, 57, 2) pixel coordinates (x = column, y = row),
+    as from :func:`~bayes_talk.data.face.face_landmarks` with the same ``image_size``.
+    """
+    _face._check_image_size(image_size)
+    lm = np.asarray(landmarks, dtype=np.float64)
+    if lm.ndim != 3 or lm.shape[1:] != (_face.N_LANDMARKS, 2):
+        raise ValueError(f"landmarks: expected shape (T, {_face.N_LANDMARKS}, 2), found {lm.shape}")
+    if not np.all(np.isfinite(lm)):
+        raise ValueError("landmarks: expected finite coordinates, found NaN or inf")
+    n = int(image_size)
+    tex = _texture_cached(n)[None]
+    ref = _face.reference_shape(n)
+    tri = _triangles_cached(n)
+    cav = cavity_triangles(n)
+    bg = _background_cached(n).reshape(-1)
+    k = n / _face.DESIGN_SIZE
+    T = lm.shape[0]
+    out = np.empty((T, n * n), dtype=np.uint8)
+    for b0 in range(0, T, _BATCH):
+        b1 = min(T, b0 + _BATCH)
+        frame, pixel, t_id, bary = rasterise_triangles(lm[b0:b1], tri, (n, n))
+        sv = ref[tri[t_id]]
+        vals = bilinear_sample(tex, None, np.einsum("nk,nk->n", bary, sv[..., 0]),
+                         np.einsum("nk,nk->n", bary, sv[..., 1]))
+        in_cav = cav[t_id]
+        if in_cav.any():
+            pc = pixel[in_cav]
+            vals[in_cav] = _cavity_colour(lm[b0:b1], frame[in_cav], (pc % n).astype(np.float64),
+                                          (pc // n).astype(np.float64), k)
+        img = np.empty((b1 - b0, n * n))
+        img[:] = bg
+        img[frame, pixel] = vals
+        out[b0:b1] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return out.reshape(T, n, n)

@@ -1,0 +1,125 @@
+"""MFCC audio features at the video frame rate (deena2010 §3.3).
+
+20 coefficients from a 60 ms Hann window every 40 ms (25 Hz), computed with
+``librosa.feature.mfcc`` (40 mel bands, power spectrum, ``power_to_db``, DCT-II ortho).
+
+Alignment with video. Video frame k shows the interval ``[k/fps, (k+1)/fps)`` =
+``[0.04k, 0.04k + 0.04)`` s. Audio frame k is the 60 ms window centred on that interval's
+centre ``0.04k + 0.02`` s, i.e. it spans ``[0.04k - 0.01, 0.04k + 0.05)``: 10 ms of context
+on each side. In samples, with ``hop = sr / fps`` (882 at 22050 Hz) and ``win = 0.06 sr``
+(1323), window k starts at sample ``hop*k - pad`` with ``pad = (win - hop) // 2`` (220);
+when ``win - hop`` is odd the window centre sits half a sample (23 µs at 22050 Hz) after
+the interval centre. The signal is zero-padded by ``pad`` samples on the left and as many
+as needed on the right, and framed with ``center=False`` and ``n_fft = win`` (so the
+window is not re-centred inside a longer FFT frame).
+
+Frame count (shared with the video side): ``n_frames = floor(n_samples * fps / sr)`` =
+``n_samples // hop`` -- only whole 40 ms intervals are kept. The built-in corpus pads
+every waveform to a whole number of frames, so nothing is dropped there.
+
+``sr / fps`` must be an integer (true for 8, 11.025, 16, 22.05, 44.1, 48 kHz at 25 fps).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
+
+N_MFCC = 20
+WINDOW_S = 0.060
+N_MELS = 40
+
+
+def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
+    """``sample_rate / fps`` as an int; ValueError if it is not a whole number."""
+    if sample_rate <= 0:
+        raise ValueError(f"sample rate: expected > 0 Hz, found {sample_rate}")
+    hop = sample_rate / fps
+    if hop != int(hop):
+        raise ValueError(
+            f"sample rate {sample_rate} Hz is not a whole number of samples per frame at "
+            f"{fps} fps (expected sample_rate divisible by fps, e.g. 16000, 22050, 44100, 48000)"
+        )
+    return int(hop)
+
+
+def frame_count(n_samples: int, sample_rate: int, fps: float = 25.0) -> int:
+    """Number of whole frames in ``n_samples``: ``floor(n_samples * fps / sample_rate)``."""
+    return int(n_samples) // samples_per_frame(sample_rate, fps)
+
+
+def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: float = 25.0,
+         n_mfcc: int = N_MFCC, window_s: float = WINDOW_S, n_mels: int = N_MELS,
+         where: str = "audio") -> np.ndarray:
+    """MFCCs aligned to video frames; returns ``(n_frames, n_mfcc)`` float64.
+
+    ``y``: mono waveform (float in [-1, 1], or int16 scaled by 1/32768; a 2-D (n, channels)
+    array is averaged over channels). ``n_frames``: default :func:`frame_count`; a smaller
+    value truncates, a larger one is an error. ``where`` names the source in errors.
+    """
+    y = np.asarray(y)
+    if y.dtype == np.int16:
+        y = y.astype(np.float64) / 32768.0
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim == 2:
+        y = y.mean(axis=1)
+    if y.ndim != 1:
+        raise ValueError(f"{where}: expected a 1-D waveform (or (n, channels)), found shape {y.shape}")
+    if y.size == 0:
+        raise ValueError(f"{where}: empty audio (0 samples)")
+    if not np.all(np.isfinite(y)):
+        raise ValueError(f"{where}: audio contains NaN or inf")
+    hop = samples_per_frame(int(sample_rate), fps)
+    win = round(window_s * sample_rate)
+    if win < hop:
+        raise ValueError(f"window_s: expected >= 1/fps, found {window_s}")
+    available = y.size // hop
+    if n_frames is None:
+        n_frames = available
+    if n_frames > available:
+        raise ValueError(
+            f"{where}: {n_frames} frames requested but the audio holds only {available} whole "
+            f"frames ({y.size} samples at {sample_rate} Hz)"
+        )
+    if n_frames <= 0:
+        raise ValueError(f"{where}: audio shorter than one frame ({y.size} samples at {sample_rate} Hz)")
+    import librosa
+
+    pad = (win - hop) // 2
+    need = (n_frames - 1) * hop + win
+    right = max(0, need - pad - y.size)
+    yp = np.concatenate([np.zeros(pad), y, np.zeros(right)])
+    m = librosa.feature.mfcc(y=yp, sr=sample_rate, n_mfcc=n_mfcc, n_fft=win, win_length=win,
+                             hop_length=hop, window="hann", center=False, n_mels=n_mels)
+    out = np.ascontiguousarray(m.T[:n_frames], dtype=np.float64)
+    if out.shape[0] != n_frames:  # pragma: no cover - guarded by the padding above
+        raise RuntimeError(f"{where}: librosa returned {out.shape[0]} frames, expected {n_frames}")
+    return out
+
+
+def load_wav(path: str | Path) -> tuple[np.ndarray, int]:
+    """Read a WAV (any soundfile-readable file) as float64 mono in [-1, 1] and its rate.
+
+    Errors name the file: unreadable, empty, or non-finite audio raise ValueError.
+    """
+    import soundfile as sf
+
+    path = Path(path)
+    try:
+        y, sr = sf.read(str(path), dtype="float64", always_2d=True)
+    except Exception as exc:  # soundfile raises LibsndfileError / RuntimeError / OSError
+        raise ValueError(f"{path}: cannot read audio ({exc})") from exc
+    y = y.mean(axis=1)
+    if y.size == 0:
+        raise ValueError(f"{path}: empty audio (0 samples)")
+    if not np.all(np.isfinite(y)):
+        raise ValueError(f"{path}: audio contains NaN or inf")
+    return y, int(sr)
+
+
+def mfcc_from_wav(path: str | Path, n_frames: int | None = None, fps: float = 25.0) -> np.ndarray:
+    """:func:`mfcc` of a WAV file; errors name the file."""
+    y, sr = load_wav(path)
+    return mfcc(y, sr, n_frames, fps=fps, where=str(path))

@@ -1,0 +1,304 @@
+"""The switching shared GPDM (deena2010 §2.1.2, §4.1; DESIGN.md §5).
+
+One :class:`~bayes_talk.models.sgpdm.SGPDM` per switching state π. The states are either
+VLMM contexts over frame-level phone labels (the paper's model) or the current phone
+(the paper's baseline "SSGPDM-phoneme"). Within a state the latent points follow that
+state's GP dynamics (eq. 11); when the state changes, x_t is drawn from the state's entry
+distribution N(μ_π, Σ_π) (eq. 12), estimated from the first latent points of the state's
+training subsequences.
+
+Training (§4.1): the traversal of each training label sequence assigns a state to every
+frame; the M_π frames ending at a frame of state π form one training subsequence of π
+(they overlap across states by design). Each state's SGPDM is trained on its
+subsequences as multiple sequences: PCA-averaged initialisation, no back-constraint,
+dynamics fixed at signal-to-noise 100:1, d = 6. At most ``max_frames_per_state`` frames
+per state (a seeded random choice of whole subsequences) bound the O(N³) cost. States are
+independent, so they are fitted through ``executor.map`` (any ``concurrent.futures``
+executor, or a Dask/Ray one with the same ``map``); the default runs them in turn.
+
+Back-off: a state with fewer than ``min_frames_per_state`` training frames gets no model
+of its own; at synthesis it uses the model of its longest suffix that has one, and a
+single phone without a model uses the global fallback SGPDM (trained on a random subset
+of all frames). Phones never seen in training are mapped to ``sil`` with a warning.
+
+Synthesis is in :mod:`bayes_talk.synthesis.sequential`.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig, _atomic_write, read_model_files, write_npz
+from bayes_talk.models.vlmm import VLMM, Segment
+
+log = logging.getLogger(__name__)
+
+FORMAT_NAME = "bayes_talk.switching_sgpdm"
+FORMAT_VERSION = 1
+FALLBACK = ("<fallback>",)
+
+
+class PhoneStates:
+    """Switching state = current phone (deena2010's SSGPDM-phoneme baseline).
+
+    The segmentation of a label sequence is its runs of equal labels; the training
+    subsequences are those runs.
+    """
+
+    def __init__(self) -> None:
+        self.alphabet_: list[str] = []
+
+    def fit(self, sequences: Iterable[Sequence[str]]) -> "PhoneStates":
+        self.alphabet_ = sorted({lab for s in sequences for lab in s})
+        return self
+
+    def _map_unknown(self, labels: Sequence[str], unknown: str) -> list[str]:
+        known = set(self.alphabet_)
+        out = []
+        for lab in labels:
+            if lab not in known:
+                if unknown == "error":
+                    raise ValueError(f"label {lab!r} never seen in training")
+                lab = "sil"
+            out.append(lab)
+        return out
+
+    def segment(self, labels: Sequence[str], unknown: str = "error") -> list[Segment]:
+        labs = self._map_unknown(labels, unknown)
+        segs, start = [], 0
+        for t in range(1, len(labs) + 1):
+            if t == len(labs) or labs[t] != labs[start]:
+                segs.append(Segment((labs[start],), start, t))
+                start = t
+        return segs
+
+    training_subsequences = segment
+
+    def to_dict(self) -> dict:
+        return {"kind": "phone", "alphabet": self.alphabet_}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PhoneStates":
+        obj = cls()
+        obj.alphabet_ = list(d["alphabet"])
+        return obj
+
+
+@dataclass
+class SwitchingConfig:
+    """Settings of :class:`SwitchingSGPDM` (documented in docs/switching.md).
+
+    states: "vlmm" (deena2010) or "phone" (its baseline).
+    max_memory, epsilon, min_count: VLMM settings; epsilon=None scales the VLMM default
+        2e-4 (tuned for ~19,000 frames) by 19,000 / (training frames).
+    latent_dim: d of every state's SGPDM (6 in deena2010).
+    max_frames_per_state: cap on the frames a state is trained on.
+    min_frames_per_state: a state with fewer frames backs off to its suffix.
+    max_iter: L-BFGS iterations per state model.
+    fallback_frames: frames of the global fallback SGPDM.
+    seed: seeds subsequence selection and every state model.
+    """
+
+    states: str = "vlmm"
+    max_memory: int = 5
+    epsilon: float | None = None
+    min_count: int = 10
+    latent_dim: int = 6
+    max_frames_per_state: int = 300
+    min_frames_per_state: int = 12
+    max_iter: int = 100
+    fallback_frames: int = 400
+    seed: int = 0
+
+
+def _fit_state(job: tuple) -> tuple[dict, dict]:
+    """Fit one state's SGPDM (a top-level function so process pools can pickle it)."""
+    audio, visual, lengths, cfg_dict = job
+    m = SGPDM(SGPDMConfig(**cfg_dict)).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
+    return m.state()
+
+
+def _key(state: tuple[str, ...]) -> str:
+    return " ".join(state)
+
+
+class SwitchingSGPDM:
+    """Switching shared GPDM: ``fit`` on utterances, ``synthesize`` from audio + labels."""
+
+    def __init__(self, config: SwitchingConfig | None = None, **kwargs):
+        if config is not None and kwargs:
+            raise ValueError("give either a config or keyword settings, not both")
+        self.config = config if config is not None else SwitchingConfig(**kwargs)
+        if self.config.states not in ("vlmm", "phone"):
+            raise ValueError(f"states must be 'vlmm' or 'phone', got {self.config.states!r}")
+        self.models_: dict[tuple[str, ...], SGPDM] = {}
+        self.entry_: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def name(self) -> str:
+        return f"ssgpdm-{self.config.states}"
+
+    # ------------------------------------------------------------------ training
+    def _state_cfg(self) -> dict:
+        return asdict(SGPDMConfig(latent_dim=self.config.latent_dim, dynamics=True, learn_dynamics=False,
+                                  back_constraint=None, init="pca-average", max_iter=self.config.max_iter,
+                                  seed=self.config.seed))
+
+    def fit(self, train: Sequence[Utterance], executor=None) -> "SwitchingSGPDM":
+        """Train the state model (VLMM or phones) and one SGPDM per state.
+
+        executor: anything with ``map(fn, iterable)`` (``concurrent.futures`` executors,
+        Dask/Ray wrappers); None fits the states one after another in this process.
+        """
+        cfg = self.config
+        if not train:
+            raise ValueError("no training sequences")
+        dims = {(s.mfcc.shape[1], None if s.aam is None else s.aam.shape[1]) for s in train}
+        if len(dims) != 1 or next(iter(dims))[1] is None:
+            raise ValueError(f"training sequences need aam features of one dimension; found (D_y, D_z) = {dims}")
+        self.dims_ = next(iter(dims))
+        n_frames = sum(s.n_frames for s in train)
+        if cfg.states == "vlmm":
+            eps = cfg.epsilon if cfg.epsilon is not None else 2e-4 * 19000.0 / n_frames
+            self.states_model_ = VLMM(cfg.max_memory, eps, cfg.min_count).fit([s.labels for s in train])
+        else:
+            self.states_model_ = PhoneStates().fit([s.labels for s in train])
+        # training subsequences per state (overlapping by design)
+        subs: dict[tuple[str, ...], list[tuple[int, int, int]]] = defaultdict(list)
+        for i, s in enumerate(train):
+            for seg in self.states_model_.training_subsequences(s.labels):
+                subs[tuple(seg.state)].append((i, seg.start, seg.stop))
+        rng = np.random.default_rng(cfg.seed)
+        jobs, keys = [], []
+        for state in sorted(subs):
+            chosen = self._cap(subs[state], rng)
+            n = sum(b - a for _, a, b in chosen)
+            if n < max(cfg.min_frames_per_state, cfg.latent_dim + 1):
+                continue
+            audio = np.vstack([train[i].mfcc[a:b] for i, a, b in chosen])
+            visual = np.vstack([train[i].aam[a:b] for i, a, b in chosen])
+            jobs.append((audio, visual, [b - a for _, a, b in chosen], self._state_cfg()))
+            keys.append(state)
+        # global fallback: random whole utterance chunks up to fallback_frames
+        chunks = [(i, a, min(a + 25, s.n_frames)) for i, s in enumerate(train) for a in range(0, s.n_frames, 25)]
+        chosen = self._cap(chunks, rng, cfg.fallback_frames)
+        jobs.append((np.vstack([train[i].mfcc[a:b] for i, a, b in chosen]),
+                     np.vstack([train[i].aam[a:b] for i, a, b in chosen]),
+                     [b - a for _, a, b in chosen], self._state_cfg()))
+        keys.append(FALLBACK)
+        log.info("training %d state models (%d states seen)", len(jobs), len(subs))
+        mapper: Callable = executor.map if executor is not None else map
+        results = list(mapper(_fit_state, jobs))
+        self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
+        self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
+        self.n_training_frames_ = n_frames
+        return self
+
+    def _cap(self, subs: list, rng: np.random.Generator, cap: int | None = None) -> list:
+        cap = self.config.max_frames_per_state if cap is None else cap
+        if sum(b - a for _, a, b in subs) <= cap:
+            return list(subs)
+        out, n = [], 0
+        for j in rng.permutation(len(subs)):
+            i, a, b = subs[j]
+            if n + (b - a) > cap:
+                continue
+            out.append(subs[j])
+            n += b - a
+        return sorted(out)
+
+    @staticmethod
+    def _entry(m: SGPDM) -> tuple[np.ndarray, np.ndarray]:
+        """Entry distribution N(μ_π, Σ_π) of eq. 12 from the first latent points."""
+        starts = np.cumsum([0] + m.seq_lengths_[:-1])
+        first = m.X_[starts]
+        d = m.X_.shape[1]
+        pool = first if len(first) > d else m.X_
+        cov = np.cov(pool.T) + 1e-6 * np.eye(d) * max(1.0, float(np.trace(np.cov(pool.T))) / d)
+        return first.mean(0), cov
+
+    # ------------------------------------------------------------------ lookup
+    def model_for(self, state: Sequence[str]) -> tuple[tuple[str, ...], SGPDM]:
+        """The model of ``state`` or of its longest suffix that has one (else fallback)."""
+        st = tuple(state)
+        while st:
+            if st in self.models_:
+                return st, self.models_[st]
+            st = st[1:]
+        return FALLBACK, self.models_[FALLBACK]
+
+    def segment(self, labels: Sequence[str]) -> list[Segment]:
+        """Non-overlapping state segmentation of a label sequence (§4.2.1)."""
+        known = set(self.states_model_.alphabet_)
+        unseen = sorted({lab for lab in labels if lab not in known})
+        if unseen:
+            warnings.warn(f"phone labels never seen in training mapped to 'sil': {unseen}", stacklevel=2)
+        return self.states_model_.segment(labels, unknown="sil")
+
+    def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
+                   smoothness: bool = True, lowpass_hz: float | None = None, max_iter: int = 50):
+        """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`."""
+        from bayes_talk.synthesis.sequential import synthesize
+
+        return synthesize(self, mfcc, labels, algorithm=algorithm, smoothness=smoothness,
+                          lowpass_hz=lowpass_hz, max_iter=max_iter)
+
+    def predict(self, seq: Utterance, **kw) -> np.ndarray:
+        """Mean AAM trajectory for a test utterance (uses its mfcc and labels only)."""
+        return self.synthesize(seq.mfcc, seq.labels, **kw).mean
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, directory: str | Path) -> Path:
+        """Write ``model.json`` + ``arrays.npz`` into ``directory`` (atomically)."""
+        directory = Path(directory)
+        meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
+                "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
+                "n_training_frames": self.n_training_frames_, "models": []}
+        arrays: dict[str, np.ndarray] = {}
+        for j, (st, m) in enumerate(self.models_.items()):
+            mmeta, marr = m.state()
+            meta["models"].append({"state": list(st), "meta": mmeta})
+            for k, a in marr.items():
+                arrays[f"{j}/{k}"] = a
+            arrays[f"{j}/entry_mean"], arrays[f"{j}/entry_cov"] = self.entry_[st]
+        _atomic_write(directory / "arrays.npz", lambda tmp: write_npz(tmp, arrays))
+        _atomic_write(directory / "model.json", lambda tmp: Path(tmp).write_text(json.dumps(meta)))
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "SwitchingSGPDM":
+        directory = Path(directory)
+        meta, arrays = read_model_files(directory / "model.json", directory / "arrays.npz")
+        if meta.get("format") != FORMAT_NAME:
+            raise ValueError(f"{directory} does not hold a switching SGPDM (format {meta.get('format')!r})")
+        if meta.get("version") != FORMAT_VERSION:
+            raise ValueError(f"{directory}: model format version {meta.get('version')!r}, "
+                             f"this bayes_talk reads version {FORMAT_VERSION}")
+        try:
+            obj = cls(SwitchingConfig(**meta["config"]))
+            obj.dims_ = tuple(meta["dims"])
+            obj.n_training_frames_ = meta["n_training_frames"]
+            sm = meta["states_model"]
+            obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
+            grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+            for k, a in arrays.items():
+                j, rest = k.split("/", 1)
+                grouped[j][rest] = a
+            for j, entry in enumerate(meta["models"]):
+                st = tuple(entry["state"])
+                sub = grouped[str(j)]
+                obj.models_[st] = SGPDM.from_state(entry["meta"], sub)
+                obj.entry_[st] = (sub["entry_mean"], sub["entry_cov"])
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{directory}: switching model is incomplete or corrupt (missing {exc})") from None
+        return obj
+
+

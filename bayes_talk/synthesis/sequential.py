@@ -1,0 +1,134 @@
+"""Synthesis with the switching SGPDM: deena2010 Algorithms 1 and 2 (§4.2).
+
+1. Segment the test labels into non-overlapping VLMM (or phone) states (§4.2.1).
+2. For each segment [a, b) in state π, start from the nearest-neighbour initialisation
+   inside π's model (§4.2.2) and
+
+   * Algorithm 1 ("optimise", sequential optimisation): point optimisation when the
+     segment is one frame long, sequence optimisation (deena2009 eq. 9) otherwise;
+   * Algorithm 2 ("predict", sequential prediction): point-optimise the first frame,
+     then run π's dynamics mean x_{t+1} = μ_x(x_t) for the rest of the segment.
+
+   Both include the entry distribution ln N(x_a; μ_π, Σ_π) of eq. 12 on the first point.
+3. Smoothness across states (§4.2.3, our reading in DESIGN.md §5): for a segment that
+   starts at a > 0 the first latent point must also explain the last frame already
+   synthesised, i.e. the objective gains ln p(ẑ_{a−1} | x_a) under π's visual GP.
+4. ẑ_t = μ_Z(x̂_t) with per-dimension variance σ²_Z(x̂_t)/w² (eq. 10), then an optional
+   zero-phase Butterworth low-pass (filtfilt) on the mean.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from scipy.signal import butter, filtfilt
+
+from bayes_talk.models.vlmm import Segment
+from bayes_talk.synthesis.initialisers import NearestNeighbour
+from bayes_talk.synthesis.optimise import optimise_sequence
+
+if TYPE_CHECKING:
+    from bayes_talk.models.switching import SwitchingSGPDM
+
+ALGORITHMS = ("optimise", "predict")
+
+
+@dataclass
+class SynthesisResult:
+    """mean, var: (T, D_z) visual prediction and its per-dimension GP predictive variance;
+    latents: (T, d) inferred latent points; segments: the segmentation used, with the
+    state whose model synthesised each (after back-off) in ``model_states``."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    latents: np.ndarray
+    segments: list[Segment]
+    model_states: list[tuple[str, ...]]
+
+
+def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) -> np.ndarray:
+    """Zero-phase Butterworth low-pass along time (scipy.signal.filtfilt)."""
+    if not 0 < cutoff_hz < fps / 2:
+        raise ValueError(f"low-pass cutoff must be in (0, {fps / 2}) Hz, got {cutoff_hz}")
+    b, a = butter(order, cutoff_hz / (fps / 2))
+    padlen = 3 * max(len(a), len(b))
+    if Z.shape[0] <= padlen:
+        return Z.copy()
+    return filtfilt(b, a, Z, axis=0)
+
+
+def _check_inputs(model: "SwitchingSGPDM", mfcc: np.ndarray, labels) -> np.ndarray:
+    mfcc = np.asarray(mfcc, dtype=np.float64)
+    Dy = model.dims_[0]
+    if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
+        raise ValueError(f"audio features: expected shape (T, {Dy}), got {mfcc.shape}")
+    if len(labels) != mfcc.shape[0]:
+        raise ValueError(f"audio has {mfcc.shape[0]} frames but the labels have {len(labels)}")
+    if not np.all(np.isfinite(mfcc)):
+        raise ValueError("audio features contain NaN or inf")
+    return mfcc
+
+
+def synthesize(
+    model: "SwitchingSGPDM",
+    mfcc: np.ndarray,
+    labels,
+    algorithm: str = "optimise",
+    smoothness: bool = True,
+    lowpass_hz: float | None = None,
+    max_iter: int = 50,
+) -> SynthesisResult:
+    """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance."""
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    mfcc = _check_inputs(model, mfcc, labels)
+    segments = model.segment(list(labels))
+    T, Dz = mfcc.shape[0], model.dims_[1]
+    d = model.config.latent_dim
+    mean, var, X = np.zeros((T, Dz)), np.zeros((T, Dz)), np.zeros((T, d))
+    used: list[tuple[str, ...]] = []
+    nn = NearestNeighbour()
+    for seg in segments:
+        a, b = seg.start, seg.stop
+        key, m = model.model_for(seg.state)
+        used.append(key)
+        Y = mfcc[a:b]
+        X0 = nn(m, "audio", Y)
+        vis = m.predictors_["visual"]
+        extra = None
+        if smoothness and a > 0:
+            z_prev = torch.as_tensor(mean[a - 1:a])
+            extra = lambda Xs, z=z_prev, p=vis: p.log_lik(z, Xs[:1]).sum()  # noqa: E731
+        entry = model.entry_[key]
+        if algorithm == "optimise" and b - a > 1:
+            Xs = optimise_sequence(m.predictors_["audio"], Y, X0, m.dynamics_predictor_, first=entry,
+                                   extra=extra, max_iter=max_iter)
+        else:
+            x1 = optimise_sequence(m.predictors_["audio"], Y[:1], X0[:1], None, first=entry, extra=extra,
+                                   max_iter=max_iter)
+            Xs = x1 if b - a == 1 else _roll_dynamics(m, x1[0], b - a)
+        X[a:b] = Xs
+        mu, v = m.predict_view("visual", Xs)
+        mean[a:b], var[a:b] = mu, v
+    if lowpass_hz is not None:
+        mean = lowpass(mean, lowpass_hz)
+    return SynthesisResult(mean, var, X, segments, used)
+
+
+def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
+    """x_1 given, x_{t+1} = μ_x(x_t) (Algorithm 2); a model without dynamics stays put."""
+    out = [np.asarray(x1, dtype=np.float64)]
+    dyn = m.dynamics_predictor_
+    with torch.no_grad():
+        for _ in range(n - 1):
+            if dyn is None:
+                out.append(out[-1].copy())
+                continue
+            mu, _ = dyn.mean_var(torch.as_tensor(out[-1][None, :]))
+            out.append(mu[0].numpy())
+    return np.vstack(out)
+
+
+__all__ = ["ALGORITHMS", "SynthesisResult", "lowpass", "synthesize"]

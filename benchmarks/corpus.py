@@ -1,0 +1,81 @@
+"""Benchmark: build and featurise the default 300-utterance corpus.
+
+Writes benchmarks/results/corpus.json: wall time of build_corpus and of load_corpus
+(featurisation: MFCC, AAM projection, frame labels; cold cache) and of a warm load,
+size on disk, and phone coverage (which of the 40 phones occur, frame counts).
+Targets: build + featurise <= 180 s on 2 cores, size <= 200 MB.
+
+    .venv/bin/python benchmarks/corpus.py [--n 300] [--seed 0]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+from bayes_talk.data.corpus import build_corpus, load_corpus
+from bayes_talk.data.phones import PHONES
+
+
+def _size(d: Path, exclude: tuple[str, ...] = ()) -> int:
+    return sum(p.stat().st_size for p in d.rglob("*") if p.is_file() and p.name not in exclude)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "corpus.json"))
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as td:
+        root = Path(td) / "corpus"
+        t0 = time.perf_counter()
+        build_corpus(root, n_utterances=args.n, seed=args.seed)
+        t_build = time.perf_counter() - t0
+        size_build = _size(root)
+        t0 = time.perf_counter()
+        c = load_corpus(root)
+        t_feat = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        load_corpus(root)
+        t_warm = time.perf_counter() - t0
+        size_total = _size(root)
+        frames = Counter(lab for s in c for lab in s.labels)
+        segs = Counter(p for s in c for _, _, p in s.meta["intervals"])
+        n_frames = sum(s.n_frames for s in c)
+        result = {
+            "n_utterances": args.n,
+            "seed": args.seed,
+            "build_s": round(t_build, 2),
+            "featurise_s": round(t_feat, 2),
+            "total_s": round(t_build + t_feat, 2),
+            "warm_load_s": round(t_warm, 2),
+            "target_total_s": 180,
+            "size_build_mb": round(size_build / 1e6, 2),
+            "size_with_cache_mb": round(size_total / 1e6, 2),
+            "target_size_mb": 200,
+            "n_frames": n_frames,
+            "audio_s": round(n_frames / 25.0, 1),
+            "aam_n_params": int(c.aam.n_params),
+            "phones_present": [p for p in PHONES if segs[p] > 0],
+            "phones_missing": [p for p in PHONES if segs[p] == 0],
+            "phone_segments": {p: segs[p] for p in PHONES},
+            "phone_frames": {p: frames[p] for p in PHONES},
+            "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                        "loadavg_1min_at_end": os.getloadavg()[0]},
+        }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=1) + "\n")
+    os.replace(tmp, out)
+    print(json.dumps({k: v for k, v in result.items() if not k.startswith("phone_")}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,376 @@
+"""Benchmark of the GP core against GPy (issue #2).
+
+Everything below is measured in one run, on the same machine load:
+
+(a) like for like: one objective + gradient evaluation of our single-view GPLVM
+    (``SGPDM(latent_dim=8, dynamics=False, learn_w=False)``, D = 50) against
+    ``GPy.models.GPLVM`` with the same N, d = 8, D = 50, an isotropic RBF kernel and a
+    Gaussian likelihood (the same free parameters: X, α, γ ↔ lengthscale, β ↔ noise).
+    * gpy:        what GPy's optimiser does per step, ``m._objective_grads(x)``, i.e.
+                  ``m.optimizer_array = x`` (recomputes K, its Cholesky/inverse and all
+                  gradients in ``parameters_changed``), then ``m.objective_function()``
+                  and ``m.objective_function_gradients()`` (transformed to x-space).
+                  x alternates between two nearby vectors so no cache can answer.
+    * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` (the Pyro trace: X prior,
+                  observation term, 1/θ hyperprior).
+    * ours_raw:   ``bayes_talk.gp.terms.observation_loglik(Y, X, α, γ, β, w)`` with X and
+                  log α, log γ, log β requiring grad, plus backward (no Pyro overhead).
+(b) sgpdm_full: the two-view SGPDM with dynamics (views D = 20 + 30,
+    ``SGPDM(latent_dim=8, max_iter=1)``, default fixed dynamics): one log joint +
+    gradient; reported as a ratio to the same GPy figure.
+
+Every timing is the median of ``--repeats`` calls after one warm-up; the four
+variants are interleaved within each repeat so they see the same machine load.
+A correctness check compares our GPLVM objective with GPy's at one small N, and a
+profile splits one of our evaluations at the largest N into its parts.
+
+Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+D_GPLVM = 50
+D_VIEWS = {"audio": 20, "visual": 30}
+LATENT = 8
+FULL_SIZES = (500, 1000, 2000)
+QUICK_SIZES = (200, 400)
+CHECK_N = 200
+
+
+# ---------------------------------------------------------------------------- data
+def synthetic(N: int, D: int, seed: int) -> np.ndarray:
+    """Smooth 8-d latent trajectory pushed through a random nonlinear map, plus noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 20.0, N)[:, None]
+    freqs = rng.uniform(0.2, 1.5, LATENT)
+    phases = rng.uniform(0, 2 * np.pi, LATENT)
+    Xt = np.sin(t * freqs + phases)
+    A = rng.standard_normal((LATENT, D))
+    return np.tanh(Xt @ A) + 0.1 * rng.standard_normal((N, D))
+
+
+def quiet_fit(model, views):
+    logging.getLogger("bayes_talk").setLevel(logging.ERROR)
+    return model.fit(views)
+
+
+# ---------------------------------------------------------------------------- setups
+class Ours:
+    """Our single-view GPLVM: Pyro log joint and the raw observation term."""
+
+    def __init__(self, N: int):
+        from bayes_talk.models.sgpdm import SGPDM
+
+        Y = synthetic(N, D_GPLVM, seed=N)
+        self.m = quiet_fit(SGPDM(latent_dim=LATENT, dynamics=False, learn_w=False, max_iter=1), {"y": Y})
+        self.free = self.m._free_tensors()
+        # raw variant: copies of the fitted state, independent leaves
+        self.Y = self.m._Y["y"]
+        self.w = self.m._fixed["w/y"]
+        self.X = self.m._X.detach().clone().requires_grad_(True)
+        self.logs = [self.m._log[f"{k}/y"].detach().clone().requires_grad_(True)
+                     for k in ("alpha", "gamma", "beta")]
+
+    def pyro_eval(self) -> float:
+        for t in self.free:
+            t.grad = None
+        loss = -self.m.log_joint()
+        loss.backward()
+        return float(loss.detach())
+
+    def raw_eval(self) -> float:
+        from bayes_talk.gp.terms import observation_loglik
+
+        for t in [self.X, *self.logs]:
+            t.grad = None
+        a, g, b = (torch.exp(v) for v in self.logs)
+        loss = -observation_loglik(self.Y, self.X, a, g, b, self.w)
+        loss.backward()
+        return float(loss.detach())
+
+    def hyper(self) -> tuple[float, float, float]:
+        return tuple(float(torch.exp(self.m._log[f"{k}/y"].detach())) for k in ("alpha", "gamma", "beta"))
+
+
+class Gpy:
+    """GPy's GPLVM at the same point as ours (X, α, γ, β, data scaled by w)."""
+
+    def __init__(self, ours: Ours):
+        import GPy
+
+        alpha, gamma, beta = ours.hyper()
+        Yw = (ours.Y * ours.w).numpy()
+        X = ours.m._X.detach().numpy().copy()
+        kern = GPy.kern.RBF(LATENT, variance=alpha, lengthscale=1.0 / math.sqrt(gamma), ARD=False)
+        self.m = GPy.models.GPLVM(Yw, LATENT, X=X, kernel=kern)
+        self.m.likelihood.variance = 1.0 / beta
+        self.x0 = self.m.optimizer_array.copy()
+        self.x1 = self.x0 * (1.0 + 1e-12)
+        self.flip = False
+
+    def eval(self) -> float:
+        # what paramz's Model._objective_grads does for the optimiser on every step
+        self.flip = not self.flip
+        x = self.x1 if self.flip else self.x0
+        self.m.optimizer_array = x
+        obj = self.m.objective_function()
+        grad = self.m._transform_gradients(self.m.objective_function_gradients())
+        assert np.all(np.isfinite(grad))
+        return float(obj)
+
+
+class Full:
+    """The two-view SGPDM with (fixed) dynamics."""
+
+    def __init__(self, N: int):
+        from bayes_talk.models.sgpdm import SGPDM
+
+        views = {v: synthetic(N, D, seed=N + i + 1) for i, (v, D) in enumerate(D_VIEWS.items())}
+        self.m = quiet_fit(SGPDM(latent_dim=LATENT, max_iter=1), views)
+        self.free = self.m._free_tensors()
+
+    def eval(self) -> float:
+        for t in self.free:
+            t.grad = None
+        loss = -self.m.log_joint()
+        loss.backward()
+        return float(loss.detach())
+
+
+# ---------------------------------------------------------------------------- timing
+def timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def bench_size(N: int, repeats: int) -> dict:
+    t0 = time.perf_counter()
+    ours = Ours(N)
+    gpy = Gpy(ours)
+    full = Full(N)
+    setup = time.perf_counter() - t0
+    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_raw": ours.raw_eval, "sgpdm_full": full.eval}
+    for f in fns.values():  # warm-up
+        f()
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    order = list(fns)
+    for r in range(repeats):
+        # interleave, rotating the order so no variant always runs first
+        for k in order[r % len(order):] + order[: r % len(order)]:
+            times[k].append(timed(fns[k]))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {
+        "N": N,
+        "setup_s": setup,
+        "seconds": {k: {"median": med[k], "all": times[k]} for k in fns},
+        "ratio_to_gpy": {k: med[k] / med["gpy"] for k in ("ours_pyro", "ours_raw", "sgpdm_full")},
+    }
+
+
+# ---------------------------------------------------------------------------- correctness
+def correctness(N: int) -> dict:
+    """Our GPLVM objective against GPy's at the same point.
+
+    GPy's GPLVM has NO prior on X and no hyperprior: its objective is
+    −ln N(Yw; 0, K + (β⁻¹ + 1e-8) I) (GPy adds 1e-8 to the noise variance). Ours
+    (the Pyro log joint) adds N Σ ln w_m (the paper's |W|^N), ln N(X; 0, I) and
+    −Σ ln θ over α, γ, β. We report the raw difference and what is left after
+    accounting for each of these terms.
+    """
+    from bayes_talk.gp.terms import log_hyperprior, observation_loglik
+
+    ours = Ours(N)
+    gpy = Gpy(ours)
+    gpy.m.optimizer_array = gpy.x0
+    gpy_obj = float(gpy.m.objective_function())
+    gpy_grad_X = -np.asarray(gpy.m.X.gradient)  # d(objective)/dX
+    ours_obj = float(-ours.m.log_joint())
+    alpha, gamma, beta = ours.hyper()
+    X = ours.m._X.detach()
+    w = ours.w
+    Nn = ours.Y.shape[0]
+    lnw = float(Nn * torch.log(w).sum())
+    x_prior = float(-0.5 * (X * X).sum() - 0.5 * X.numel() * math.log(2 * math.pi))
+    hyper = float(log_hyperprior([torch.tensor(v, dtype=torch.float64) for v in (alpha, gamma, beta)]))
+    # our observation term with GPy's 1e-8 added to the noise variance, on Yw directly
+    beta_g = 1.0 / (1.0 / beta + 1e-8)
+    Xg = X.clone().requires_grad_(True)
+    ones = torch.ones_like(w)
+    obs_g = observation_loglik(ours.Y * w, Xg, torch.tensor(alpha, dtype=torch.float64),
+                               torch.tensor(gamma, dtype=torch.float64),
+                               torch.tensor(beta_g, dtype=torch.float64), ones)
+    (-obs_g).backward()
+    obs_plain = float(observation_loglik(ours.Y, X, *(torch.tensor(v, dtype=torch.float64)
+                                                     for v in (alpha, gamma, beta)), w))
+    explained = -(x_prior + hyper) - obs_plain  # obs_plain already holds N Σ ln w
+    return {
+        "N": N,
+        "gpy_objective": gpy_obj,
+        "ours_objective_pyro": ours_obj,
+        "difference_ours_minus_gpy": ours_obj - gpy_obj,
+        "terms_in_ours_not_in_gpy": {
+            "N_sum_ln_w": lnw,
+            "ln_N_X_0_I": x_prior,
+            "hyperprior_minus_sum_ln_theta": hyper,
+        },
+        "ours_minus_extra_terms_minus_gpy": (ours_obj + lnw + x_prior + hyper) - gpy_obj,
+        "check_explained_equals_ours": explained - ours_obj,
+        "ours_obs_term_with_gpy_jitter_minus_gpy": float(-obs_g) - gpy_obj,
+        "max_abs_dX_difference_obs_term_vs_gpy": float(np.abs(Xg.grad.numpy() - gpy_grad_X).max()),
+        "max_abs_dX_gpy": float(np.abs(gpy_grad_X).max()),
+        "note": "GPy GPLVM objective = -ln p(Yw|X) only (no prior on X, no hyperprior, "
+                "noise variance + 1e-8); ours adds N*sum(ln w), ln N(X;0,I) and -sum ln theta.",
+    }
+
+
+# ---------------------------------------------------------------------------- profile
+def profile(N: int, repeats: int) -> dict:
+    """Split one raw evaluation of our observation term at size N into its parts."""
+    from bayes_talk.gp.kernels import train_cov
+    from bayes_talk.gp.linalg import cho_solve, cholesky
+
+    ours = Ours(N)
+    Yw = ours.Y * ours.w
+    X = ours.X
+    a, g, b = (torch.exp(v.detach()) for v in ours.logs)
+    D = Yw.shape[1]
+
+    def parts() -> dict[str, float]:
+        out = {}
+        Xl = X.detach().clone().requires_grad_(True)
+        t = time.perf_counter(); K = train_cov(Xl, a, g, b); out["kernel_build"] = time.perf_counter() - t
+        Kd = K.detach()
+        t = time.perf_counter(); L = cholesky(Kd); out["cholesky"] = time.perf_counter() - t
+        t = time.perf_counter(); A = cho_solve(L, Yw); out["cho_solve_Y"] = time.perf_counter() - t
+        t = time.perf_counter(); Ki = torch.cholesky_inverse(L); out["cholesky_inverse"] = time.perf_counter() - t
+        t = time.perf_counter(); gK = 0.5 * (A @ A.mT - D * Ki); out["dL_dK_assembly"] = time.perf_counter() - t
+        t = time.perf_counter(); K.backward(gK); out["kernel_backward_autograd"] = time.perf_counter() - t
+        # closed-form RBF X-gradient (what a custom backward could do)
+        t = time.perf_counter()
+        with torch.no_grad():
+            Xd = Xl.detach()
+            G = gK * (Kd - torch.eye(N, dtype=Kd.dtype) / b)  # gK ∘ K_rbf
+            s = G.sum(1)
+            dX = -2.0 * g * (s[:, None] * Xd - G @ Xd)
+        out["kernel_backward_closed_form"] = time.perf_counter() - t
+        out["_closed_form_max_abs_err"] = float((dX - Xl.grad).abs().max())
+        return out
+
+    parts()
+    runs = [parts() for _ in range(repeats)]
+    res = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+    # the whole thing through autograd, and torch.profiler's top operators
+    from torch.profiler import ProfilerActivity, profile as tprof
+
+    ours.raw_eval()
+    with tprof(activities=[ProfilerActivity.CPU]) as prof:
+        ours.raw_eval()
+    table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
+    top = [
+        {"op": e.key, "self_cpu_ms": e.self_cpu_time_total / 1e3, "count": e.count}
+        for e in sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)[:15]
+    ]
+    return {"N": N, "parts_median_s": res, "profiler_top_ops": top, "profiler_table": table}
+
+
+# ---------------------------------------------------------------------------- main
+def machine_info() -> dict:
+    import GPy
+    import pyro
+    import scipy
+
+    info = {
+        "nproc": os.cpu_count(),
+        "sched_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "loadavg_at_start": os.getloadavg(),
+        "torch_threads": torch.get_num_threads(),
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "versions": {"torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
+                     "GPy": GPy.__version__, "pyro": pyro.__version__},
+    }
+    try:
+        from threadpoolctl import threadpool_info
+
+        info["blas"] = [{k: d.get(k) for k in ("internal_api", "num_threads", "version", "filepath")}
+                        for d in threadpool_info()]
+    except ImportError:
+        pass
+    return info
+
+
+def write_atomic(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def main(argv=None) -> int:
+    here = Path(__file__).resolve().parent
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, default=here / "results" / "gp_core.json")
+    p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--no-profile", action="store_true")
+    args = p.parse_args(argv)
+    sizes = QUICK_SIZES if args.quick else FULL_SIZES
+    t_start = time.perf_counter()
+    result = {
+        "benchmark": "gp_core",
+        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+        "machine": machine_info(),
+        "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
+                     "warmup": 1, "sizes": list(sizes)},
+        "correctness": correctness(CHECK_N),
+        "sizes": [],
+    }
+    print(f"{'N':>5} {'gpy':>9} {'ours_pyro':>10} {'ours_raw':>9} {'sgpdm_full':>10}  "
+          f"{'pyro/gpy':>8} {'raw/gpy':>8} {'full/gpy':>8}")
+    for N in sizes:
+        r = bench_size(N, args.repeats)
+        result["sizes"].append(r)
+        s, q = r["seconds"], r["ratio_to_gpy"]
+        print(f"{N:>5} {s['gpy']['median']:>9.4f} {s['ours_pyro']['median']:>10.4f} "
+              f"{s['ours_raw']['median']:>9.4f} {s['sgpdm_full']['median']:>10.4f}  "
+              f"{q['ours_pyro']:>8.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f}", flush=True)
+    if not args.no_profile:
+        result["profile"] = profile(max(sizes), args.repeats)
+        print(f"profile at N={max(sizes)} (median s):")
+        for k, v in result["profile"]["parts_median_s"].items():
+            print(f"  {k:<30} {v:.4g}")
+    c = result["correctness"]
+    print(f"correctness at N={c['N']}: ours-gpy objective {c['difference_ours_minus_gpy']:.6g}; "
+          f"after removing prior/W terms {c['ours_minus_extra_terms_minus_gpy']:.3g}; "
+          f"obs term with GPy jitter - gpy {c['ours_obs_term_with_gpy_jitter_minus_gpy']:.3g}; "
+          f"max |dX diff| {c['max_abs_dX_difference_obs_term_vs_gpy']:.3g}")
+    result["machine"]["loadavg_at_end"] = os.getloadavg()
+    result["wall_s"] = time.perf_counter() - t_start
+    write_atomic(args.out, result)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
