@@ -4,7 +4,14 @@ Sub-commands::
 
     bayes-talk corpus build OUT_DIR [--n-utterances N] [--seed S] [--sentences FILE]
                                     [--voice NAME] [--image-size PX] [--force]
+    bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,sgplvm} --out MODEL_DIR
+    bayes-talk synth MODEL_DIR --audio X.wav --labels X.lab --out OUT_DIR
+                     [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
+    bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR ...
     bayes-talk demo [--out DIR]
+    bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR
+                        [--test-corpus DIR] [--methods a,b,...] [--quick] [--seed S]
+                        [--no-figures] --json OUT.json
 """
 from __future__ import annotations
 
@@ -29,10 +36,60 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from bayes_talk.pipeline import train
+
+    out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force)
+    print(f"model written to {out}")
+    return 0
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from bayes_talk.pipeline import synth
+
+    written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
+                    init=args.init, force=args.force, video=not args.no_video)
+    for k, p in written.items():
+        print(f"{k:>10}: {p}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from bayes_talk.demo import run_demo
 
     return run_demo(Path(args.out))
+
+
+# --- evaluate (issue #5) -------------------------------------------------------------------
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from bayes_talk.evaluation.protocols import evaluate
+
+    result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
+                      test_corpus=Path(args.test_corpus) if args.test_corpus else None,
+                      methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures)
+    for name, e in result["methods"].items():
+        heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
+        print(f"{name}: {heads}")
+    print(f"wrote {args.json}")
+    return 0
+
+
+def _add_evaluate_parser(sub) -> None:
+    from bayes_talk.evaluation.protocols import PROTOCOLS
+    from bayes_talk.evaluation.systems import METHODS
+
+    e = sub.add_parser("evaluate", help="run a published evaluation protocol (JSON + Markdown + figure)")
+    e.add_argument("--protocol", required=True, choices=sorted(PROTOCOLS))
+    e.add_argument("--corpus", required=True, help="corpus directory (built or user)")
+    e.add_argument("--test-corpus", default=None,
+                   help="train on all of --corpus, test on all of this corpus")
+    e.add_argument("--methods", default=None,
+                   help="comma-separated methods (default: the protocol's); valid: " + ", ".join(METHODS))
+    e.add_argument("--quick", action="store_true", help="the quick (smaller, labelled) variant")
+    e.add_argument("--seed", type=int, default=None, help="replace the protocol's fixed seed (0)")
+    e.add_argument("--no-figures", action="store_true", help="skip the trajectory figure")
+    e.add_argument("--json", required=True, help="output JSON; OUT.md and OUT_trajectories.png go beside it")
+    e.set_defaults(func=_cmd_evaluate)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,10 +110,36 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
     b.set_defaults(func=_cmd_corpus_build)
 
+    # --- train / synth -------------------------------------------------------------------
+    from bayes_talk.pipeline import MODEL_KINDS
+
+    t = sub.add_parser("train", help="train a model on a corpus directory")
+    t.add_argument("corpus_dir")
+    t.add_argument("--model", choices=MODEL_KINDS, default="ssgpdm-vlmm")
+    t.add_argument("--out", required=True, help="model directory to write")
+    t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
+    t.add_argument("--force", action="store_true", help="allow writing into a non-empty directory")
+    t.set_defaults(func=_cmd_train)
+
+    s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels")
+    s.add_argument("model_dir")
+    s.add_argument("--audio", required=True, help="WAV file")
+    s.add_argument("--labels", required=True, help="HTK .lab or Praat .TextGrid")
+    s.add_argument("--out", required=True, help="output directory")
+    s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise")
+    s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
+                   help="initialiser (sgplvm: back-constraint = SGPLVM A, hmm = SGPLVM B)")
+    s.add_argument("--no-video", action="store_true", help="skip the MP4")
+    s.add_argument("--force", action="store_true", help="overwrite earlier outputs in --out")
+    s.set_defaults(func=_cmd_synth)
+
     # --- demo ---------------------------------------------------------------------------
     d = sub.add_parser("demo", help="the main job on the built-in corpus")
     d.add_argument("--out", default="demo_out")
     d.set_defaults(func=_cmd_demo)
+
+    # --- evaluate -----------------------------------------------------------------------
+    _add_evaluate_parser(sub)
     return p
 
 

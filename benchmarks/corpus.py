@@ -2,8 +2,11 @@
 
 Writes benchmarks/results/corpus.json: wall time of build_corpus and of load_corpus
 (featurisation: MFCC, AAM projection, frame labels; cold cache) and of a warm load,
-size on disk, and phone coverage (which of the 40 phones occur, frame counts).
-Targets: build + featurise <= 180 s on 2 cores, size <= 200 MB.
+CPU time (this process and its worker/espeak processes, user + system), the 1/5/15-min
+load average at start and end (the machine is shared: compare timings with the load),
+size on disk, the AAM size, and phone coverage (which of the 40 phones occur, frame
+counts). Targets: build + featurise <= 180 s on 2 cores (``total_vs_target`` = total /
+180), size <= 200 MB.
 
     .venv/bin/python benchmarks/corpus.py [--n 300] [--seed 0]
 """
@@ -13,6 +16,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import tempfile
 import time
 from collections import Counter
@@ -26,21 +30,32 @@ def _size(d: Path, exclude: tuple[str, ...] = ()) -> int:
     return sum(p.stat().st_size for p in d.rglob("*") if p.is_file() and p.name not in exclude)
 
 
+def _cpu_s() -> dict[str, float]:
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)   # waited-for workers and espeak
+    return {"user": me.ru_utime + ch.ru_utime, "system": me.ru_stime + ch.ru_stime}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "corpus.json"))
     args = ap.parse_args()
+    load_start = [round(x, 2) for x in os.getloadavg()]
+    cpu0 = _cpu_s()
     with tempfile.TemporaryDirectory() as td:
         root = Path(td) / "corpus"
         t0 = time.perf_counter()
         build_corpus(root, n_utterances=args.n, seed=args.seed)
         t_build = time.perf_counter() - t0
+        cpu1 = _cpu_s()
         size_build = _size(root)
         t0 = time.perf_counter()
         c = load_corpus(root)
         t_feat = time.perf_counter() - t0
+        cpu2 = _cpu_s()
+        load_end = [round(x, 2) for x in os.getloadavg()]
         t0 = time.perf_counter()
         load_corpus(root)
         t_warm = time.perf_counter() - t0
@@ -56,18 +71,24 @@ def main() -> None:
             "total_s": round(t_build + t_feat, 2),
             "warm_load_s": round(t_warm, 2),
             "target_total_s": 180,
+            "total_vs_target": round((t_build + t_feat) / 180, 3),
+            "cpu_build_s": {k: round(cpu1[k] - cpu0[k], 2) for k in cpu0},
+            "cpu_featurise_s": {k: round(cpu2[k] - cpu1[k], 2) for k in cpu0},
+            "loadavg_start": load_start,
+            "loadavg_end": load_end,
             "size_build_mb": round(size_build / 1e6, 2),
             "size_with_cache_mb": round(size_total / 1e6, 2),
             "target_size_mb": 200,
             "n_frames": n_frames,
             "audio_s": round(n_frames / 25.0, 1),
             "aam_n_params": int(c.aam.n_params),
+            "aam_modes_shape_texture_combined": [c.aam.n_shape_modes, c.aam.n_texture_modes,
+                                                 c.aam.n_combined],
             "phones_present": [p for p in PHONES if segs[p] > 0],
             "phones_missing": [p for p in PHONES if segs[p] == 0],
             "phone_segments": {p: segs[p] for p in PHONES},
             "phone_frames": {p: frames[p] for p in PHONES},
-            "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                        "loadavg_1min_at_end": os.getloadavg()[0]},
+            "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

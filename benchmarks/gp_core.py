@@ -199,7 +199,7 @@ def correctness(N: int) -> dict:
     gpy.m.optimizer_array = gpy.x0
     gpy_obj = float(gpy.m.objective_function())
     gpy_grad_X = -np.asarray(gpy.m.X.gradient)  # d(objective)/dX
-    ours_obj = float(-ours.m.log_joint())
+    ours_obj = float(-ours.m.log_joint().detach())
     alpha, gamma, beta = ours.hyper()
     X = ours.m._X.detach()
     w = ours.w
@@ -334,7 +334,15 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-profile", action="store_true")
+    p.add_argument("--threads", type=int, default=None,
+                   help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
+    limiter = None
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+        from threadpoolctl import threadpool_limits
+
+        limiter = threadpool_limits(limits=args.threads)  # noqa: F841 (kept alive for the run)
     sizes = QUICK_SIZES if args.quick else FULL_SIZES
     t_start = time.perf_counter()
     result = {
@@ -342,7 +350,8 @@ def main(argv=None) -> int:
         "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
         "machine": machine_info(),
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
-                     "warmup": 1, "sizes": list(sizes)},
+                     "warmup": 1, "sizes": list(sizes),
+                     "threads_limit": args.threads},
         "correctness": correctness(CHECK_N),
         "sizes": [],
     }

@@ -33,16 +33,22 @@ See ``docs/data.md`` for the user-corpus layout read by :func:`load_corpus`.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.resources
 import io
 import json
 import logging
 import os
+import queue
+import subprocess
+import sys
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -70,6 +76,12 @@ FORMAT_VERSION = 1
 FPS = 25.0
 AAM_FRAMES_PER_PHONE = 4
 AAM_VARIANCE = 0.99
+#: texture pixels of the corpus AAM lie at least this far (px) inside the mean-shape hull
+#: (``AAM.fit(texture_inset=...)``): the outermost ring straddles the face outline and
+#: samples the background, which alone doubled the number of modes (docs/data.md)
+AAM_TEXTURE_INSET = 1.0
+#: featurise in worker processes only from this many sequences on (start-up ~2-3 s each)
+_MIN_ITEMS_FOR_WORKERS = 16
 #: bump when the derived features (MFCC settings, label rule, AAM projection) change
 FEATURE_VERSION = 1
 _CACHE_NAME = "features.npz"
@@ -133,6 +145,222 @@ def _sha256(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------
+# worker processes (build: speech + face + frames per utterance; load: MFCC + AAM)
+# ---------------------------------------------------------------------------------------
+#
+# Parallel work goes to persistent fresh interpreters started with ``subprocess`` (not
+# ``multiprocessing``: ``spawn`` re-imports the caller's ``__main__``, which breaks
+# scripts without an ``if __name__ == "__main__"`` guard, and ``fork`` copies the
+# caller's threads). Each worker runs with one BLAS/OpenMP thread (environment set
+# before it starts): with two processes on two cores, multi-threaded BLAS only adds
+# contention (measured: a 70x5635 @ 5635x97 product took 0.28 s with 2 OpenBLAS threads
+# under load, 0.002-0.01 s with 1). The parent runs its own numerical work with one BLAS
+# thread too (threadpoolctl), so results do not depend on where a task ran.
+# Protocol: a JSON header line, then the raw bytes of the arrays it lists.
+
+_BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+             "NUMEXPR_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
+_WORKER_PROGRAM = "from bayes_talk.data.corpus import _worker_main; _worker_main()"
+
+
+@contextlib.contextmanager
+def _single_thread_blas() -> Iterator[None]:
+    """One BLAS/OpenMP thread inside the block (no-op without threadpoolctl)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn/librosa
+        yield
+        return
+    with threadpool_limits(limits=1):
+        yield
+
+
+def _send(stream, header: dict, arrays: dict[str, np.ndarray] | None = None) -> None:
+    arrays = {k: np.ascontiguousarray(v) for k, v in (arrays or {}).items()}
+    header = dict(header, arrays=[[k, v.dtype.str, list(v.shape)] for k, v in arrays.items()])
+    stream.write(json.dumps(header).encode("utf-8") + b"\n")
+    for v in arrays.values():
+        stream.write(v.tobytes())
+    stream.flush()
+
+
+def _recv(stream) -> tuple[dict, dict[str, np.ndarray]] | None:
+    line = stream.readline()
+    if not line:
+        return None
+    header = json.loads(line.decode("utf-8"))
+    arrays = {}
+    for name, dt, shape in header.pop("arrays", []):
+        dtype = np.dtype(dt)
+        n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        buf = stream.read(n)
+        if len(buf) != n:
+            return None
+        arrays[name] = np.frombuffer(buf, dtype=dtype).reshape(shape).copy()
+    return header, arrays
+
+
+_EXC_TYPES = {"ValueError": ValueError, "FileExistsError": FileExistsError,
+              "KeyError": KeyError, "FileNotFoundError": FileNotFoundError}
+
+
+class _Workers:
+    """``n`` persistent worker processes; :meth:`map` runs tasks on them in order."""
+
+    def __init__(self, n: int) -> None:
+        import bayes_talk
+
+        pkg_root = str(Path(bayes_talk.__file__).resolve().parent.parent)
+        env = dict(os.environ, **_BLAS_ENV)
+        env["PYTHONPATH"] = os.pathsep.join([pkg_root] + [p for p in
+                                            env.get("PYTHONPATH", "").split(os.pathsep) if p])
+        self._procs: list[subprocess.Popen] = []
+        self._free: queue.SimpleQueue = queue.SimpleQueue()
+        try:
+            for _ in range(n):
+                p = subprocess.Popen([sys.executable, "-c", _WORKER_PROGRAM], env=env,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+                self._procs.append(p)
+                self._free.put(p)
+        except BaseException:
+            self.close()
+            raise
+
+    def _call(self, op: str, args: dict) -> tuple[dict, dict[str, np.ndarray]]:
+        p = self._free.get()
+        try:
+            _send(p.stdin, {"op": op, "args": args})
+            got = _recv(p.stdout)
+        except (BrokenPipeError, OSError):
+            got = None
+        if got is None:
+            code = p.poll()
+            raise RuntimeError(f"corpus worker process died during {op!r} (exit code {code}); "
+                               "see its messages above")
+        self._free.put(p)
+        head, arrays = got
+        if "error" in head:
+            raise _EXC_TYPES.get(head.get("type"), RuntimeError)(head["error"])
+        return head, arrays
+
+    def map(self, op: str, tasks: list[dict]) -> list[tuple[dict, dict[str, np.ndarray]]]:
+        with ThreadPoolExecutor(max_workers=max(1, len(self._procs))) as ex:
+            return list(ex.map(lambda a: self._call(op, a), tasks))
+
+    def close(self) -> None:
+        for p in self._procs:
+            with contextlib.suppress(OSError):
+                p.stdin.close()
+        for p in self._procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:  # pragma: no cover
+                p.kill()
+                p.wait()
+            with contextlib.suppress(OSError):
+                p.stdout.close()
+        self._procs = []
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict],
+               n_workers: int) -> list[tuple[dict, dict[str, np.ndarray]]]:
+    """``[fn(t) for t in tasks]``, in ``n_workers`` worker processes when > 1."""
+    if n_workers > 1 and len(tasks) > 1:
+        with _Workers(min(n_workers, len(tasks))) as w:
+            return w.map(op, tasks)
+    with _single_thread_blas():
+        return [fn(t) for t in tasks]
+
+
+def _worker_main() -> None:
+    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`)."""
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)            # stray prints from libraries go to stderr, not the protocol
+    sys.stdout = sys.stderr
+    inp = sys.stdin.buffer
+    ops = {"utterance": _utterance_task, "features": _features_task}
+    with _single_thread_blas():
+        while True:
+            got = _recv(inp)
+            if got is None:
+                break
+            head, _ = got
+            try:
+                res_head, res_arrays = ops[head["op"]](head["args"])
+            except Exception as exc:  # noqa: BLE001 - re-raised by the parent
+                _send(out, {"error": str(exc), "type": type(exc).__name__})
+                continue
+            _send(out, res_head, res_arrays)
+
+
+def _utterance_task(a: dict) -> tuple[dict, dict]:
+    """Synthesise utterance ``a["index"]``, drive and render the face, write its files."""
+    from bayes_talk.data.face import face_landmarks
+    from bayes_talk.data.render import render_frames
+    from bayes_talk.data.speech import SpeechRequest, write_wav
+    from bayes_talk.data.speech import _worker as synthesize_fresh
+
+    out_dir, i, seed, image_size = Path(a["out_dir"]), int(a["index"]), int(a["seed"]), int(a["image_size"])
+    res = synthesize_fresh(SpeechRequest(**a["request"]))
+    sr = res.sample_rate
+    n_samples = int(res.samples.shape[0])
+    T = frame_count(n_samples, sr, FPS)
+    # the file of record is the .lab (100 ns grid): drive the face from the same times
+    intervals = [(round(s * 1e7) / 1e7, round(e * 1e7) / 1e7, p) for s, e, p in res.intervals]
+    rng = np.random.default_rng([seed, i, 1])
+    lm = face_landmarks(intervals, T, fps=FPS, image_size=image_size, rng=rng)
+    frames = render_frames(lm, image_size=image_size)
+    name = f"utt{i:04d}"
+    rel = {k: f"utterances/{name}{ext}" for k, ext in
+           (("wav", ".wav"), ("lab", ".lab"), ("landmarks", ".landmarks.npz"),
+            ("frames", ".frames.npz"))}
+    write_wav(out_dir / rel["wav"], res.samples, sr)
+    write_lab(out_dir / rel["lab"], intervals)
+    save_npz(out_dir / rel["landmarks"], landmarks=np.asarray(lm, dtype=np.float64))
+    save_npz(out_dir / rel["frames"], frames=np.asarray(frames, dtype=np.uint8))
+    head = {"name": name, "sample_rate": int(sr), "n_samples": n_samples, "n_frames": int(T),
+            "n_landmarks": int(lm.shape[1]), "labels": frame_labels(intervals, T, FPS),
+            "rel": rel}
+    return head, {}
+
+
+_AAM_CACHE: dict[str, tuple[bytes, object]] = {}
+
+
+def _cached_aam(path: str):
+    from bayes_talk.features.aam import AAM
+
+    stamp = Path(path).with_suffix(".json").read_bytes()
+    hit = _AAM_CACHE.get(path)
+    if hit is None or hit[0] != stamp:
+        hit = (stamp, AAM.load(path))
+        _AAM_CACHE[path] = hit
+    return hit[1]
+
+
+def _features_task(a: dict) -> tuple[dict, dict]:
+    """MFCC and visual features (AAM parameters) of one item."""
+    it = _Item(a["name"], Path(a["wav"]), Path(a["labels"]), int(a["n_frames"]), [],
+               visual=None if a["visual"] is None else Path(a["visual"]),
+               landmarks=None if a["landmarks"] is None else Path(a["landmarks"]),
+               features=None if a["features"] is None else Path(a["features"]))
+    y, sr = load_wav(it.wav)
+    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav))
+    frames, lm, feats = _load_visual(it)
+    if feats is not None:
+        vis = feats
+    else:
+        vis = np.asarray(_cached_aam(a["aam"]).project(frames, lm), np.float64)
+    return {}, {"mfcc": mf, "visual": vis}
 
 
 # ---------------------------------------------------------------------------------------
@@ -237,15 +465,19 @@ def build_corpus(
     are overwritten and files listed in a previous manifest of ours but not produced now
     are removed -- nothing else is deleted. ``manifest.json`` is written last, so a
     directory without it is an incomplete build.
+
+    ``n_workers`` worker processes (one BLAS thread each) each take whole utterances:
+    speech in a fresh espeak-ng process, face, frames, files -- so one renders while the
+    other waits for speech. The output does not depend on ``n_workers``.
     """
-    from bayes_talk.data.face import face_landmarks
-    from bayes_talk.data.render import render_frames
-    from bayes_talk.data.speech import jittered_requests, synthesize_many, write_wav
+    from bayes_talk.data.speech import jittered_requests
     from bayes_talk.features.aam import AAM
 
     out_dir = Path(out_dir)
     if int(n_utterances) < 1:
         raise ValueError(f"n_utterances: expected >= 1, found {n_utterances}")
+    if int(n_workers) < 1:
+        raise ValueError(f"n_workers: expected >= 1, found {n_workers}")
     if int(image_size) < 32:
         raise ValueError(f"image_size: expected >= 32 pixels, found {image_size}")
     texts = load_sentences(sentences, int(n_utterances))
@@ -257,40 +489,32 @@ def build_corpus(
         old_manifest.unlink()
 
     requests = jittered_requests(texts, seed, voice=voice, fps=FPS)
+    tasks = [{"out_dir": str(out_dir), "index": i, "seed": int(seed), "image_size": int(image_size),
+              "request": {"text": r.text, "voice": r.voice, "rate": int(r.rate),
+                          "pitch": int(r.pitch), "lead_silence": r.lead_silence,
+                          "trail_silence": r.trail_silence, "fps": r.fps}}
+             for i, r in enumerate(requests)]
+    # every utterance end to end (fresh espeak process, face, frames, files) in a worker:
+    # one worker renders while the other waits for its speech
+    results = _run_tasks(_utterance_task, "utterance", tasks, int(n_workers))
     written: list[str] = []
     seqs_meta: list[dict] = []
     all_labels: list[list[str]] = []
     sr_ref = None
-    results = synthesize_many(requests, n_workers=n_workers)
-    for i, res in enumerate(results):
-        name = f"utt{i:04d}"
-        sr = res.sample_rate
+    for req, (res, _) in zip(requests, results):
+        sr = res["sample_rate"]
         sr_ref = sr if sr_ref is None else sr_ref
         if sr != sr_ref:
             raise RuntimeError(f"espeak-ng changed its sample rate ({sr} vs {sr_ref})")
-        n_samples = int(res.samples.shape[0])
-        T = frame_count(n_samples, sr, FPS)
-        # the file of record is the .lab (100 ns grid): drive the face from the same times
-        intervals = [(round(s * 1e7) / 1e7, round(e * 1e7) / 1e7, p) for s, e, p in res.intervals]
-        rng = np.random.default_rng([int(seed), i, 1])
-        lm = face_landmarks(intervals, T, fps=FPS, image_size=int(image_size), rng=rng)
-        frames = render_frames(lm, image_size=int(image_size))
-
-        rel = {k: f"utterances/{name}{ext}" for k, ext in
-               (("wav", ".wav"), ("lab", ".lab"), ("landmarks", ".landmarks.npz"),
-                ("frames", ".frames.npz"))}
-        write_wav(out_dir / rel["wav"], res.samples, sr)
-        write_lab(out_dir / rel["lab"], intervals)
-        save_npz(out_dir / rel["landmarks"], landmarks=np.asarray(lm, dtype=np.float64))
-        save_npz(out_dir / rel["frames"], frames=np.asarray(frames, dtype=np.uint8))
+        rel = res["rel"]
         written.extend(rel.values())
-        all_labels.append(frame_labels(intervals, T, FPS))
+        all_labels.append(res["labels"])
         seqs_meta.append({
-            "name": name, "text": res.request.text, "voice": voice, "rate": res.request.rate,
-            "pitch": res.request.pitch, "n_samples": n_samples, "n_frames": T,
-            "n_landmarks": int(lm.shape[1]), **rel,
+            "name": res["name"], "text": req.text, "voice": voice, "rate": req.rate,
+            "pitch": req.pitch, "n_samples": res["n_samples"], "n_frames": res["n_frames"],
+            "n_landmarks": res["n_landmarks"], **rel,
         })
-        log.info("utterance %s: %d frames", name, T)
+        log.info("utterance %s: %d frames", res["name"], res["n_frames"])
 
     # AAM from prototype frames
     protos = _prototype_frames(all_labels, np.random.default_rng([int(seed), 2**31]),
@@ -302,7 +526,9 @@ def build_corpus(
         lm = load_npz(out_dir / seqs_meta[s]["landmarks"], ("landmarks",))["landmarks"]
         imgs.append(fr[ts])
         lms.append(lm[ts])
-    aam = AAM.fit(np.concatenate(imgs), np.concatenate(lms), variance=AAM_VARIANCE)
+    with _single_thread_blas():
+        aam = AAM.fit(np.concatenate(imgs), np.concatenate(lms), variance=AAM_VARIANCE,
+                      texture_inset=AAM_TEXTURE_INSET)
     before = _snapshot(out_dir)
     aam.save(out_dir / "aam.npz")
     after = _snapshot(out_dir)
@@ -324,6 +550,7 @@ def build_corpus(
         "n_utterances": int(n_utterances),
         "synthesiser": "espeak-ng via espeakng-loader (one fresh process per utterance)",
         "aam": {"path": "aam.npz", "files": aam_files, "variance": AAM_VARIANCE,
+                "texture_inset": AAM_TEXTURE_INSET,
                 "n_params": int(aam.n_params), "frames_per_phone": int(aam_frames_per_phone),
                 "prototypes": [[seqs_meta[s]["name"], int(t)] for s, t in protos]},
         "sequences": seqs_meta,
@@ -602,11 +829,13 @@ def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed:
         fr, lm, _ = _load_visual(items[s])
         imgs.append(fr[ts])
         lms.append(lm[ts])
-    return AAM.fit(np.concatenate(imgs), np.concatenate(lms), variance=AAM_VARIANCE)
+    with _single_thread_blas():
+        return AAM.fit(np.concatenate(imgs), np.concatenate(lms), variance=AAM_VARIANCE,
+                       texture_inset=AAM_TEXTURE_INSET)
 
 
 def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = True,
-                seed: int = 0) -> Corpus:
+                seed: int = 0, n_workers: int = 2) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Sequence` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -620,7 +849,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     and the feature settings; any change recomputes them. For a user corpus with image
     or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
-    offending file.
+    offending file. ``n_workers``: worker processes for featurisation (used from
+    16 sequences on; the features do not depend on it).
     """
     root = Path(path)
     if not root.is_dir():
@@ -667,13 +897,20 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
+        tasks = [{"name": it.name, "wav": str(it.wav), "labels": str(it.labels),
+                  "n_frames": it.n_frames,
+                  "visual": None if it.visual is None else str(it.visual),
+                  "landmarks": None if it.landmarks is None else str(it.landmarks),
+                  "features": None if it.features is None else str(it.features),
+                  "aam": None if aam is None else str(aam_path)} for it in items]
+        if aam is not None:
+            _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
+        workers = int(n_workers) if len(items) >= _MIN_ITEMS_FOR_WORKERS else 1
+        results = _run_tasks(_features_task, "features", tasks, workers)
         cached = {}
-        for it, labs in zip(items, labels):
-            y, sr = load_wav(it.wav)
-            mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav))
-            frames, lm, feats = _load_visual(it)
-            vis = feats if feats is not None else np.asarray(aam.project(frames, lm), np.float64)
-            cached[it.name] = (mf, vis, np.array([PHONE_INDEX[p] for p in labs], dtype=np.int8))
+        for it, labs, (_, arr) in zip(items, labels, results):
+            cached[it.name] = (arr["mfcc"], arr["visual"],
+                               np.array([PHONE_INDEX[p] for p in labs], dtype=np.int8))
         if cache:
             if cpath.exists():
                 try:

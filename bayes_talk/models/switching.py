@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig, _atomic_write, read_model_files, write_npz
 from bayes_talk.models.vlmm import VLMM, Segment
 
@@ -122,7 +123,8 @@ class SwitchingConfig:
 def _fit_state(job: tuple) -> tuple[dict, dict]:
     """Fit one state's SGPDM (a top-level function so process pools can pickle it)."""
     audio, visual, lengths, cfg_dict = job
-    m = SGPDM(SGPDMConfig(**cfg_dict)).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
+    with torch_threads(1):
+        m = SGPDM(SGPDMConfig(**cfg_dict)).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
     return m.state()
 
 

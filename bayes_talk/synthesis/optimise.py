@@ -45,10 +45,12 @@ def sequence_log_density(
     return lp
 
 
-def _maximise(fn: Callable[[torch.Tensor], torch.Tensor], X0: np.ndarray, max_iter: int) -> np.ndarray:
+def _maximise(fn: Callable[[torch.Tensor], torch.Tensor], X0: np.ndarray, max_iter: int,
+              tol_grad: float = 1e-5) -> np.ndarray:
+    """Maximise fn from X0 by L-BFGS; stops when max |gradient| < tol_grad (per unit of ln p)."""
     X = torch.as_tensor(np.array(X0, dtype=np.float64)).requires_grad_(True)
     opt = torch.optim.LBFGS([X], lr=1.0, max_iter=max_iter, history_size=20,
-                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+                            line_search_fn="strong_wolfe", tolerance_grad=tol_grad, tolerance_change=1e-9)
 
     def closure():
         opt.zero_grad()

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from scipy.signal import butter, filtfilt
 
+from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
 from bayes_talk.synthesis.optimise import optimise_sequence
@@ -84,6 +85,11 @@ def synthesize(
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     mfcc = _check_inputs(model, mfcc, labels)
+    with torch_threads(1):
+        return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter)
+
+
+def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter) -> SynthesisResult:
     segments = model.segment(list(labels))
     T, Dz = mfcc.shape[0], model.dims_[1]
     d = model.config.latent_dim

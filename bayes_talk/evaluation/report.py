@@ -1,0 +1,136 @@
+"""Reports of an evaluation run: JSON, a Markdown table and trajectory figures.
+
+Every file is written atomically: to a temporary file in the target directory, then
+``os.replace``-d onto the target, so a reader never sees a half-written report.
+
+The trajectory figure follows deena2009 Figs. 5-7: the first AAM parameter of one test
+utterance, synthesis against ground truth, one panel per method; methods with a
+predictive variance also show their ±2σ band.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["atomic_write", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
+
+_COLUMNS = (  # (metric key, column label)
+    ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
+    ("log_likelihood_per_frame", "log-lik/frame"), ("coverage_50", "cov50"), ("coverage_90", "cov90"),
+    ("crps", "CRPS"), ("nlpd", "NLPD"),
+)
+
+
+def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
+    """Call ``write(tmp_path)`` on a temporary file beside ``path``, then replace ``path``."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_json(result: dict[str, Any], path: str | Path) -> Path:
+    """Write ``result`` as strict JSON (no NaN: missing values are null)."""
+    text = json.dumps(result, indent=2, allow_nan=False) + "\n"
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
+def _fmt(s: Any) -> str:
+    if not isinstance(s, dict) or s.get("mean") is None:
+        return "–"
+    m, sd = s["mean"], s.get("std")
+    digits = 4
+    if sd is None:
+        return f"{m:.{digits}g}"
+    return f"{m:.{digits}g} ± {sd:.2g}"
+
+
+def markdown_table(result: dict[str, Any]) -> str:
+    """A Markdown table of every method: mean ± std over test utterances of each metric
+    present, training seconds and synthesis frames per second."""
+    methods = result.get("methods", {})
+    if not methods:
+        raise ValueError("result has no methods to tabulate")
+    cols = [(k, lab) for k, lab in _COLUMNS if any(k in e for e in methods.values())]
+    head = ["method"] + [lab for _, lab in cols] + ["train s", "synth frames/s"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
+    for name, e in methods.items():
+        fps = e.get("synth_frames_per_second")
+        shared = " (shared)" if e.get("train_shared_with") else ""
+        row = [f"{name}"] + [_fmt(e.get(k)) for k, _ in cols] + [
+            f"{e.get('train_seconds', float('nan')):.1f}{shared}", "–" if fps is None else f"{fps:.1f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
+    """Markdown report: title, what was run, the table and a pointer to the figure."""
+    quick = " (QUICK variant — not the paper's protocol)" if result.get("quick") else ""
+    parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
+             f"{result.get('description', '')}.\n",
+             f"Training utterances per split: {result.get('n_train')}; test utterances per split: "
+             f"{result.get('n_test')}; splits: {result.get('n_splits')}; utterances scored: "
+             f"{result.get('n_scored')}. Values are mean ± std over scored test utterances. "
+             "AMSE is the mean per-utterance MSE and ACC the mean per-utterance correlation "
+             "(deena2010 §5); NMSE divides by the ground-truth variance of the test frames; "
+             "cov50/cov90 are the fractions of entries inside the central 50/90 % Gaussian "
+             "predictive band (ideal 0.5/0.9).\n",
+             markdown_table(result)]
+    for w in result.get("warnings", []) or []:
+        parts.append(f"> Warning: {w}\n")
+    fig = (result.get("outputs") or {}).get("figure")
+    if fig:
+        parts.append(f"![first AAM parameter, synthesis vs ground truth]({fig})\n")
+    text = "\n".join(parts)
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
+def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | None = None,
+                      fps: float = 25.0) -> Path:
+    """One panel per method: predicted vs true AAM parameter ``dim`` over time (PNG, Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    preds = traj.predictions
+    if not preds:
+        raise ValueError("no predictions to plot")
+    truth = np.asarray(traj.truth)
+    if not 0 <= dim < truth.shape[1]:
+        raise ValueError(f"dim must be in [0, {truth.shape[1]}), got {dim}")
+    t = np.arange(truth.shape[0]) / fps
+    n = len(preds)
+    fig, axes = plt.subplots(n, 1, figsize=(7, 1.9 * n + 0.6), sharex=True, squeeze=False)
+    for ax, (name, p) in zip(axes[:, 0], preds.items()):
+        ax.plot(t, truth[:, dim], color="k", lw=1.4, label="ground truth")
+        ax.plot(t, p.mean[:, dim], color="tab:red", lw=1.2, label="synthesis")
+        if p.var is not None:
+            sd = np.sqrt(np.maximum(p.var[:, dim], 0))
+            ax.fill_between(t, p.mean[:, dim] - 2 * sd, p.mean[:, dim] + 2 * sd, color="tab:red", alpha=0.2,
+                            lw=0, label="±2σ")
+        ax.set_ylabel(f"AAM {dim + 1}")
+        ax.set_title(name, fontsize=9, loc="left")
+    axes[0, 0].legend(fontsize=7, loc="upper right", ncol=3)
+    axes[-1, 0].set_xlabel("time (s)")
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+    return Path(path)

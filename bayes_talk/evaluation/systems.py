@@ -1,0 +1,242 @@
+"""Registry of the systems an evaluation protocol can compare (issue #5, DESIGN.md §7, §9).
+
+Every *method* is a way of producing visual features for a test utterance; every method
+belongs to a *family*, the model that must be trained for it. Methods of one family share
+one trained model, so the harness trains each family once per split:
+
+==========================  ==================  ==========================================
+method                      family              what it is
+==========================  ==================  ==========================================
+ssgpdm-vlmm-optimise        ssgpdm-vlmm         deena2010 Algorithm 1, VLMM states
+ssgpdm-vlmm-predict         ssgpdm-vlmm         deena2010 Algorithm 2, VLMM states
+ssgpdm-phone-optimise       ssgpdm-phone        Algorithm 1, phone states (SSGPDM-phoneme)
+ssgpdm-phone-predict        ssgpdm-phone        Algorithm 2, phone states
+sgplvm-a                    sgplvm              deena2009, back-constraint initialiser
+sgplvm-b                    sgplvm              deena2009, HMM/Viterbi initialiser
+voice-puppetry              voice-puppetry      Brand (1999)
+slds                        slds                switching LDS with known labels
+dpds                        dpds                englebienne2008
+hmm-mean                    hmm-mean            per-phone mean face
+==========================  ==================  ==========================================
+
+Our GP methods return a predictive variance with the mean (``Prediction.var``); the
+baselines return a mean only. ``log_likelihood`` gives a per-utterance test
+log-likelihood where the method defines one: the baselines' own
+``log_likelihood(seq)``, and for our methods the Gaussian predictive density
+Σ_t Σ_d ln N(z_td; μ_td, σ²_td) (frame-wise marginals: not the joint density of the
+trajectory, so it is comparable with the baselines only loosely).
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from bayes_talk.data.sequence import Sequence as Utterance
+
+__all__ = [
+    "FAMILIES",
+    "METHODS",
+    "Method",
+    "Prediction",
+    "SystemConfig",
+    "fit_family",
+    "group_by_family",
+    "log_likelihood",
+    "predict",
+    "resolve_methods",
+]
+
+log = logging.getLogger(__name__)
+
+#: variance floor applied to predictive variances before calibration metrics
+VAR_FLOOR = 1e-10
+
+
+@dataclass
+class SystemConfig:
+    """Settings of every family, fixed by a protocol (see :mod:`bayes_talk.evaluation.protocols`).
+
+    latent_dim: d of our GP models (8 in deena2009, 6 in deena2010).
+    seed: seeds every model (and the switching models' subsequence caps).
+    ssgpdm_*: :class:`~bayes_talk.models.switching.SwitchingConfig` settings.
+    synth_max_iter: optimiser iterations per segment / utterance at synthesis.
+    lowpass_hz: optional low-pass of the switching models' mean (None: off).
+    sgplvm_*: :class:`~bayes_talk.models.sgplvm.SGPLVM` settings.
+    vp_*: Voice Puppetry settings (number of HMM states, Baum-Welch iterations).
+    slds_n_iter, dpds_max_iter: EM / gradient iterations of the LDS baselines.
+    """
+
+    latent_dim: int = 6
+    seed: int = 0
+    ssgpdm_max_frames_per_state: int = 300
+    ssgpdm_min_frames_per_state: int = 12
+    ssgpdm_min_count: int = 10
+    ssgpdm_max_iter: int = 100
+    ssgpdm_fallback_frames: int = 400
+    synth_max_iter: int = 50
+    lowpass_hz: float | None = None
+    sgplvm_max_frames: int = 1500
+    sgplvm_max_iter: int = 200
+    sgplvm_synth_max_iter: int = 100
+    vp_n_states: int = 26
+    vp_n_iter: int = 50
+    slds_n_iter: int = 100
+    dpds_max_iter: int = 200
+
+    def __post_init__(self) -> None:
+        for k, v in vars(self).items():
+            if k == "lowpass_hz":
+                if v is not None and not v > 0:
+                    raise ValueError(f"lowpass_hz must be > 0 or None, got {v!r}")
+                continue
+            if k == "seed":
+                if not isinstance(v, (int, np.integer)) or v < 0:
+                    raise ValueError(f"seed must be a non-negative integer, got {v!r}")
+                continue
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{k} must be a positive integer, got {v!r}")
+
+
+@dataclass(frozen=True)
+class Method:
+    """One evaluated method: ``name`` (registry key), ``family`` (trained model it uses),
+    ``label`` (how the papers call it), ``has_variance`` (returns a predictive variance),
+    ``options`` (synthesis options of the family's model)."""
+
+    name: str
+    family: str
+    label: str
+    has_variance: bool
+    options: dict = field(default_factory=dict)
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("ssgpdm-vlmm-optimise", "ssgpdm-vlmm", "SSGPDM-VLMM seq. optimisation", True,
+           {"algorithm": "optimise"}),
+    Method("ssgpdm-vlmm-predict", "ssgpdm-vlmm", "SSGPDM-VLMM seq. prediction", True,
+           {"algorithm": "predict"}),
+    Method("ssgpdm-phone-optimise", "ssgpdm-phone", "SSGPDM-phoneme seq. optimisation", True,
+           {"algorithm": "optimise"}),
+    Method("ssgpdm-phone-predict", "ssgpdm-phone", "SSGPDM-phoneme seq. prediction", True,
+           {"algorithm": "predict"}),
+    Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
+    Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
+    Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
+    Method("slds", "slds", "SLDS", False),
+    Method("dpds", "dpds", "DPDS", False),
+    Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
+)}
+
+FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values()))
+
+
+@dataclass
+class Prediction:
+    """mean: (T, D_z); var: (T, D_z) predictive variance, or None for a point predictor."""
+
+    mean: np.ndarray
+    var: np.ndarray | None = None
+
+
+def resolve_methods(names: str | Iterable[str] | None, default: Sequence[str] = ()) -> list[str]:
+    """Method names from a comma-separated string or an iterable (None: ``default``).
+
+    Duplicates are dropped (first occurrence kept). An unknown name raises ValueError
+    listing the valid ones.
+    """
+    if names is None:
+        items = list(default)
+    elif isinstance(names, str):
+        items = [s.strip() for s in names.split(",") if s.strip()]
+    else:
+        items = [str(s).strip() for s in names]
+    if not items:
+        raise ValueError(f"no methods given; valid methods: {', '.join(METHODS)}")
+    unknown = [s for s in items if s not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; "
+                         f"valid methods: {', '.join(METHODS)}")
+    return list(dict.fromkeys(items))
+
+
+def group_by_family(methods: Iterable[str]) -> dict[str, list[str]]:
+    """family -> its requested methods, in first-appearance order (one training per family)."""
+    out: dict[str, list[str]] = {}
+    for name in resolve_methods(list(methods)):
+        out.setdefault(METHODS[name].family, []).append(name)
+    return out
+
+
+def _build(family: str, cfg: SystemConfig) -> Any:
+    if family in ("ssgpdm-vlmm", "ssgpdm-phone"):
+        from bayes_talk.models.switching import SwitchingSGPDM
+
+        return SwitchingSGPDM(states=family.split("-")[1], latent_dim=cfg.latent_dim,
+                              max_frames_per_state=cfg.ssgpdm_max_frames_per_state,
+                              min_frames_per_state=cfg.ssgpdm_min_frames_per_state,
+                              min_count=cfg.ssgpdm_min_count, max_iter=cfg.ssgpdm_max_iter,
+                              fallback_frames=cfg.ssgpdm_fallback_frames, seed=cfg.seed)
+    if family == "sgplvm":
+        from bayes_talk.models.sgplvm import SGPLVM
+
+        return SGPLVM(latent_dim=cfg.latent_dim, max_frames=cfg.sgplvm_max_frames,
+                      max_iter=cfg.sgplvm_max_iter, seed=cfg.seed)
+    from bayes_talk.baselines import REGISTRY
+
+    if family == "voice-puppetry":
+        return REGISTRY[family](n_states=cfg.vp_n_states, n_iter=cfg.vp_n_iter, random_state=cfg.seed)
+    if family == "slds":
+        return REGISTRY[family](n_iter=cfg.slds_n_iter)
+    if family == "dpds":
+        return REGISTRY[family](max_iter=cfg.dpds_max_iter)
+    if family == "hmm-mean":
+        return REGISTRY[family]()
+    raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
+
+
+def fit_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, executor=None) -> Any:
+    """Build and train the model of ``family`` on ``train`` (seeded by ``cfg.seed``).
+
+    ``executor`` (anything with ``map``) is passed to the switching models' ``fit``; the
+    other families train in this process.
+    """
+    if not train:
+        raise ValueError("no training sequences")
+    model = _build(family, cfg)
+    if family.startswith("ssgpdm-"):
+        return model.fit(list(train), executor=executor)
+    return model.fit(list(train))
+
+
+def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
+    """Visual features of ``seq`` (from its mfcc and labels only) by ``method``."""
+    m = METHODS[resolve_methods([method])[0]]
+    if m.family.startswith("ssgpdm-"):
+        r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
+                             lowpass_hz=cfg.lowpass_hz, max_iter=cfg.synth_max_iter)
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+    if m.family == "sgplvm":
+        r = model.synthesize(seq.mfcc, seq.labels, init=m.options["init"], max_iter=cfg.sgplvm_synth_max_iter)
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+    return Prediction(np.asarray(model.predict(seq), np.float64), None)
+
+
+def log_likelihood(method: str, model: Any, seq: Utterance, pred: Prediction) -> float | None:
+    """Test log-likelihood of ``seq.aam`` (total over the utterance), or None if undefined.
+
+    Baselines: their own ``log_likelihood`` (where ``has_log_likelihood``). Our methods:
+    Σ_t Σ_d ln N(z_td; μ_td, σ²_td) of the frame-wise Gaussian predictive.
+    """
+    m = METHODS[method]
+    if m.has_variance:
+        if pred.var is None:
+            return None
+        v = np.maximum(pred.var, VAR_FLOOR)
+        return float(-0.5 * np.sum(np.log(2 * np.pi * v) + (seq.aam - pred.mean) ** 2 / v))
+    if getattr(model, "has_log_likelihood", False):
+        return float(model.log_likelihood(seq))
+    return None
