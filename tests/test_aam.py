@@ -221,3 +221,31 @@ def test_bad_inputs_raise(model, held_out):
         model.reconstruct(p[:2, :-1])
     with pytest.raises(ValueError, match="variance"):
         AAM.fit(f[:5], l[:5], variance=1.5)
+
+
+def test_texture_inset_drops_the_outline_ring(data, held_out):
+    """texture_inset=1 (the built-in corpus choice): texture pixels >= 1 px inside the
+    mean-shape hull; fewer pixels and texture modes, same accuracy bounds as above."""
+    from scipy.spatial import ConvexHull
+
+    frames, lm, _ = data
+    f, l, _ = held_out
+    X, L = frames[:N_TRAIN, ::5].reshape(-1, 128, 128), lm[:N_TRAIN, ::5].reshape(-1, face.N_LANDMARKS, 2)
+    plain = AAM.fit(X, L)
+    inset = AAM.fit(X, L, texture_inset=1.0)
+    assert inset.n_pixels < plain.n_pixels and inset.meta["texture_inset"] == 1.0
+    eq = ConvexHull(inset._a["tex_points"]).equations
+    xy = np.stack([inset._a["pixel_cols"], inset._a["pixel_rows"]], axis=1).astype(float)
+    assert (-(xy @ eq[:, :2].T + eq[:, 2])).min(axis=1).min() >= 1.0 - 1e-9
+    print(f"\n{len(X)} frames: texture modes {plain.n_texture_modes} -> {inset.n_texture_modes}, "
+          f"n_params {plain.n_params} -> {inset.n_params}")
+    assert inset.n_texture_modes < plain.n_texture_modes
+    p = inset.project(f, l)
+    lm_hat, tex_hat = inset.reconstruct(p)
+    assert np.linalg.norm(lm_hat - l, axis=-1).mean() < 0.5
+    tex = inset.warp_to_mean(f, l)
+    assert 10 * np.log10(255.0**2 / np.mean((tex_hat - tex) ** 2)) >= 35.0
+    r = inset.render(p[:50])
+    assert 10 * np.log10(255.0**2 / np.mean((r.astype(float) - f[:50]) ** 2)) >= 28.0
+    with pytest.raises(ValueError, match="texture_inset"):
+        AAM.fit(X[:5], L[:5], texture_inset=-1.0)

@@ -80,3 +80,26 @@ def test_bad_requests():
         SpeechRequest("hello there", rate=10)
     with pytest.raises(ValueError, match="voice 'no-such-voice'"):
         synthesize_many([SpeechRequest("hello there", voice="no-such-voice")], n_workers=1)
+
+
+def test_slim_child_matches_the_in_module_synthesis():
+    """The self-contained child program (python -I -S) gives the bytes and events of
+    _raw_synthesis (run through the old child entry point, in its own fresh process)."""
+    import json
+    import subprocess
+    import sys
+
+    from bayes_talk.data.speech import _worker
+
+    req = SpeechRequest("Bright vixens jump; dozy fowl quack.", rate=190, pitch=44)
+    new = _worker(req)
+    payload = json.dumps({"text": req.text, "voice": req.voice, "rate": req.rate, "pitch": req.pitch})
+    out = subprocess.run([sys.executable, "-c",
+                          "from bayes_talk.data.speech import _child_main; _child_main()"],
+                         input=payload.encode(), capture_output=True, check=True).stdout
+    nl = out.find(b"\n")
+    head = json.loads(out[:nl])
+    lead = round(req.lead_silence * new.sample_rate)
+    raw = out[nl + 1:]
+    assert new.samples[lead:lead + len(raw) // 2].tobytes() == raw
+    assert [(s - lead, c) for s, _, c in new.espeak_phones][0] == tuple(head["events"][0])

@@ -80,7 +80,8 @@ AAM_VARIANCE = 0.99
 #: (``AAM.fit(texture_inset=...)``): the outermost ring straddles the face outline and
 #: samples the background, which alone doubled the number of modes (docs/data.md)
 AAM_TEXTURE_INSET = 1.0
-#: featurise in worker processes only from this many sequences on (start-up ~2-3 s each)
+#: default ``n_workers=None``: 2 worker processes from this many utterances on, else
+#: none (a worker's start-up, ~1-3 s of imports, outweighs the gain on small jobs)
 _MIN_ITEMS_FOR_WORKERS = 16
 #: bump when the derived features (MFCC settings, label rule, AAM projection) change
 FEATURE_VERSION = 1
@@ -271,6 +272,14 @@ class _Workers:
         self.close()
 
 
+def _n_workers(n_workers: int | None, n_tasks: int) -> int:
+    if n_workers is None:
+        return 2 if n_tasks >= _MIN_ITEMS_FOR_WORKERS else 1
+    if int(n_workers) < 1:
+        raise ValueError(f"n_workers: expected >= 1 or None, found {n_workers}")
+    return int(n_workers)
+
+
 def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict],
                n_workers: int) -> list[tuple[dict, dict[str, np.ndarray]]]:
     """``[fn(t) for t in tasks]``, in ``n_workers`` worker processes when > 1."""
@@ -456,7 +465,7 @@ def build_corpus(
     image_size: int = 128,
     force: bool = False,
     *,
-    n_workers: int = 2,
+    n_workers: int | None = None,
     aam_frames_per_phone: int = AAM_FRAMES_PER_PHONE,
 ) -> Path:
     """Synthesise speech, faces and frames into ``out_dir`` and learn an AAM; return the path.
@@ -466,9 +475,10 @@ def build_corpus(
     are removed -- nothing else is deleted. ``manifest.json`` is written last, so a
     directory without it is an incomplete build.
 
-    ``n_workers`` worker processes (one BLAS thread each) each take whole utterances:
-    speech in a fresh espeak-ng process, face, frames, files -- so one renders while the
-    other waits for speech. The output does not depend on ``n_workers``.
+    ``n_workers`` worker processes (one BLAS thread each; None: 2 from 16 utterances on,
+    else 1 = in this process) each take whole utterances: speech in a fresh espeak-ng
+    process, face, frames, files -- so one renders while the other waits for speech. The
+    output does not depend on ``n_workers``.
     """
     from bayes_talk.data.speech import jittered_requests
     from bayes_talk.features.aam import AAM
@@ -476,8 +486,7 @@ def build_corpus(
     out_dir = Path(out_dir)
     if int(n_utterances) < 1:
         raise ValueError(f"n_utterances: expected >= 1, found {n_utterances}")
-    if int(n_workers) < 1:
-        raise ValueError(f"n_workers: expected >= 1, found {n_workers}")
+    workers = _n_workers(n_workers, int(n_utterances))
     if int(image_size) < 32:
         raise ValueError(f"image_size: expected >= 32 pixels, found {image_size}")
     texts = load_sentences(sentences, int(n_utterances))
@@ -496,7 +505,7 @@ def build_corpus(
              for i, r in enumerate(requests)]
     # every utterance end to end (fresh espeak process, face, frames, files) in a worker:
     # one worker renders while the other waits for its speech
-    results = _run_tasks(_utterance_task, "utterance", tasks, int(n_workers))
+    results = _run_tasks(_utterance_task, "utterance", tasks, workers)
     written: list[str] = []
     seqs_meta: list[dict] = []
     all_labels: list[list[str]] = []
@@ -835,7 +844,7 @@ def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed:
 
 
 def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = True,
-                seed: int = 0, n_workers: int = 2) -> Corpus:
+                seed: int = 0, n_workers: int | None = None) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Sequence` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -849,8 +858,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     and the feature settings; any change recomputes them. For a user corpus with image
     or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
-    offending file. ``n_workers``: worker processes for featurisation (used from
-    16 sequences on; the features do not depend on it).
+    offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
+    sequences on, else none); the features do not depend on it.
     """
     root = Path(path)
     if not root.is_dir():
@@ -905,8 +914,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "aam": None if aam is None else str(aam_path)} for it in items]
         if aam is not None:
             _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
-        workers = int(n_workers) if len(items) >= _MIN_ITEMS_FOR_WORKERS else 1
-        results = _run_tasks(_features_task, "features", tasks, workers)
+        results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)))
         cached = {}
         for it, labs, (_, arr) in zip(items, labels, results):
             cached[it.name] = (arr["mfcc"], arr["visual"],
