@@ -20,10 +20,22 @@ def _files(d: Path) -> dict[str, bytes]:
     return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
 
 
+# Budget ~40 s on 2 shared cores: every corpus is built once per module. `big` (40
+# utterances: the acceptance test's data size; built and featurised in 2 worker
+# processes) and `small` (4: layout, loader, cache, user layouts; built in-process) are
+# shared; tests build only what they must (a 4-utterance rebuild, 2 utterances of seed 1).
+
+
 @pytest.fixture(scope="module")
 def big(tmp_path_factory) -> Path:
     """40 utterances, seed 0 (the acceptance corpus)."""
     return build_corpus(tmp_path_factory.mktemp("big") / "c", n_utterances=40, seed=0)
+
+
+@pytest.fixture(scope="module")
+def big_corpus(big):
+    """``big`` loaded once (cold cache: featurised in worker processes)."""
+    return load_corpus(big)
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +49,8 @@ def test_rebuild_is_byte_identical_and_keeps_user_files(small, big, tmp_path):
     (again / "notes.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="not empty"):
         build_corpus(again, n_utterances=4, seed=0)
-    build_corpus(again, n_utterances=4, seed=0, force=True)
+    # `small` was built in this process; this rebuild runs in 2 worker processes
+    build_corpus(again, n_utterances=4, seed=0, force=True, n_workers=2)
     assert (again / "notes.txt").read_text() == "mine"
     a, b = _files(small), _files(again)
     b.pop("notes.txt")
@@ -187,10 +200,29 @@ def test_sentence_rules(tmp_path):
     assert len(set(lines)) == 300 and all(5 <= len(s.split()) <= 12 for s in lines)
 
 
-def test_aam_separates_bilabial_closure_from_open_vowels(big):
+def test_worker_features_equal_in_process_features(big, big_corpus):
+    """big_corpus was featurised in worker processes; recompute two sequences here."""
+    from bayes_talk.data.corpus import _features_task, _single_thread_blas
+
+    m = json.loads((big / "manifest.json").read_text())
+    for k in (0, 39):
+        sm, seq = m["sequences"][k], big_corpus[k]
+        task = {"name": sm["name"], "wav": str(big / sm["wav"]), "labels": str(big / sm["lab"]),
+                "n_frames": sm["n_frames"], "visual": str(big / sm["frames"]),
+                "landmarks": str(big / sm["landmarks"]), "features": None,
+                "aam": str(big / m["aam"]["path"])}
+        with _single_thread_blas():
+            _, arr = _features_task(task)
+        np.testing.assert_array_equal(arr["mfcc"], seq.mfcc)
+        np.testing.assert_array_equal(arr["visual"] - seq.meta["aam_mean"], seq.aam)
+
+
+def test_aam_separates_bilabial_closure_from_open_vowels(big_corpus):
     """Acceptance: nearest centroid on AAM parameters, train on 30 utterances, test on 10."""
-    c = load_corpus(big)
+    c = big_corpus
     assert len(c) == 40
+    print(f"\ncorpus AAM: {c.aam.n_params} parameters (modes shape/texture/combined "
+          f"{c.aam.n_shape_modes}/{c.aam.n_texture_modes}/{c.aam.n_combined})")
 
     def frames(seqs):
         X, y = [], []

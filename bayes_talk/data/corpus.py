@@ -25,6 +25,10 @@ directory, and utterance i does not depend on ``n_utterances``.
 Random streams: utterance i's rate/pitch jitter ``[seed, i]``; its face ``[seed, i, 1]``;
 the AAM prototype choice ``[seed, 2**31]``.
 
+Speed: utterances are built end to end (speech, face, frames, files) and featurised
+(MFCC, AAM projection) in worker processes with one BLAS thread each (see the section
+"worker processes" below); nothing depends on which process did the work.
+
 AAM prototypes (deena2010 §3.2: 4 random frames per phoneme + 1 silence frame): up to
 ``AAM_FRAMES_PER_PHONE`` frames drawn at random (without replacement) among the frames
 whose majority-vote label is that phone, for every phone present, ``sil`` included.
@@ -248,8 +252,12 @@ class _Workers:
         return head, arrays
 
     def map(self, op: str, tasks: list[dict]) -> list[tuple[dict, dict[str, np.ndarray]]]:
-        with ThreadPoolExecutor(max_workers=max(1, len(self._procs))) as ex:
-            return list(ex.map(lambda a: self._call(op, a), tasks))
+        ex = ThreadPoolExecutor(max_workers=max(1, len(self._procs)))
+        try:
+            futures = [ex.submit(self._call, op, a) for a in tasks]
+            return [f.result() for f in futures]
+        finally:  # on an error, do not start the remaining tasks
+            ex.shutdown(wait=True, cancel_futures=True)
 
     def close(self) -> None:
         for p in self._procs:

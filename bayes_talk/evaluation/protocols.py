@@ -163,19 +163,21 @@ PROTOCOLS: dict[str, Protocol] = {
 
 #: what ``quick=True`` changes: protocol fields and SystemConfig fields
 _QUICK: dict[str, tuple[dict, dict]] = {
-    "deena2009": (dict(n_train=20, n_test=8, n_repeats=3),
-                  dict(sgplvm_max_frames=400, sgplvm_max_iter=40, sgplvm_synth_max_iter=30,
-                       vp_n_states=12, vp_n_iter=20)),
-    "deena2010": (dict(n_train=40, n_test=10),
-                  dict(ssgpdm_max_frames_per_state=60, ssgpdm_min_frames_per_state=60,
-                       ssgpdm_min_count=20, ssgpdm_max_iter=20, ssgpdm_fallback_frames=150,
-                       synth_max_iter=15, vp_n_states=12, vp_n_iter=20)),
-    "englebienne2008": (dict(n_folds=4, n_use=40),
-                        dict(ssgpdm_max_frames_per_state=60, ssgpdm_min_frames_per_state=60,
-                             ssgpdm_min_count=20, ssgpdm_max_iter=20, ssgpdm_fallback_frames=150,
-                             synth_max_iter=15, sgplvm_max_frames=400, sgplvm_max_iter=40,
-                             sgplvm_synth_max_iter=30, vp_n_states=12, vp_n_iter=20, slds_n_iter=30,
-                             dpds_max_iter=100)),
+    "deena2009": (
+        {"n_train": 20, "n_test": 8, "n_repeats": 3},
+        {"sgplvm_max_frames": 400, "sgplvm_max_iter": 40, "sgplvm_synth_max_iter": 30,
+         "vp_n_states": 12, "vp_n_iter": 20}),
+    "deena2010": (
+        {"n_train": 100, "n_test": 20},
+        {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
+         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300, "synth_max_iter": 30,
+         "vp_n_states": 12, "vp_n_iter": 20}),
+    "englebienne2008": (
+        {"n_folds": 4, "n_use": 40},
+        {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
+         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300, "synth_max_iter": 30,
+         "sgplvm_max_frames": 400, "sgplvm_max_iter": 40, "sgplvm_synth_max_iter": 30,
+         "vp_n_states": 12, "vp_n_iter": 20, "slds_n_iter": 30, "dpds_max_iter": 100}),
 }
 
 

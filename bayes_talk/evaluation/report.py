@@ -79,16 +79,15 @@ def markdown_table(result: dict[str, Any]) -> str:
 def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
     """Markdown report: title, what was run, the table and a pointer to the figure."""
     quick = " (QUICK variant — not the paper's protocol)" if result.get("quick") else ""
-    parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
-             f"{result.get('description', '')}.\n",
-             f"Training utterances per split: {result.get('n_train')}; test utterances per split: "
+    intro = (f"Training utterances per split: {result.get('n_train')}; test utterances per split: "
              f"{result.get('n_test')}; splits: {result.get('n_splits')}; utterances scored: "
              f"{result.get('n_scored')}. Values are mean ± std over scored test utterances. "
              "AMSE is the mean per-utterance MSE and ACC the mean per-utterance correlation "
              "(deena2010 §5); NMSE divides by the ground-truth variance of the test frames; "
              "cov50/cov90 are the fractions of entries inside the central 50/90 % Gaussian "
-             "predictive band (ideal 0.5/0.9).\n",
-             markdown_table(result)]
+             "predictive band (ideal 0.5/0.9).\n")
+    parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
+             f"{result.get('description', '')}.\n", intro, markdown_table(result)]
     for w in result.get("warnings", []) or []:
         parts.append(f"> Warning: {w}\n")
     fig = (result.get("outputs") or {}).get("figure")

@@ -56,10 +56,15 @@ class GPPredictor:
         var = rbf_diag(Xs, self.alpha, self.alpha_lin) - (V * V).sum(0) + 1.0 / self.beta
         return mu, var.clamp_min(1e-12)
 
-    def log_lik(self, Ys: torch.Tensor, Xs: torch.Tensor) -> torch.Tensor:
-        """ln p(ŷ_t | x_t) for each row pair (T,), per-dimension variance σ²/w_m²."""
+    def log_lik(self, Ys: torch.Tensor, Xs: torch.Tensor, extra_var: torch.Tensor | None = None) -> torch.Tensor:
+        """ln p(ŷ_t | x_t) for each row pair (T,), per-dimension variance σ²/w_m²
+        (plus ``extra_var`` per dimension when given)."""
         mu, var = self.mean_var(Xs)
         D = self.out_dim
+        if extra_var is not None:
+            v = self.dim_var(var) + extra_var
+            r = Ys - mu
+            return -0.5 * (D * math.log(2.0 * math.pi) + torch.log(v).sum(-1) + (r * r / v).sum(-1))
         r = (Ys - mu) * self.w
         return (
             torch.log(self.w).sum()

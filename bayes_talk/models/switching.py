@@ -202,6 +202,8 @@ class SwitchingSGPDM:
         self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
         self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         self.n_training_frames_ = n_frames
+        # per-dimension mean square frame-to-frame motion of the visual features
+        self.motion_var_ = np.mean(np.vstack([np.diff(s.aam, axis=0) for s in train if s.n_frames > 1]) ** 2, 0)
         return self
 
     def _cap(self, subs: list, rng: np.random.Generator, cap: int | None = None) -> list:
@@ -246,7 +248,7 @@ class SwitchingSGPDM:
         return self.states_model_.segment(labels, unknown="sil")
 
     def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
-                   smoothness: bool = True, lowpass_hz: float | None = None, max_iter: int = 50):
+                   smoothness: str | bool = True, lowpass_hz: float | None = None, max_iter: int = 50):
         """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`."""
         from bayes_talk.synthesis.sequential import synthesize
 
@@ -264,7 +266,7 @@ class SwitchingSGPDM:
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
                 "n_training_frames": self.n_training_frames_, "models": []}
-        arrays: dict[str, np.ndarray] = {}
+        arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_}
         for j, (st, m) in enumerate(self.models_.items()):
             mmeta, marr = m.state()
             meta["models"].append({"state": list(st), "meta": mmeta})
@@ -290,8 +292,11 @@ class SwitchingSGPDM:
             obj.n_training_frames_ = meta["n_training_frames"]
             sm = meta["states_model"]
             obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
+            obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
             grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
             for k, a in arrays.items():
+                if "/" not in k:
+                    continue
                 j, rest = k.split("/", 1)
                 grouped[j][rest] = a
             for j, entry in enumerate(meta["models"]):

@@ -10,9 +10,14 @@
      then run π's dynamics mean x_{t+1} = μ_x(x_t) for the rest of the segment.
 
    Both include the entry distribution ln N(x_a; μ_π, Σ_π) of eq. 12 on the first point.
-3. Smoothness across states (§4.2.3, our reading in DESIGN.md §5): for a segment that
+3. Smoothness across states (§4.2.3; our reading in DESIGN.md §5): for a segment that
    starts at a > 0 the first latent point must also explain the last frame already
-   synthesised, i.e. the objective gains ln p(ẑ_{a−1} | x_a) under π's visual GP.
+   synthesised: the objective gains ln N(ẑ_{a−1}; μ_Z(x_a), σ²_Z(x_a)/w² + s²_Δ) under π's
+   visual GP. s²_Δ (per dimension) is the mean square frame-to-frame motion of the
+   training visual features: ẑ_{a−1} is the previous frame, not the current one. Without
+   s²_Δ (the literal reading) the visual GP, far more precise than the motion between
+   frames, makes every segment's first frame copy the previous one; measurements in
+   docs/switching.md. ``smoothness="off"`` makes segments independent.
 4. ẑ_t = μ_Z(x̂_t) with per-dimension variance σ²_Z(x̂_t)/w² (eq. 10), then an optional
    zero-phase Butterworth low-pass (filtfilt) on the mean.
 """
@@ -34,6 +39,9 @@ if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
 
 ALGORITHMS = ("optimise", "predict")
+SMOOTHNESS = ("frame", "off")
+DEFAULT_SMOOTHNESS = "frame"
+_NN = NearestNeighbour()
 
 
 @dataclass
@@ -77,13 +85,20 @@ def synthesize(
     mfcc: np.ndarray,
     labels,
     algorithm: str = "optimise",
-    smoothness: bool = True,
+    smoothness: str | bool = DEFAULT_SMOOTHNESS,
     lowpass_hz: float | None = None,
     max_iter: int = 50,
 ) -> SynthesisResult:
-    """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance."""
+    """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance.
+
+    smoothness: "frame" or "off" (True = "frame", False = "off"); see the
+    module docstring.
+    """
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    smoothness = DEFAULT_SMOOTHNESS if smoothness is True else "off" if smoothness is False else smoothness
+    if smoothness not in SMOOTHNESS:
+        raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
     mfcc = _check_inputs(model, mfcc, labels)
     with torch_threads(1):
         return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter)
@@ -95,32 +110,38 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
     d = model.config.latent_dim
     mean, var, X = np.zeros((T, Dz)), np.zeros((T, Dz)), np.zeros((T, d))
     used: list[tuple[str, ...]] = []
-    nn = NearestNeighbour()
     for seg in segments:
         a, b = seg.start, seg.stop
         key, m = model.model_for(seg.state)
         used.append(key)
-        Y = mfcc[a:b]
-        X0 = nn(m, "audio", Y)
-        vis = m.predictors_["visual"]
-        extra = None
-        if smoothness and a > 0:
-            z_prev = torch.as_tensor(mean[a - 1:a])
-            extra = lambda Xs, z=z_prev, p=vis: p.log_lik(z, Xs[:1]).sum()  # noqa: E731
-        entry = model.entry_[key]
-        if algorithm == "optimise" and b - a > 1:
-            Xs = optimise_sequence(m.predictors_["audio"], Y, X0, m.dynamics_predictor_, first=entry,
-                                   extra=extra, max_iter=max_iter)
-        else:
-            x1 = optimise_sequence(m.predictors_["audio"], Y[:1], X0[:1], None, first=entry, extra=extra,
-                                   max_iter=max_iter)
-            Xs = x1 if b - a == 1 else _roll_dynamics(m, x1[0], b - a)
+        z_prev = mean[a - 1:a].copy() if a > 0 else None
+        # Algorithm 1 optimises the whole segment; Algorithm 2 (and one-frame segments)
+        # optimise its first frame only and roll the dynamics mean forward.
+        n_opt = b - a if algorithm == "optimise" else 1
+        Xs = _optimise_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
+                               model.motion_var_)
+        if n_opt < b - a:
+            Xs = _roll_dynamics(m, Xs[0], b - a)
         X[a:b] = Xs
-        mu, v = m.predict_view("visual", Xs)
-        mean[a:b], var[a:b] = mu, v
+        mean[a:b], var[a:b] = m.predict_view("visual", Xs)
     if lowpass_hz is not None:
         mean = lowpass(mean, lowpass_hz)
     return SynthesisResult(mean, var, X, segments, used)
+
+
+def _optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
+                      max_iter: int, motion_var: np.ndarray) -> np.ndarray:
+    """Latent points of one segment (or of its first frame) under state model ``m``."""
+    X0 = _NN(m, "audio", Y)
+    dyn = m.dynamics_predictor_ if len(Y) > 1 else None
+    audio, vis = m.predictors_["audio"], m.predictors_["visual"]
+    if z_prev is None or smoothness == "off":
+        return optimise_sequence(audio, Y, X0, dyn, first=entry, max_iter=max_iter)
+    # "frame" (DESIGN.md §5): x_a itself must explain the last synthesised frame, which
+    # differs from the current one by the frame-to-frame motion (variance motion_var)
+    z, mv = torch.as_tensor(z_prev), torch.as_tensor(motion_var)
+    return optimise_sequence(audio, Y, X0, dyn, first=entry, max_iter=max_iter,
+                             extra=lambda Xs: vis.log_lik(z, Xs[:1], mv).sum())
 
 
 def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:

@@ -1,0 +1,138 @@
+"""The switching SGPDM: training per state, Algorithms 1 and 2, persistence, bad input."""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from bayes_talk.models.switching import FALLBACK, SwitchingSGPDM
+from bayes_talk.synthesis.sequential import lowpass
+from toydata import make_utterances
+
+SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return make_utterances(24, seed=0), make_utterances(4, seed=1)
+
+
+@pytest.fixture(scope="module")
+def vlmm_model(data):
+    return SwitchingSGPDM(states="vlmm", **SMALL).fit(data[0])
+
+
+@pytest.fixture(scope="module")
+def phone_model(data):
+    return SwitchingSGPDM(states="phone", **SMALL).fit(data[0])
+
+
+def test_training_subsequences_match_their_state(vlmm_model, data):
+    train = data[0]
+    n_checked = 0
+    for state, m in vlmm_model.models_.items():
+        if state == FALLBACK:
+            continue
+        # every subsequence of a state model is as long as the state's memory
+        assert all(L == len(state) for L in m.seq_lengths_), state
+        n_checked += 1
+    assert n_checked >= 5
+    # the fallback model exists and covers all phones' frames
+    assert FALLBACK in vlmm_model.models_
+    assert sum(vlmm_model.models_[FALLBACK].seq_lengths_) <= SMALL["fallback_frames"]
+    assert len(train) == 24
+
+
+@pytest.mark.parametrize("algorithm", ["optimise", "predict"])
+def test_synthesis_beats_the_per_phone_mean_on_toy_data(vlmm_model, data, algorithm):
+    train, test = data
+    means = {}
+    for s in train:
+        for lab, z in zip(s.labels, s.aam):
+            means.setdefault(lab, []).append(z)
+    means = {k: np.mean(v, 0) for k, v in means.items()}
+    err_ours, err_mean = [], []
+    for s in test:
+        r = vlmm_model.synthesize(s.mfcc, s.labels, algorithm=algorithm)
+        assert r.mean.shape == s.aam.shape and r.var.shape == s.aam.shape and np.all(r.var > 0)
+        # the segmentation covers every frame once, in order
+        assert [seg.start for seg in r.segments][0] == 0 and r.segments[-1].stop == s.n_frames
+        assert all(a.stop == b.start for a, b in zip(r.segments, r.segments[1:]))
+        err_ours.append(((r.mean - s.aam) ** 2).mean())
+        err_mean.append(((np.array([means[lab] for lab in s.labels]) - s.aam) ** 2).mean())
+    assert np.mean(err_ours) < np.mean(err_mean), (np.mean(err_ours), np.mean(err_mean))
+
+
+def test_phone_states_segment_into_runs(phone_model, data):
+    s = data[1][0]
+    r = phone_model.synthesize(s.mfcc, s.labels)
+    for seg in r.segments:
+        assert set(s.labels[seg.start:seg.stop]) == {seg.state[0]}
+    assert all(a.state != b.state for a, b in zip(r.segments, r.segments[1:]))
+
+
+def test_smoothness_term_reduces_jumps_at_segment_boundaries(vlmm_model, data):
+    jumps = {}
+    for smooth in (True, False):
+        j = []
+        for s in data[1]:
+            r = vlmm_model.synthesize(s.mfcc, s.labels, smoothness=smooth)
+            for seg in r.segments[1:]:
+                j.append(np.abs(r.mean[seg.start] - r.mean[seg.start - 1]).mean())
+        jumps[smooth] = np.mean(j)
+    assert jumps[True] < jumps[False], jumps
+
+
+def test_save_load_round_trip_gives_identical_synthesis(vlmm_model, data, tmp_path):
+    vlmm_model.save(tmp_path / "m")
+    loaded = SwitchingSGPDM.load(tmp_path / "m")
+    s = data[1][0]
+    a = vlmm_model.synthesize(s.mfcc, s.labels)
+    b = loaded.synthesize(s.mfcc, s.labels)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    assert a.segments == b.segments
+
+
+def test_executor_gives_the_same_model_as_sequential(data):
+    train = data[0][:10]
+    seq = SwitchingSGPDM(states="phone", **SMALL).fit(train)
+    with ThreadPoolExecutor(2) as ex:
+        par = SwitchingSGPDM(states="phone", **SMALL).fit(train, executor=ex)
+    assert seq.models_.keys() == par.models_.keys()
+    for k in seq.models_:
+        np.testing.assert_allclose(seq.models_[k].X_, par.models_[k].X_, rtol=0, atol=1e-10)
+
+
+def test_unseen_phone_warns_and_backs_off(vlmm_model, data):
+    s = data[1][0]
+    labels = list(s.labels)
+    labels[5:8] = ["zh"] * 3  # toy data never uses zh
+    with pytest.warns(UserWarning, match="zh"):
+        r = vlmm_model.synthesize(s.mfcc, labels)
+    assert np.all(np.isfinite(r.mean))
+
+
+def test_bad_input_is_refused_with_a_clear_message(vlmm_model, data, tmp_path):
+    s = data[1][0]
+    with pytest.raises(ValueError, match="labels have"):
+        vlmm_model.synthesize(s.mfcc, s.labels[:-3])
+    with pytest.raises(ValueError, match="expected shape"):
+        vlmm_model.synthesize(s.mfcc[:, :3], s.labels)
+    with pytest.raises(ValueError, match="algorithm"):
+        vlmm_model.synthesize(s.mfcc, s.labels, algorithm="viterbi")
+    vlmm_model.save(tmp_path / "m")
+    meta = (tmp_path / "m" / "model.json").read_text().replace('"version": 1', '"version": 99')
+    (tmp_path / "m" / "model.json").write_text(meta)
+    with pytest.raises(ValueError, match="version 99"):
+        SwitchingSGPDM.load(tmp_path / "m")
+
+
+def test_lowpass_is_zero_phase_and_removes_high_frequencies():
+    t = np.arange(200) / 25.0
+    slow, fast = np.sin(2 * np.pi * 1.0 * t), 0.5 * np.sin(2 * np.pi * 10.0 * t)
+    out = lowpass((slow + fast)[:, None], cutoff_hz=4.0)[:, 0]
+    inner = slice(25, 175)
+    assert np.abs(out[inner] - slow[inner]).max() < 0.05  # no delay, fast part gone
+    with pytest.raises(ValueError, match="cutoff"):
+        lowpass(slow[:, None], cutoff_hz=20.0)
