@@ -1,7 +1,7 @@
 """The switching SGPDM: training per state, Algorithms 1 and 2, persistence, bad input."""
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
@@ -97,7 +97,7 @@ def test_save_load_round_trip_gives_identical_synthesis(vlmm_model, data, tmp_pa
 def test_executor_gives_the_same_model_as_sequential(data):
     train = data[0][:10]
     seq = SwitchingSGPDM(states="phone", **SMALL).fit(train)
-    with ThreadPoolExecutor(2) as ex:
+    with ProcessPoolExecutor(2) as ex:  # Pyro's handler stack is per process: no thread pools
         par = SwitchingSGPDM(states="phone", **SMALL).fit(train, executor=ex)
     assert seq.models_.keys() == par.models_.keys()
     for k in seq.models_:

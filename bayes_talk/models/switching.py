@@ -157,8 +157,10 @@ class SwitchingSGPDM:
     def fit(self, train: Sequence[Utterance], executor=None) -> "SwitchingSGPDM":
         """Train the state model (VLMM or phones) and one SGPDM per state.
 
-        executor: anything with ``map(fn, iterable)`` (``concurrent.futures`` executors,
-        Dask/Ray wrappers); None fits the states one after another in this process.
+        executor: anything with ``map(fn, iterable)`` that runs ``fn`` in other processes
+        (``concurrent.futures.ProcessPoolExecutor``, Dask/Ray process-based executors);
+        None fits the states one after another in this process. Thread pools are not
+        supported: Pyro keeps one handler stack per process.
         """
         cfg = self.config
         if not train:
