@@ -68,6 +68,9 @@ class SystemConfig:
     sgplvm_*: :class:`~bayes_talk.models.sgplvm.SGPLVM` settings.
     vp_*: Voice Puppetry settings (number of HMM states, Baum-Welch iterations).
     slds_n_iter, dpds_max_iter: EM / gradient iterations of the LDS baselines.
+    torch_threads: torch intra-op threads while fitting and synthesising (1: the GP
+        problems here are small, and extra threads oversubscribe a shared machine; see
+        :mod:`bayes_talk.gp.threads`).
     """
 
     latent_dim: int = 6
@@ -86,6 +89,7 @@ class SystemConfig:
     vp_n_iter: int = 50
     slds_n_iter: int = 100
     dpds_max_iter: int = 200
+    torch_threads: int = 1
 
     def __post_init__(self) -> None:
         for k, v in vars(self).items():
@@ -204,17 +208,27 @@ def fit_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, execu
     ``executor`` (anything with ``map``) is passed to the switching models' ``fit``; the
     other families train in this process.
     """
+    from bayes_talk.gp.threads import torch_threads
+
     if not train:
         raise ValueError("no training sequences")
     model = _build(family, cfg)
-    if family.startswith("ssgpdm-"):
-        return model.fit(list(train), executor=executor)
-    return model.fit(list(train))
+    with torch_threads(cfg.torch_threads):
+        if family.startswith("ssgpdm-"):
+            return model.fit(list(train), executor=executor)
+        return model.fit(list(train))
 
 
 def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
     """Visual features of ``seq`` (from its mfcc and labels only) by ``method``."""
+    from bayes_talk.gp.threads import torch_threads
+
     m = METHODS[resolve_methods([method])[0]]
+    with torch_threads(cfg.torch_threads):
+        return _predict(m, model, seq, cfg)
+
+
+def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
                              lowpass_hz=cfg.lowpass_hz, max_iter=cfg.synth_max_iter)
