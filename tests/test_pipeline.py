@@ -1,0 +1,85 @@
+"""Command line end to end: corpus build -> train -> synth, and its refusals."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bayes_talk.cli import main
+from bayes_talk.pipeline import load_trained
+
+SMALL = dict(latent_dim=3, max_iter=20, min_count=3, max_frames_per_state=80, fallback_frames=100)
+
+
+@pytest.fixture(scope="module")
+def corpus_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("pipe") / "corpus"
+    assert main(["corpus", "build", str(out), "--n-utterances", "10", "--seed", "3"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def model_dir(corpus_dir, tmp_path_factory) -> Path:
+    from bayes_talk.pipeline import train
+
+    out = tmp_path_factory.mktemp("pipe") / "model"
+    train(corpus_dir, "ssgpdm-vlmm", out, workers=1, **SMALL)
+    return out
+
+
+def _first_utterance(corpus_dir: Path) -> tuple[Path, Path]:
+    wavs = sorted((corpus_dir / "utterances").rglob("*.wav"))
+    wav = wavs[0]
+    return wav, wav.with_suffix(".lab")
+
+
+def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_dir, tmp_path):
+    wav, lab = _first_utterance(corpus_dir)
+    out = tmp_path / "synth"
+    assert main(["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--out", str(out)]) == 0
+    traj, var = np.load(out / "trajectory.npy"), np.load(out / "variance.npy")
+    lms = np.load(out / "landmarks.npy")
+    segs = json.loads((out / "segments.json").read_text())["segments"]
+    assert traj.shape == var.shape and traj.shape[0] == lms.shape[0] and np.all(var > 0)
+    assert segs[0]["start"] == 0 and segs[-1]["stop"] == traj.shape[0]
+    assert all(a["stop"] == b["start"] for a, b in zip(segs, segs[1:]))
+    video = (out / "face.mp4").read_bytes()
+    assert len(video) > 1000 and b"ftyp" in video[:64]
+    # a second run into the same directory is refused, nothing is touched
+    before = (out / "trajectory.npy").stat().st_mtime_ns
+    assert main(["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--out", str(out)]) == 2
+    assert (out / "trajectory.npy").stat().st_mtime_ns == before
+
+
+def test_train_refuses_a_non_empty_directory(corpus_dir, tmp_path):
+    (tmp_path / "mine.txt").write_text("keep me")
+    assert main(["train", str(corpus_dir), "--out", str(tmp_path)]) == 2
+    assert (tmp_path / "mine.txt").read_text() == "keep me"
+
+
+def test_labels_that_disagree_with_the_audio_are_refused(model_dir, corpus_dir, tmp_path, capsys):
+    wav, lab = _first_utterance(corpus_dir)
+    short = tmp_path / "short.lab"
+    lines = lab.read_text().strip().splitlines()
+    short.write_text("\n".join(lines[: len(lines) // 2]) + "\n")
+    assert main(["synth", str(model_dir), "--audio", str(wav), "--labels", str(short),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "labels end at" in capsys.readouterr().err
+
+
+def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
+    other = tmp_path / "m"
+    shutil.copytree(model_dir, other)
+    desc = json.loads((other / "bayes_talk_model.json").read_text())
+    desc["version"] = 7
+    (other / "bayes_talk_model.json").write_text(json.dumps(desc))
+    with pytest.raises(ValueError, match="version 7"):
+        load_trained(other)
+    (other / "arrays.npz").write_bytes((model_dir / "arrays.npz").read_bytes()[:500])
+    desc["version"] = 1
+    (other / "bayes_talk_model.json").write_text(json.dumps(desc))
+    with pytest.raises(ValueError, match="truncated or corrupt"):
+        load_trained(other)
