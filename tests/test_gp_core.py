@@ -162,7 +162,7 @@ def test_hyperprior_is_in_theta_space_without_jacobian():
     m = SGPDM(latent_dim=2, max_iter=1).fit({"audio": audio, "visual": video})
     m._log = {k: v.detach() for k, v in m._log.items()}
     m._X = m._X.detach()
-    prior = lambda: float(m.trace().nodes["hyperprior"]["log_prob_sum"])  # noqa: E731
+    prior = lambda: float(m.trace().nodes["hyperprior"]["log_prob_sum"])
     before = prior()
     m._log["alpha/audio"] = m._log["alpha/audio"] + math.log(2.0)
     assert prior() - before == pytest.approx(-math.log(2.0), abs=1e-12)

@@ -318,3 +318,11 @@ def test_cli_unwritable_json_fails_before_loading(fake_corpora, capsys, monkeypa
     assert rc == 2
     assert "bayes-talk: error:" in capsys.readouterr().err
     assert not loaded and not trained
+
+
+def test_quick_run_is_labelled_quick_in_the_result():
+    proto = P.get_protocol("englebienne2008", quick=True, vp_n_states=4)
+    res, _ = P.run_protocol(proto, make_utterances(proto.n_use + 5, seed=8), ["hmm-mean"])
+    assert res["quick"] is True and "quick" in res["description"]
+    assert res["n_splits"] == proto.n_folds and res["n_scored"] == proto.n_use
+    assert res["settings"]["vp_n_states"] == 4

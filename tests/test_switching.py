@@ -5,10 +5,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
+from toydata import make_utterances
 
 from bayes_talk.models.switching import FALLBACK, SwitchingSGPDM
 from bayes_talk.synthesis.sequential import lowpass
-from toydata import make_utterances
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
 

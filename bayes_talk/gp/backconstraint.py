@@ -60,7 +60,7 @@ class MLPBackConstraint:
         return {n: getattr(self, n).detach().numpy().copy() for n in names}
 
     @classmethod
-    def from_state(cls, arrays: dict[str, np.ndarray]) -> "MLPBackConstraint":
+    def from_state(cls, arrays: dict[str, np.ndarray]) -> MLPBackConstraint:
         W1, W2 = arrays["W1"], arrays["W2"]
         obj = cls(W1.shape[1], W2.shape[0], W1.shape[0])
         for n in ("W1", "b1", "W2", "b2", "in_mean", "in_std"):

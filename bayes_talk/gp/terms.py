@@ -87,7 +87,7 @@ def dynamics_split(seq_lengths: Sequence[int]) -> tuple[torch.Tensor, torch.Tens
         ins.extend(range(start, start + T - 1))
         outs.extend(range(start + 1, start + T))
         start += T
-    as_t = lambda v: torch.tensor(v, dtype=torch.long)  # noqa: E731
+    as_t = lambda v: torch.tensor(v, dtype=torch.long)
     return as_t(ins), as_t(outs), as_t(firsts)
 
 

@@ -282,7 +282,7 @@ class SGPDM:
         views: Mapping[str, np.ndarray],
         seq_lengths: Sequence[int] | None = None,
         X_init: np.ndarray | None = None,
-    ) -> "SGPDM":
+    ) -> SGPDM:
         """MAP training (torch L-BFGS on the log joint of :func:`sgpdm_model`).
 
         views: name -> (N, D_v) array, rows frame-synchronous across views.
@@ -315,7 +315,7 @@ class SGPDM:
         gamma0 = 1.0 / max(med, 1e-12)
         self._log: dict[str, torch.Tensor] = {}
         self._fixed: dict[str, torch.Tensor] = {}
-        f64 = lambda x: torch.tensor(float(x), dtype=torch.float64)  # noqa: E731
+        f64 = lambda x: torch.tensor(float(x), dtype=torch.float64)
         for v, Y in centred.items():
             self._log[f"alpha/{v}"] = torch.log(f64(1.0))
             self._log[f"gamma/{v}"] = torch.log(f64(gamma0))
@@ -489,7 +489,7 @@ class SGPDM:
         return meta, arrays
 
     @classmethod
-    def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> "SGPDM":
+    def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
         if meta.get("format") != FORMAT_NAME:
             raise ValueError(f"not an SGPDM model (format {meta.get('format')!r})")
         if meta.get("version") != FORMAT_VERSION:
@@ -528,7 +528,7 @@ class SGPDM:
         return path.with_suffix(".json")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "SGPDM":
+    def load(cls, path: str | os.PathLike) -> SGPDM:
         path = Path(path)
         jpath, npath = path.with_suffix(".json"), path.with_suffix(".npz")
         meta, arrays = read_model_files(jpath, npath)

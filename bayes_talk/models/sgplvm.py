@@ -41,7 +41,7 @@ class SGPLVM:
     def name(self) -> str:
         return "sgplvm-a" if self.init == "back-constraint" else "sgplvm-b" if self.init == "hmm" else "sgplvm-nn"
 
-    def fit(self, train: Sequence[Utterance]) -> "SGPLVM":
+    def fit(self, train: Sequence[Utterance]) -> SGPLVM:
         if not train:
             raise ValueError("no training sequences")
         rng = np.random.default_rng(self.seed)
@@ -75,7 +75,7 @@ class SGPLVM:
         self.model_.save(path)
 
     @classmethod
-    def load(cls, path, init: str = "back-constraint") -> "SGPLVM":
+    def load(cls, path, init: str = "back-constraint") -> SGPLVM:
         obj = cls(init=init)
         obj.model_ = SGPDM.load(path)
         obj.latent_dim = obj.model_.config.latent_dim

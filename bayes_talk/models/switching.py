@@ -57,7 +57,7 @@ class PhoneStates:
     def __init__(self) -> None:
         self.alphabet_: list[str] = []
 
-    def fit(self, sequences: Iterable[Sequence[str]]) -> "PhoneStates":
+    def fit(self, sequences: Iterable[Sequence[str]]) -> PhoneStates:
         self.alphabet_ = sorted({lab for s in sequences for lab in s})
         return self
 
@@ -87,7 +87,7 @@ class PhoneStates:
         return {"kind": "phone", "alphabet": self.alphabet_}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PhoneStates":
+    def from_dict(cls, d: dict) -> PhoneStates:
         obj = cls()
         obj.alphabet_ = list(d["alphabet"])
         return obj
@@ -154,7 +154,7 @@ class SwitchingSGPDM:
                                   back_constraint=None, init="pca-average", max_iter=self.config.max_iter,
                                   seed=self.config.seed))
 
-    def fit(self, train: Sequence[Utterance], executor=None) -> "SwitchingSGPDM":
+    def fit(self, train: Sequence[Utterance], executor=None) -> SwitchingSGPDM:
         """Train the state model (VLMM or phones) and one SGPDM per state.
 
         executor: anything with ``map(fn, iterable)`` that runs ``fn`` in other processes
@@ -250,7 +250,7 @@ class SwitchingSGPDM:
         return self.states_model_.segment(labels, unknown="sil")
 
     def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
-                   smoothness: str | bool = True, lowpass_hz: float | None = None, max_iter: int = 50):
+                   smoothness: str | bool = True, lowpass_hz: float | None = None, max_iter: int = 20):
         """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`."""
         from bayes_talk.synthesis.sequential import synthesize
 
@@ -280,7 +280,7 @@ class SwitchingSGPDM:
         return directory
 
     @classmethod
-    def load(cls, directory: str | Path) -> "SwitchingSGPDM":
+    def load(cls, directory: str | Path) -> SwitchingSGPDM:
         directory = Path(directory)
         meta, arrays = read_model_files(directory / "model.json", directory / "arrays.npz")
         if meta.get("format") != FORMAT_NAME:

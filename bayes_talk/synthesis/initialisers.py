@@ -27,11 +27,11 @@ if TYPE_CHECKING:
 
 
 class Initialiser(Protocol):
-    def __call__(self, model: "SGPDM", view: str, Y: np.ndarray) -> np.ndarray: ...
+    def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray: ...
 
 
 class NearestNeighbour:
-    def __call__(self, model: "SGPDM", view: str, Y: np.ndarray) -> np.ndarray:
+    def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         p = model.predictors_[view]
         w = p.w.numpy()
         train = (p.Y.numpy() + p.mean.numpy()) * w
@@ -41,7 +41,7 @@ class NearestNeighbour:
 
 
 class BackConstraint:
-    def __call__(self, model: "SGPDM", view: str, Y: np.ndarray) -> np.ndarray:
+    def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         bc = model.backconstraint
         if bc is None or model.config.back_constraint != view:
             raise ValueError(
@@ -75,7 +75,7 @@ class HMMViterbi:
         self.n_states = n_states
         self.seed = seed
 
-    def __call__(self, model: "SGPDM", view: str, Y: np.ndarray) -> np.ndarray:
+    def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         N = model.X_.shape[0]
         rng = np.random.default_rng(self.seed)
         idx = np.sort(rng.choice(N, self.n_states, replace=False)) if N > self.n_states else np.arange(N)
@@ -104,7 +104,7 @@ INITIALISERS: dict[str, type] = {
 }
 
 
-def initialise(name: str, model: "SGPDM", view: str, Y: np.ndarray) -> np.ndarray:
+def initialise(name: str, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
     """Run the initialiser registered under ``name`` (see :data:`INITIALISERS`)."""
     if name not in INITIALISERS:
         raise ValueError(f"unknown initialiser {name!r}; choose one of {sorted(INITIALISERS)}")

@@ -68,7 +68,7 @@ def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) 
     return filtfilt(b, a, Z, axis=0)
 
 
-def _check_inputs(model: "SwitchingSGPDM", mfcc: np.ndarray, labels) -> np.ndarray:
+def _check_inputs(model: SwitchingSGPDM, mfcc: np.ndarray, labels) -> np.ndarray:
     mfcc = np.asarray(mfcc, dtype=np.float64)
     Dy = model.dims_[0]
     if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
@@ -81,13 +81,13 @@ def _check_inputs(model: "SwitchingSGPDM", mfcc: np.ndarray, labels) -> np.ndarr
 
 
 def synthesize(
-    model: "SwitchingSGPDM",
+    model: SwitchingSGPDM,
     mfcc: np.ndarray,
     labels,
     algorithm: str = "optimise",
     smoothness: str | bool = DEFAULT_SMOOTHNESS,
     lowpass_hz: float | None = None,
-    max_iter: int = 50,
+    max_iter: int = 20,
 ) -> SynthesisResult:
     """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance.
 
