@@ -1,0 +1,78 @@
+"""MCMC diagnostics through ArviZ (DESIGN.md §6) - the only module that imports arviz.
+
+ArviZ is pinned below 0.24 (ArviZ 1.x needs Python >= 3.12); every call to it is here.
+
+:func:`chain_diagnostics` takes draws of shape (chains, draws, n) and returns
+
+* ``rhat_max``: the largest rank-normalised split R-hat over the n coordinates
+  (``arviz.rhat(method="rank")``, Vehtari et al. 2021); ``rhat`` per coordinate;
+* ``ess_bulk_min`` / ``ess_tail_min`` (and per coordinate ``ess_bulk`` / ``ess_tail``):
+  ``arviz.ess(method="bulk" | "tail")``;
+* ``n_chains``, ``n_draws``.
+
+With a single chain (Laplace draws) the chain is split in two halves before ArviZ sees it
+(ArviZ returns nan R-hat for one chain); ``n_chains`` reports the chains given.
+Sampler statistics (divergences, acceptance) are merged in by the caller.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", FutureWarning)  # arviz 0.2x announces its 1.0 refactor
+    import arviz as az
+
+DIAGNOSTIC_KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min", "n_chains", "n_draws", "rhat", "ess_bulk",
+                   "ess_tail")
+
+
+def chain_diagnostics(samples: np.ndarray) -> dict:
+    """Split R-hat and bulk/tail ESS of (chains, draws, n) samples via ArviZ."""
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 3:
+        raise ValueError(f"samples: expected (chains, draws, n), got shape {s.shape}")
+    C, S, n = s.shape
+    if S < 4:
+        raise ValueError(f"need at least 4 draws per chain for split R-hat, got {S}")
+    if C == 1:  # ArviZ gives nan R-hat for one chain: split it explicitly (what split R-hat does)
+        h = S // 2
+        s = np.stack([s[0, :h], s[0, h:2 * h]])
+    idata = az.from_dict(posterior={"x": s})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rhat = np.asarray(az.rhat(idata, var_names=["x"], method="rank")["x"].values, dtype=float).reshape(n)
+        bulk = np.asarray(az.ess(idata, var_names=["x"], method="bulk")["x"].values, dtype=float).reshape(n)
+        tail = np.asarray(az.ess(idata, var_names=["x"], method="tail")["x"].values, dtype=float).reshape(n)
+    return {
+        "rhat_max": float(np.nanmax(rhat)),
+        "ess_bulk_min": float(np.nanmin(bulk)),
+        "ess_tail_min": float(np.nanmin(tail)),
+        "n_chains": int(C),
+        "n_draws": int(S),
+        "rhat": rhat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+    }
+
+
+def summarise_segments(per_segment: list[dict]) -> dict:
+    """Worst-case summary over segments: max R-hat, min ESS, total divergences, mean acceptance."""
+    out: dict = {"n_segments": len(per_segment)}
+    r = [d["rhat_max"] for d in per_segment if d.get("rhat_max") is not None]
+    if r:
+        out["rhat_max"] = float(np.nanmax(r))
+        out["ess_bulk_min"] = float(np.nanmin([d["ess_bulk_min"] for d in per_segment if "ess_bulk_min" in d]))
+        out["ess_tail_min"] = float(np.nanmin([d["ess_tail_min"] for d in per_segment if "ess_tail_min" in d]))
+    dv = [d["divergences"] for d in per_segment if "divergences" in d]
+    if dv:
+        out["divergences"] = int(sum(dv))
+    ac = [d["acceptance_fraction"] for d in per_segment if "acceptance_fraction" in d]
+    if ac:
+        out["acceptance_fraction_mean"] = float(np.mean(ac))
+        out["acceptance_fraction_min"] = float(np.min(ac))
+    return out
+
+
+__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "summarise_segments"]
