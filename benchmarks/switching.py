@@ -47,6 +47,7 @@ import time
 import warnings
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -69,7 +70,7 @@ def _cpu() -> dict[str, float]:
 class Phase:
     """Wall time, CPU time and load average of a block: ``with Phase() as ph: ...; ph.record``."""
 
-    def __enter__(self) -> "Phase":
+    def __enter__(self) -> Self:
         self.load0 = [round(x, 2) for x in os.getloadavg()]
         self.cpu0 = _cpu()
         self.t0 = time.perf_counter()
@@ -200,7 +201,7 @@ def profile_state_fit(model, top: int = 30) -> dict:
         st.sort_stats(sort)
         out = []
         for func in st.fcn_list[:top]:
-            cc, nc, tt, ct, _ = st.stats[func]
+            _, nc, tt, ct, _ = st.stats[func]
             out.append({"function": f"{Path(func[0]).name}:{func[1]}({func[2]})", "ncalls": nc,
                         "tottime_s": round(tt, 3), "cumtime_s": round(ct, 3),
                         "tottime_frac": round(tt / total, 3)})

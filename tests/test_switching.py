@@ -136,3 +136,12 @@ def test_lowpass_is_zero_phase_and_removes_high_frequencies():
     assert np.abs(out[inner] - slow[inner]).max() < 0.05  # no delay, fast part gone
     with pytest.raises(ValueError, match="cutoff"):
         lowpass(slow[:, None], cutoff_hz=20.0)
+
+
+def test_synthesize_many_in_processes_equals_one_process(vlmm_model, data):
+    from bayes_talk.synthesis.sequential import synthesize_many
+
+    utts = [(s.mfcc, s.labels) for s in data[1][:2]]
+    par = synthesize_many(vlmm_model, utts, workers=2, algorithm="predict")
+    for (mfcc, labels), r in zip(utts, par, strict=True):
+        np.testing.assert_array_equal(r.mean, vlmm_model.synthesize(mfcc, labels, algorithm="predict").mean)

@@ -39,7 +39,9 @@ def chain_diagnostics(samples: np.ndarray) -> dict:
     if C == 1:  # ArviZ gives nan R-hat for one chain: split it explicitly (what split R-hat does)
         h = S // 2
         s = np.stack([s[0, :h], s[0, h:2 * h]])
-    idata = az.from_dict(posterior={"x": s})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "more chains than draws": emcee walkers
+        idata = az.from_dict(posterior={"x": s})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         rhat = np.asarray(az.rhat(idata, var_names=["x"], method="rank")["x"].values, dtype=float).reshape(n)

@@ -158,4 +158,34 @@ def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
     return np.vstack(out)
 
 
-__all__ = ["ALGORITHMS", "SynthesisResult", "lowpass", "synthesize"]
+__all__ = ["ALGORITHMS", "SynthesisResult", "lowpass", "synthesize", "synthesize_many"]
+
+
+_WORKER_MODEL: "SwitchingSGPDM | None" = None
+
+
+def _init_worker(model: "SwitchingSGPDM") -> None:
+    global _WORKER_MODEL
+    _WORKER_MODEL = model
+
+
+def _synthesize_in_worker(job: tuple) -> SynthesisResult:
+    mfcc, labels, kw = job
+    assert _WORKER_MODEL is not None
+    return synthesize(_WORKER_MODEL, mfcc, labels, **kw)
+
+
+def synthesize_many(model: "SwitchingSGPDM", utterances: list, workers: int = 2, **kw) -> list[SynthesisResult]:
+    """:func:`synthesize` for many ``(mfcc, labels)`` pairs, ``workers`` processes at a time.
+
+    Utterances are independent, so on a machine with several cores throughput scales with
+    the processes (each runs torch with one thread). The model is sent to each worker once.
+    Results come back in input order and equal the one-process results.
+    """
+    jobs = [(np.asarray(m), list(lab), kw) for m, lab in utterances]
+    if workers <= 1 or len(jobs) <= 1:
+        return [synthesize(model, m, lab, **kw) for m, lab, _ in jobs]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(model,)) as ex:
+        return list(ex.map(_synthesize_in_worker, jobs))

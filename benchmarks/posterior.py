@@ -1,0 +1,165 @@
+"""Calibration of the synthesis posterior (DESIGN.md §6): MAP vs Laplace vs NUTS vs emcee.
+
+Data: ``--corpus DIR`` loads a built corpus (``bayes_talk.data.corpus.load_corpus``) and
+holds out ``--n-test`` utterances (seeded permutation; ``--n-train`` are trained on);
+without it, toy data from tests/toydata.py (``make_utterances(24, seed=0)`` to train,
+``make_utterances(n_test, seed=1, mean_len=30)`` held out). Model: ``SwitchingSGPDM``
+(VLMM states) with the small test configuration on toy data, defaults on a corpus.
+
+Systems, each on every held-out utterance (Algorithm 1, smoothness "frame"):
+* ``map``: ``model.synthesize`` - MAP latents, Gaussian N(μ_Z, σ²_Z/w²) (GP variance only);
+* ``laplace`` / ``nuts`` / ``emcee``: ``sample_synthesis(method=...)``, visual mixture.
+
+Metrics pooled over every (frame, dimension) entry of the held-out utterances:
+coverage of the central 50/80/90/95 % bands (MAP: Gaussian quantiles; samplers:
+``PosteriorSynthesis.quantiles`` from 2000 mixture samples), mean band width, CRPS
+(MAP: closed form; samplers: ``crps_ensemble`` on 1000 mixture samples), NLPD of a
+Gaussian with the predictive mean and variance (moment-matched mixture for samplers),
+AMSE of the mean, seconds per frame (wall, 1 torch thread), and the worst-case
+diagnostics over segments (max split R-hat, min bulk/tail ESS, divergences, acceptance).
+
+    .venv/bin/python benchmarks/posterior.py [--corpus DIR] [--n-test 3] [--draws 200]
+        [--nuts-warmup 150] [--emcee-warmup 500] [--methods map,laplace,nuts,emcee]
+        [--out benchmarks/results/posterior.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import scipy.stats
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "tests"))
+
+from bayes_talk.evaluation.metrics import amse, coverage, crps_ensemble, crps_gaussian, nlpd_gaussian  # noqa: E402
+from bayes_talk.models.switching import SwitchingSGPDM  # noqa: E402
+from bayes_talk.synthesis.posterior import DEFAULT_LEVELS, sample_synthesis  # noqa: E402
+
+SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+
+
+def load_data(args):
+    if args.corpus:
+        from bayes_talk.data.corpus import load_corpus
+
+        seqs = list(load_corpus(args.corpus).sequences)
+        perm = np.random.default_rng(args.seed).permutation(len(seqs))
+        test = [seqs[i] for i in perm[:args.n_test]]
+        train = [seqs[i] for i in perm[args.n_test:args.n_test + args.n_train]]
+        return train, test, {"source": str(args.corpus), "config": "SwitchingConfig defaults"}, {}
+    from toydata import make_utterances
+
+    return (make_utterances(24, seed=0), make_utterances(args.n_test, seed=1, mean_len=30),
+            {"source": "tests/toydata.py make_utterances(24, seed=0) / (n_test, seed=1, mean_len=30)",
+             "config": SMALL}, SMALL)
+
+
+def evaluate(truth, means, vars_, bands, samples) -> dict:
+    out = {"coverage": {}, "width": {}}
+    for q in DEFAULT_LEVELS:
+        lo, hi = [b[q][0] for b in bands], [b[q][1] for b in bands]
+        out["coverage"][str(q)] = coverage(truth, lo, hi)
+        out["width"][str(q)] = float(np.mean(np.concatenate([(h - lo_).ravel() for lo_, h in zip(lo, hi)])))
+    if samples is None:
+        out["crps"] = crps_gaussian(truth, means, [np.sqrt(v) for v in vars_])
+    else:
+        out["crps"] = crps_ensemble(truth, samples)
+    out["nlpd"] = nlpd_gaussian(truth, means, vars_)
+    out["amse"] = amse(truth, means)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--corpus", type=Path, default=None)
+    ap.add_argument("--n-train", type=int, default=50)
+    ap.add_argument("--n-test", type=int, default=3)
+    ap.add_argument("--draws", type=int, default=200)
+    ap.add_argument("--nuts-warmup", type=int, default=150)
+    ap.add_argument("--nuts-chains", type=int, default=2)
+    ap.add_argument("--emcee-warmup", type=int, default=500)
+    ap.add_argument("--methods", default="map,laplace,nuts,emcee")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "posterior.json")
+    args = ap.parse_args()
+    warnings.filterwarnings("ignore", category=FutureWarning)
+
+    train, test, data_info, cfg = load_data(args)
+    res = {"command": "benchmarks/posterior.py " + " ".join(sys.argv[1:]), "data": data_info,
+           "n_train": len(train), "n_test": len(test), "test_frames": int(sum(s.n_frames for s in test)),
+           "levels": list(DEFAULT_LEVELS), "machine": {"python": platform.python_version(),
+                                                       "cpus": os.cpu_count()},
+           "settings": {"draws": args.draws, "nuts_warmup": args.nuts_warmup, "nuts_chains": args.nuts_chains,
+                        "emcee_warmup": args.emcee_warmup, "seed": args.seed}, "systems": {}}
+
+    def save():
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(res, indent=1))
+        tmp.replace(args.out)
+
+    t0 = time.perf_counter()
+    model = SwitchingSGPDM(states="vlmm", **cfg).fit(train)
+    res["train_s"] = time.perf_counter() - t0
+    truth = [s.aam for s in test]
+    n_frames = res["test_frames"]
+    for method in args.methods.split(","):
+        print(f"{method} ...", flush=True)
+        means, vars_, bands, samples, summaries = [], [], [], [], []
+        t0 = time.perf_counter()
+        load0 = os.getloadavg()[0]
+        for s in test:
+            if method == "map":
+                r = model.synthesize(s.mfcc, s.labels)
+                means.append(r.mean)
+                vars_.append(r.var)
+                sd = np.sqrt(r.var)
+                bands.append({q: (r.mean - scipy.stats.norm.ppf(0.5 + q / 2) * sd,
+                                  r.mean + scipy.stats.norm.ppf(0.5 + q / 2) * sd) for q in DEFAULT_LEVELS})
+                continue
+            kw = {"nuts": dict(warmup=args.nuts_warmup, chains=args.nuts_chains),
+                  "emcee": dict(warmup=args.emcee_warmup), "laplace": {}}[method]
+            p = sample_synthesis(model, s.mfcc, s.labels, method=method, n_draws=args.draws, seed=args.seed, **kw)
+            means.append(p.mean)
+            vars_.append(p.var)
+            bands.append(p.quantiles(DEFAULT_LEVELS, n_samples=2000))
+            samples.append(p.sample(1000))
+            summaries.append(p.summary)
+        secs = time.perf_counter() - t0
+        ev = evaluate(truth, means, vars_, bands, samples if method != "map" else None)
+        ev["seconds"] = secs
+        ev["seconds_per_frame"] = secs / n_frames
+        ev["loadavg_start_end"] = [load0, os.getloadavg()[0]]
+        if method != "map":
+            ev["mean_var_ratio_mixture_over_gp"] = float(np.mean([np.mean(v) for v in vars_]))
+            ev["diagnostics"] = {
+                "rhat_max": max(d.get("rhat_max", np.nan) for d in summaries),
+                "ess_bulk_min": min(d.get("ess_bulk_min", np.nan) for d in summaries),
+                "ess_tail_min": min(d.get("ess_tail_min", np.nan) for d in summaries),
+                "n_segments": int(sum(d["n_segments"] for d in summaries)),
+            }
+            if method == "nuts":
+                ev["diagnostics"]["divergences"] = int(sum(d.get("divergences", 0) for d in summaries))
+            if method == "emcee":
+                ev["diagnostics"]["acceptance_fraction_mean"] = float(
+                    np.mean([d["acceptance_fraction_mean"] for d in summaries]))
+            del ev["mean_var_ratio_mixture_over_gp"]
+        ev["mean_predictive_var"] = float(np.mean(np.concatenate([v.ravel() for v in vars_])))
+        res["systems"][method] = ev
+        print(json.dumps(ev), flush=True)
+        save()
+    res["complete"] = True
+    save()
+
+
+if __name__ == "__main__":
+    main()
