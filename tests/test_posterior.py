@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from toydata import make_utterances
 
 from bayes_talk.evaluation.diagnostics import DIAGNOSTIC_KEYS, chain_diagnostics
 from bayes_talk.evaluation.metrics import coverage
 from bayes_talk.models.switching import SwitchingSGPDM
 from bayes_talk.synthesis.posterior import sample_synthesis, segment_density
 from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
-from toydata import make_utterances
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
 

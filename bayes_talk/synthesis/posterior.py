@@ -91,7 +91,7 @@ def segment_density(m, Y: np.ndarray, entry: tuple[np.ndarray, np.ndarray], z_pr
         vis = m.predictors_["visual"]
         z = torch.as_tensor(np.asarray(z_prev, dtype=np.float64).reshape(1, -1))
         mv = torch.as_tensor(np.asarray(motion_var, dtype=np.float64))
-        extra = lambda Xs: vis.log_lik(z, Xs[:1], mv).sum()  # noqa: E731
+        extra = lambda Xs: vis.log_lik(z, Xs[:1], mv).sum()
     return SegmentDensity(m, torch.as_tensor(np.asarray(Y, dtype=np.float64)), first, extra,
                           int(m.X_.shape[1]))
 
@@ -162,7 +162,7 @@ class PosteriorSynthesis:
 
 
 def sample_synthesis(
-    model: "SwitchingSGPDM",
+    model: SwitchingSGPDM,
     mfcc: np.ndarray,
     labels,
     method: str = "nuts",

@@ -87,7 +87,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 200, chain
             out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
             diag = mcmc.diagnostics()
             d = diag.get("divergences", {})
-            divs.append(int(sum(len(v) for v in d.values())) if isinstance(d, dict) else int(len(d)))
+            divs.append(int(sum(len(v) for v in d.values())) if isinstance(d, dict) else len(d))
             a = diag.get("acceptance rate", {})
             accept.append(float(np.mean(list(a.values()))) if isinstance(a, dict) and a else float("nan"))
             steps.append(float(kernel.step_size))
@@ -191,5 +191,13 @@ def run_sampler(method: str, log_prob: LogProb, x0, n_draws: int, seed: int, **k
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")
 
 
-__all__ = ["Draws", "METHODS", "batch_log_prob", "laplace_gaussian", "run_emcee", "run_laplace", "run_nuts",
-           "run_sampler"]
+__all__ = [
+    "METHODS",
+    "Draws",
+    "batch_log_prob",
+    "laplace_gaussian",
+    "run_emcee",
+    "run_laplace",
+    "run_nuts",
+    "run_sampler",
+]
