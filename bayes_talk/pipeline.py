@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence
+from bayes_talk.files import write_json, write_npy
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +53,6 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     T = frame_count(y.size, sr, fps)
     feats = mfcc(y, sr, T, fps=fps, where=str(wav))
     return Sequence(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
-
-
-def _atomic_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
 
 
 def new_model(kind: str, **overrides):
@@ -104,7 +99,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     offset = _aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
-    _atomic_json(out / DESCRIPTOR, {
+    write_json(out / DESCRIPTOR, {
         "format": DESCRIPTOR_FORMAT, "version": DESCRIPTOR_VERSION, "kind": kind,
         "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
@@ -179,23 +174,16 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
-        _save_npy(out / names[key], arr)
+        write_npy(out / names[key], arr)
         written[key] = out / names[key]
-    _atomic_json(out / names["segments"], {"segments": segs, "fps": tm.fps})
+    write_json(out / names["segments"], {"segments": segs, "fps": tm.fps})
     written["segments"] = out / names["segments"]
     if tm.aam is not None:
         params = res.mean + tm.offset
         lms, _ = tm.aam.reconstruct(params)
-        _save_npy(out / names["landmarks"], lms)
+        write_npy(out / names["landmarks"], lms)
         written["landmarks"] = out / names["landmarks"]
         if video:
             write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
             written["video"] = out / names["video"]
     return written
-
-
-def _save_npy(path: Path, arr: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.save(f, arr)
-    os.replace(tmp, path)

@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from bayes_talk.files import atomic_write
 
 
 def side_by_side(*videos: np.ndarray, gap: int = 2) -> np.ndarray:
@@ -37,26 +38,21 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 25.0,
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.dtype != np.uint8:
         raise ValueError(f"frames must be a (T, H, W) uint8 array, got {frames.dtype} {frames.shape}")
-    T, H, W = frames.shape
+    H, W = frames.shape[1:]
     if H % 2 or W % 2:  # yuv420p needs even sizes
         frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2)))
-        T, H, W = frames.shape
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem + ".", suffix=".tmp.mp4")
-    os.close(fd)
-    try:
-        kw = dict(fps=fps, codec="libx264", pix_fmt_in="gray", pix_fmt_out="yuv420p",
-                  macro_block_size=1, quality=None, output_params=["-crf", "18"])
-        if audio_path is not None:
-            kw.update(audio_path=str(audio_path), audio_codec="aac",
-                      output_params=["-crf", "18", "-shortest"])
+    H, W = frames.shape[1:]
+    kw = {"fps": fps, "codec": "libx264", "pix_fmt_in": "gray", "pix_fmt_out": "yuv420p",
+          "macro_block_size": 1, "quality": None, "output_params": ["-crf", "18"]}
+    if audio_path is not None:
+        kw.update(audio_path=str(audio_path), audio_codec="aac", output_params=["-crf", "18", "-shortest"])
+
+    def encode(tmp: str) -> None:
         gen = imageio_ffmpeg.write_frames(tmp, (W, H), **kw)
         gen.send(None)
         for f in frames:
             gen.send(np.ascontiguousarray(f))
         gen.close()
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+
+    atomic_write(path, encode, suffix=".mp4")
     return path

@@ -19,7 +19,7 @@ import numpy as np
 from skimage.transform import PiecewiseAffineTransform, warp
 
 from bayes_talk.data import face, render
-from bayes_talk.data.phones import PHONES, VOWELS
+from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.features.aam import AAM
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,32 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 N_SEQ, N_FRAMES, N_FIT = 40, 75, 600
 
 
-FPS = 25.0
-_CONSONANTS = [p for p in PHONES if p != "sil" and p not in VOWELS]
-_VOWELS = sorted(VOWELS)
-
-
-def random_intervals(rng: np.random.Generator, n_frames: int, fps: float = FPS) -> list[tuple[float, float, str]]:
-    """sil, then consonant-vowel syllables with random phones and durations, then sil."""
-    dur = n_frames / fps
-    t = float(rng.uniform(0.1, 0.3))
-    out = [(0.0, t, "sil")]
-    k = 0
-    while t < dur - 0.3:
-        if k % 2 == 0:
-            p, d = _CONSONANTS[rng.integers(len(_CONSONANTS))], rng.uniform(0.06, 0.12)
-        else:
-            p, d = _VOWELS[rng.integers(len(_VOWELS))], rng.uniform(0.09, 0.2)
-        out.append((t, t + float(d), p))
-        t += float(d)
-        k += 1
-    out.append((t, dur, "sil"))
-    return out
-
-
 def main() -> None:
     rng = np.random.default_rng(0)
-    ivs = [random_intervals(rng, N_FRAMES) for _ in range(N_SEQ)]
+    ivs = [random_phone_intervals(rng, N_FRAMES) for _ in range(N_SEQ)]
     render.render_frames(face.reference_shape(128)[None])  # warm the texture cache
 
     t0 = time.perf_counter()

@@ -9,49 +9,12 @@ from scipy.ndimage import binary_erosion
 from skimage.transform import PiecewiseAffineTransform, warp
 
 from bayes_talk.data import face, render
-from bayes_talk.data.phones import PHONES, VOWELS
+from bayes_talk.data.face import random_phone_intervals
+from bayes_talk.data.labels import frame_labels
 from bayes_talk.features.aam import AAM, procrustes_align, remove_sequence_mean
 
 N_SEQ, N_FRAMES, N_TRAIN = 20, 50, 15
 BILABIAL, OPEN = ("p", "b", "m"), ("aa", "ae", "ah")
-
-
-# Small synthetic corpus helpers (kept in sync with tests/test_aam.py, benchmarks/render.py).
-FPS = 25.0
-_CONSONANTS = [p for p in PHONES if p != "sil" and p not in VOWELS]
-_VOWELS = sorted(VOWELS)
-
-
-def random_intervals(rng: np.random.Generator, n_frames: int, fps: float = FPS) -> list[tuple[float, float, str]]:
-    """sil, then consonant-vowel syllables with random phones and durations, then sil."""
-    dur = n_frames / fps
-    t = float(rng.uniform(0.1, 0.3))
-    out = [(0.0, t, "sil")]
-    k = 0
-    while t < dur - 0.3:
-        if k % 2 == 0:
-            p, d = _CONSONANTS[rng.integers(len(_CONSONANTS))], rng.uniform(0.06, 0.12)
-        else:
-            p, d = _VOWELS[rng.integers(len(_VOWELS))], rng.uniform(0.09, 0.2)
-        out.append((t, t + float(d), p))
-        t += float(d)
-        k += 1
-    out.append((t, dur, "sil"))
-    return out
-
-
-def frame_labels(intervals, n_frames: int, fps: float = FPS) -> list[str]:
-    """Label of the interval containing each frame centre."""
-    centres = (np.arange(n_frames) + 0.5) / fps
-    labels = []
-    for c in centres:
-        lab = "sil"
-        for s, e, p in intervals:
-            if s <= c < e:
-                lab = p
-                break
-        labels.append(lab)
-    return labels
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +22,7 @@ def data():
     rng = np.random.default_rng(777)
     lms, labels = [], []
     for _ in range(N_SEQ):
-        iv = random_intervals(rng, N_FRAMES)
+        iv = random_phone_intervals(rng, N_FRAMES)
         lms.append(face.face_landmarks(iv, N_FRAMES, rng=rng))
         labels.append(frame_labels(iv, N_FRAMES))
     lm = np.stack(lms)                                     # (S, T, P, 2)

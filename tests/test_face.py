@@ -8,47 +8,10 @@ from scipy.spatial import Delaunay
 from skimage.transform import PiecewiseAffineTransform, warp
 
 from bayes_talk.data import face, render
-from bayes_talk.data.phones import PHONES, VOWELS
+from bayes_talk.data.face import random_phone_intervals
+from bayes_talk.data.labels import frame_labels
 
 N_SEQ, N_FRAMES = 30, 50
-
-
-# Small synthetic corpus helpers (kept in sync with tests/test_aam.py, benchmarks/render.py).
-FPS = 25.0
-_CONSONANTS = [p for p in PHONES if p != "sil" and p not in VOWELS]
-_VOWELS = sorted(VOWELS)
-
-
-def random_intervals(rng: np.random.Generator, n_frames: int, fps: float = FPS) -> list[tuple[float, float, str]]:
-    """sil, then consonant-vowel syllables with random phones and durations, then sil."""
-    dur = n_frames / fps
-    t = float(rng.uniform(0.1, 0.3))
-    out = [(0.0, t, "sil")]
-    k = 0
-    while t < dur - 0.3:
-        if k % 2 == 0:
-            p, d = _CONSONANTS[rng.integers(len(_CONSONANTS))], rng.uniform(0.06, 0.12)
-        else:
-            p, d = _VOWELS[rng.integers(len(_VOWELS))], rng.uniform(0.09, 0.2)
-        out.append((t, t + float(d), p))
-        t += float(d)
-        k += 1
-    out.append((t, dur, "sil"))
-    return out
-
-
-def frame_labels(intervals, n_frames: int, fps: float = FPS) -> list[str]:
-    """Label of the interval containing each frame centre."""
-    centres = (np.arange(n_frames) + 0.5) / fps
-    labels = []
-    for c in centres:
-        lab = "sil"
-        for s, e, p in intervals:
-            if s <= c < e:
-                lab = p
-                break
-        labels.append(lab)
-    return labels
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +19,7 @@ def corpus():
     rng = np.random.default_rng(20240601)
     out = []
     for _ in range(N_SEQ):
-        iv = random_intervals(rng, N_FRAMES)
+        iv = random_phone_intervals(rng, N_FRAMES)
         lm = face.face_landmarks(iv, N_FRAMES, rng=rng)
         out.append((iv, lm, frame_labels(iv, N_FRAMES)))
     return out
@@ -71,7 +34,7 @@ def test_landmarks_shape_dtype_and_inside_frame(corpus):
 
 
 def test_same_seed_same_landmarks_other_seed_differs():
-    iv = random_intervals(np.random.default_rng(3), 40)
+    iv = random_phone_intervals(np.random.default_rng(3), 40)
     a = face.face_landmarks(iv, 40, rng=np.random.default_rng(11))
     b = face.face_landmarks(iv, 40, rng=np.random.default_rng(11))
     c = face.face_landmarks(iv, 40, rng=np.random.default_rng(12))
@@ -114,7 +77,7 @@ def test_rounding_coarticulates_into_preceding_consonant():
 def test_labiodental_tucks_and_raises():
     iv = [(0.0, 0.3, "sil"), (0.3, 0.45, "f"), (0.45, 0.8, "sil")]
     tr = face.face_trajectories(iv, 20, rng=np.random.default_rng(1))
-    k = int(0.375 * FPS)  # frame containing the /f/ centre
+    k = int(0.375 * 25.0)  # frame containing the /f/ centre
     assert tr.articulators[k, face.ARTICULATORS.index("tuck")] > 0.8
     assert tr.articulators[k, face.ARTICULATORS.index("raise")] > 1.0
 
@@ -159,7 +122,7 @@ def test_render_deterministic_and_mouth_appearance_changes(corpus):
 def test_teeth_show_in_labiodental():
     iv = [(0.0, 0.3, "sil"), (0.3, 0.5, "f"), (0.5, 0.8, "sil")]
     lm = face.face_landmarks(iv, 20, rng=np.random.default_rng(2))
-    k = int(0.4 * FPS)
+    k = int(0.4 * 25.0)
     img = render.render_frames(lm[k:k + 1])[0]
     inner = face.LANDMARK_GROUPS["inner_lip"]
     x0, y0 = np.floor(lm[k, inner].min(axis=0)).astype(int)

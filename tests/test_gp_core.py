@@ -148,7 +148,7 @@ def test_pyro_log_joint_equals_papers_objective_term_by_term():
     thetas = [h[f"{p}/{v}"] for v in ("audio", "visual", "dyn") for p in ("alpha", "gamma", "beta")]
     expected["hyperprior"] = -np.log(thetas).sum()
     tr = m.trace()
-    got = {k: float(n["log_prob_sum"]) for k, n in tr.nodes.items() if n["type"] == "sample"}
+    got = {k: float(n["log_prob_sum"].detach()) for k, n in tr.nodes.items() if n["type"] == "sample"}
     assert set(got) == set(expected)
     for k in expected:
         assert got[k] == pytest.approx(expected[k], rel=1e-9, abs=1e-9), k

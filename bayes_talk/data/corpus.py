@@ -40,14 +40,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import importlib.resources
-import io
 import json
 import logging
 import os
 import queue
 import subprocess
 import sys
-import zipfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -60,6 +58,7 @@ from bayes_talk.data.labels import frame_labels, read_labels, write_lab
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.sequence import Sequence
 from bayes_talk.features.mfcc import frame_count, load_wav, mfcc, samples_per_frame
+from bayes_talk.files import write_json, write_npz
 
 __all__ = [
     "FORMAT_NAME",
@@ -102,26 +101,8 @@ _IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # ---------------------------------------------------------------------------------------
 
 def save_npz(path: str | Path, compress: bool = True, **arrays: np.ndarray) -> None:
-    """Write an ``.npz`` readable by ``np.load(allow_pickle=False)``, byte-deterministic.
-
-    Members are stored in the given order with a fixed 1980-01-01 timestamp (deflated if
-    ``compress``). Object arrays are refused. Atomic (temp file + ``os.replace``).
-    """
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with zipfile.ZipFile(tmp, "w", compression=method) as zf:
-        for name, arr in arrays.items():
-            arr = np.asanyarray(arr)
-            if arr.dtype.hasobject:
-                raise ValueError(f"{path}: array {name!r} has dtype object; refusing to pickle")
-            info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_DATE)
-            info.compress_type = method
-            info.external_attr = 0o644 << 16
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.asarray(arr, order="C"), allow_pickle=False)
-            zf.writestr(info, buf.getvalue())
-    os.replace(tmp, path)
+    """Byte-deterministic ``.npz`` (see :func:`bayes_talk.files.write_npz`), compressed by default."""
+    write_npz(path, arrays, compress=compress)
 
 
 def load_npz(path: str | Path, keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -139,9 +120,7 @@ def load_npz(path: str | Path, keys: tuple[str, ...] = ()) -> dict[str, np.ndarr
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    write_json(path, obj, sort_keys=True)
 
 
 def _sha256(path: Path) -> str:

@@ -564,3 +564,28 @@ def inner_lip_aperture(landmarks: np.ndarray) -> np.ndarray:
     upper = lm[:, iu[1:4]]
     lower = lm[:, iu[5:8][::-1]]
     return np.linalg.norm(upper - lower, axis=-1).mean(axis=1)
+
+
+_CV_CONSONANTS = tuple(p for p in PHONES if p != "sil" and p not in VOWELS)
+_CV_VOWELS = tuple(sorted(VOWELS))
+
+
+def random_phone_intervals(rng: np.random.Generator, n_frames: int,
+                           fps: float = 25.0) -> list[tuple[float, float, str]]:
+    """Random phone intervals for face-only experiments (no speech needed): silence, then
+    consonant–vowel syllables with random phones (consonants 60–120 ms, vowels 90–200 ms),
+    then silence to the end of ``n_frames`` frames."""
+    dur = n_frames / fps
+    t = float(rng.uniform(0.1, 0.3))
+    out = [(0.0, t, "sil")]
+    k = 0
+    while t < dur - 0.3:
+        if k % 2 == 0:
+            p, d = _CV_CONSONANTS[rng.integers(len(_CV_CONSONANTS))], rng.uniform(0.06, 0.12)
+        else:
+            p, d = _CV_VOWELS[rng.integers(len(_CV_VOWELS))], rng.uniform(0.09, 0.2)
+        out.append((t, t + float(d), p))
+        t += float(d)
+        k += 1
+    out.append((t, dur, "sil"))
+    return out

@@ -23,13 +23,13 @@ starts earliest inside the frame.
 """
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import numpy as np
 
 from bayes_talk.data.phones import SILENCE, check_phone
+from bayes_talk.files import write_text
 
 __all__ = [
     "Interval",
@@ -47,13 +47,6 @@ Interval = tuple[float, float, str]
 
 _HTK_UNITS = 10_000_000  # 100 ns units per second
 _TIE_TOL = 1e-9
-
-
-def _atomic_write_text(path: Path, text: str, encoding: str = "utf-8") -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding=encoding, newline="\n") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------------------------
@@ -141,7 +134,7 @@ def write_lab(path: str | Path, intervals: list[Interval]) -> None:
         if not lab or any(c.isspace() for c in lab):
             raise ValueError(f"{path}: HTK labels must be non-empty without spaces, found {lab!r}")
         lines.append(f"{round(s * _HTK_UNITS)} {round(e * _HTK_UNITS)} {lab}\n")
-    _atomic_write_text(path, "".join(lines))
+    write_text(path, "".join(lines))
 
 
 # ---------------------------------------------------------------------------------------
@@ -269,7 +262,7 @@ def write_textgrid(path: str | Path, intervals: list[Interval], tier: str = "pho
     for i, (s, e, lab) in enumerate(intervals, 1):
         lines += [f"        intervals [{i}]:", f"            xmin = {_fmt(s)} ",
                   f"            xmax = {_fmt(e)} ", f"            text = {q(lab)} "]
-    _atomic_write_text(path, "\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
 
 
 def read_labels(path: str | Path) -> list[Interval]:

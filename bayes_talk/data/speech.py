@@ -420,14 +420,12 @@ def jittered_requests(texts: list[str], seed: int, voice: str = "en", rate: int 
 
 def write_wav(path: str | Path, samples: np.ndarray, sample_rate: int) -> None:
     """Write 16-bit PCM WAV atomically (temp file + ``os.replace``); no metadata chunks."""
-    import os
-
     import soundfile as sf
+
+    from bayes_talk.files import atomic_write
 
     path = Path(path)
     samples = np.asarray(samples)
     if samples.dtype != np.int16:
         raise ValueError(f"{path}: expected int16 samples, found {samples.dtype}")
-    tmp = path.with_name(path.name + ".tmp")
-    sf.write(str(tmp), samples, int(sample_rate), subtype="PCM_16", format="WAV")
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: sf.write(tmp, samples, int(sample_rate), subtype="PCM_16", format="WAV"))

@@ -10,15 +10,14 @@ predictive variance also show their ±2σ band.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
+from bayes_talk.files import atomic_write, write_text
+
+__all__ = ["markdown_table", "plot_trajectories", "write_json", "write_markdown"]
 
 _COLUMNS = (  # (metric key, column label)
     ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
@@ -27,25 +26,10 @@ _COLUMNS = (  # (metric key, column label)
 )
 
 
-def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
-    """Call ``write(tmp_path)`` on a temporary file beside ``path``, then replace ``path``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
 def write_json(result: dict[str, Any], path: str | Path) -> Path:
     """Write ``result`` as strict JSON (no NaN: missing values are null)."""
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    return write_text(path, text)
 
 
 def _fmt(s: Any) -> str:
@@ -94,7 +78,7 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
     if fig:
         parts.append(f"![first AAM parameter, synthesis vs ground truth]({fig})\n")
     text = "\n".join(parts)
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    return write_text(path, text)
 
 
 def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | None = None,
@@ -129,7 +113,7 @@ def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | No
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()
     try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), suffix=".png")
     finally:
         plt.close(fig)
     return Path(path)

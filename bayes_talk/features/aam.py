@@ -56,7 +56,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,6 +64,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay
 
 from bayes_talk.data.render import bilinear_sample, warp_piecewise_affine
+from bayes_talk.files import write_bytes
 
 __all__ = ["AAM", "FORMAT_VERSION", "PCAModel", "procrustes_align", "remove_sequence_mean"]
 
@@ -218,21 +218,6 @@ def _check_images_landmarks(images, landmarks, image_shape=None, n_landmarks=Non
     if n_landmarks is not None and landmarks.shape[1] != n_landmarks:
         raise ValueError(f"landmarks: expected {n_landmarks} points per frame, found {landmarks.shape[1]}")
     return images, landmarks
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _base_path(path: str | os.PathLike) -> Path:
@@ -532,8 +517,8 @@ class AAM:
         meta["npz_file"] = npz_path.name
         meta["npz_sha256"] = hashlib.sha256(data).hexdigest()
         meta["arrays"] = {k: list(self._a[k].shape) for k in _ARRAYS}
-        _atomic_write_bytes(npz_path, data)
-        _atomic_write_bytes(json_path, (json.dumps(meta, indent=1, sort_keys=True) + "\n").encode())
+        write_bytes(npz_path, data)
+        write_bytes(json_path, (json.dumps(meta, indent=1, sort_keys=True) + "\n").encode())
         return npz_path, json_path
 
     @classmethod

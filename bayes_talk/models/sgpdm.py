@@ -34,7 +34,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -46,6 +45,7 @@ import pyro.distributions as dist
 import torch
 from pyro import poutine
 
+from bayes_talk.files import write_json, write_npz
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.predictive import GPPredictor
@@ -153,19 +153,6 @@ def sgpdm_model(
         )
     if learned:
         pyro.factor("hyperprior", -sum(torch.log(hyper[k]) for k in learned))
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 @dataclass
@@ -523,8 +510,8 @@ class SGPDM:
         """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""
         path = Path(path)
         meta, arrays = self.state()
-        _atomic_write(path.with_suffix(".npz"), lambda tmp: write_npz(tmp, arrays))
-        _atomic_write(path.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
+        write_npz(path.with_suffix(".npz"), arrays)
+        write_json(path.with_suffix(".json"), meta)
         return path.with_suffix(".json")
 
     @classmethod
@@ -533,12 +520,6 @@ class SGPDM:
         jpath, npath = path.with_suffix(".json"), path.with_suffix(".npz")
         meta, arrays = read_model_files(jpath, npath)
         return cls.from_state(meta, arrays)
-
-
-def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
-    """``np.savez`` to exactly ``path`` (no ``.npz`` appended)."""
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
 
 
 def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarray]]:

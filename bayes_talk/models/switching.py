@@ -25,7 +25,6 @@ Synthesis is in :mod:`bayes_talk.synthesis.sequential`.
 """
 from __future__ import annotations
 
-import json
 import logging
 import warnings
 from collections import defaultdict
@@ -36,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.files import write_json, write_npz
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig, _atomic_write, read_model_files, write_npz
+from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig, read_model_files
 from bayes_talk.models.vlmm import VLMM, Segment
 
 log = logging.getLogger(__name__)
@@ -275,8 +275,8 @@ class SwitchingSGPDM:
             for k, a in marr.items():
                 arrays[f"{j}/{k}"] = a
             arrays[f"{j}/entry_mean"], arrays[f"{j}/entry_cov"] = self.entry_[st]
-        _atomic_write(directory / "arrays.npz", lambda tmp: write_npz(tmp, arrays))
-        _atomic_write(directory / "model.json", lambda tmp: Path(tmp).write_text(json.dumps(meta)))
+        write_npz(directory / "arrays.npz", arrays)
+        write_json(directory / "model.json", meta)
         return directory
 
     @classmethod
