@@ -145,3 +145,30 @@ def test_synthesize_many_in_processes_equals_one_process(vlmm_model, data):
     par = synthesize_many(vlmm_model, utts, workers=2, algorithm="predict")
     for (mfcc, labels), r in zip(utts, par, strict=True):
         np.testing.assert_array_equal(r.mean, vlmm_model.synthesize(mfcc, labels, algorithm="predict").mean)
+
+
+def test_closed_form_segment_objective_equals_the_torch_reference(vlmm_model):
+    import torch
+
+    from bayes_talk.synthesis.optimise import sequence_log_density
+    from bayes_talk.synthesis.segment_objective import segment_objective
+
+    key = next(k for k, m in vlmm_model.models_.items() if m.dynamics_predictor_ is not None)
+    m = vlmm_model.models_[key]
+    rng = np.random.default_rng(0)
+    X = m.X_[:4] + 0.05 * rng.normal(size=(4, m.X_.shape[1]))
+    Y = (m._Y["audio"].numpy() + m.means_["audio"])[:4] + 0.1
+    z = (m._Y["visual"].numpy() + m.means_["visual"])[5:6]
+    mu, cov = vlmm_model.entry_[key]
+    e = vlmm_model.motion_var_
+    vis = m.predictors_["visual"]
+    f, g = segment_objective(X, Y, m.predictors_["audio"], m.dynamics_predictor_,
+                             (mu, np.linalg.inv(cov), np.linalg.slogdet(cov)[1]), (vis, z, e))
+    Xt = torch.as_tensor(X).requires_grad_(True)
+    ref = sequence_log_density(
+        Xt, torch.as_tensor(Y), m.predictors_["audio"], m.dynamics_predictor_,
+        (torch.as_tensor(mu), torch.linalg.cholesky(torch.as_tensor(cov))),
+        lambda Xs: vis.log_lik(torch.as_tensor(z), Xs[:1], torch.as_tensor(e)).sum())
+    ref.backward()
+    assert f == pytest.approx(float(ref.detach()), rel=1e-9)
+    np.testing.assert_allclose(g, Xt.grad.numpy(), rtol=1e-6, atol=1e-6 * np.abs(g).max())

@@ -27,16 +27,13 @@ def sequence_log_density(
     dynamics: GPPredictor | None = None,
     first: tuple[torch.Tensor, torch.Tensor] | None = None,
     extra: ExtraTerm | None = None,
-    obs_offset: int = 0,
 ) -> torch.Tensor:
     """The unnormalised log posterior of eq. 9 for one segment (a scalar tensor).
 
     first: optional (mean, Cholesky factor of the covariance) of the entry distribution
     N(μ_π, Σ_π) of the first latent point (deena2010 eq. 12).
-    obs_offset: the observations Y belong to rows ``obs_offset:`` of X (earlier rows are
-    latent points without audio, e.g. the bridge point of the smoothness term).
     """
-    lp = obs.log_lik(Y, X[obs_offset:]).sum()
+    lp = obs.log_lik(Y, X).sum()
     if dynamics is not None and X.shape[0] > 1:
         lp = lp + dynamics.log_lik(X[1:], X[:-1]).sum()
     if first is not None:
@@ -85,7 +82,6 @@ def optimise_sequence(
     first: tuple[np.ndarray, np.ndarray] | None = None,
     extra: ExtraTerm | None = None,
     max_iter: int = 100,
-    obs_offset: int = 0,
 ) -> np.ndarray:
     """Sequence optimisation (eq. 9) from the initial latents X0 (T×d)."""
     Yt = torch.as_tensor(np.asarray(Y, dtype=np.float64))
@@ -94,5 +90,4 @@ def optimise_sequence(
         mu, cov = first
         first_t = (torch.as_tensor(mu, dtype=torch.float64),
                    torch.linalg.cholesky(torch.as_tensor(cov, dtype=torch.float64)))
-    return _maximise(lambda X: sequence_log_density(X, Yt, obs, dynamics, first_t, extra, obs_offset),
-                     X0, max_iter)
+    return _maximise(lambda X: sequence_log_density(X, Yt, obs, dynamics, first_t, extra), X0, max_iter)

@@ -44,16 +44,14 @@ import torch
 from bayes_talk.evaluation.diagnostics import chain_diagnostics, summarise_segments
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
-from bayes_talk.synthesis.initialisers import NearestNeighbour
-from bayes_talk.synthesis.optimise import optimise_sequence, sequence_log_density
+from bayes_talk.synthesis.optimise import sequence_log_density
 from bayes_talk.synthesis.samplers import METHODS, Draws, laplace_gaussian, run_sampler
-from bayes_talk.synthesis.sequential import ALGORITHMS, SMOOTHNESS, _check_inputs
+from bayes_talk.synthesis.sequential import ALGORITHMS, SMOOTHNESS, _check_inputs, optimise_segment
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
 
 DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
-_NN = NearestNeighbour()
 
 
 @dataclass
@@ -248,9 +246,9 @@ def _sample(model, mfcc, labels, method, n_draws, seed, algorithm, smoothness, w
         z_prev = zm[:, a - 1].mean(0) if a > 0 else None
         n_free = b - a if algorithm == "optimise" else 1
         dens = segment_density(m, mfcc[a:a + n_free], model.entry_[key], z_prev, model.motion_var_, smoothness)
-        X0 = _NN(m, "audio", mfcc[a:a + n_free])
-        Xm = optimise_sequence(m.predictors_["audio"], mfcc[a:a + n_free], X0, dens.dynamics,
-                               first=model.entry_[key], extra=dens.extra, max_iter=map_iter)
+        # the MAP point of Algorithm 1 itself (same density, closed-form objective)
+        Xm = optimise_segment(m, mfcc[a:a + n_free], z_prev, model.entry_[key], smoothness, map_iter,
+                              model.motion_var_)
         xmap[a:a + n_free] = Xm
         seg_seed = int(seed) * 1_000_003 + 7919 * i
         x_flat = Xm.reshape(-1)

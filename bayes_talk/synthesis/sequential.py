@@ -33,7 +33,7 @@ from scipy.signal import butter, filtfilt
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
-from bayes_talk.synthesis.optimise import optimise_sequence
+from bayes_talk.synthesis.segment_objective import maximise_segment
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
@@ -118,7 +118,7 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         # Algorithm 1 optimises the whole segment; Algorithm 2 (and one-frame segments)
         # optimise its first frame only and roll the dynamics mean forward.
         n_opt = b - a if algorithm == "optimise" else 1
-        Xs = _optimise_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
+        Xs = optimise_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
                                model.motion_var_)
         if n_opt < b - a:
             Xs = _roll_dynamics(m, Xs[0], b - a)
@@ -129,19 +129,22 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
     return SynthesisResult(mean, var, X, segments, used)
 
 
-def _optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
+def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
                       max_iter: int, motion_var: np.ndarray) -> np.ndarray:
-    """Latent points of one segment (or of its first frame) under state model ``m``."""
+    """Latent points of one segment (or of its first frame) under state model ``m``.
+
+    The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`,
+    evaluated in closed form (:mod:`bayes_talk.synthesis.segment_objective`). With
+    smoothness "frame" (DESIGN.md §5) x_a itself must explain the last synthesised
+    frame, which differs from the current one by the frame-to-frame motion (variance
+    ``motion_var``).
+    """
     X0 = _NN(m, "audio", Y)
     dyn = m.dynamics_predictor_ if len(Y) > 1 else None
-    audio, vis = m.predictors_["audio"], m.predictors_["visual"]
-    if z_prev is None or smoothness == "off":
-        return optimise_sequence(audio, Y, X0, dyn, first=entry, max_iter=max_iter)
-    # "frame" (DESIGN.md §5): x_a itself must explain the last synthesised frame, which
-    # differs from the current one by the frame-to-frame motion (variance motion_var)
-    z, mv = torch.as_tensor(z_prev), torch.as_tensor(motion_var)
-    return optimise_sequence(audio, Y, X0, dyn, first=entry, max_iter=max_iter,
-                             extra=lambda Xs: vis.log_lik(z, Xs[:1], mv).sum())
+    smooth = None
+    if z_prev is not None and smoothness == "frame":
+        smooth = (m.predictors_["visual"], z_prev, motion_var)
+    return maximise_segment(X0, Y, m.predictors_["audio"], dyn, first=entry, smooth=smooth, max_iter=max_iter)
 
 
 def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
