@@ -12,7 +12,7 @@ where z̄_{a−1} is the *posterior-mean* visual of the previous segment's last 
 MAP path uses its MAP visual there). Segments are walked in order as in Algorithm 1:
 
 1. the segment's MAP point by L-BFGS from the nearest-neighbour initialisation
-   (:func:`~bayes_talk.synthesis.optimise.optimise_sequence`, same density);
+   (:func:`~bayes_talk.synthesis.sequential.optimise_segment`, the point Algorithm 1 uses);
 2. draws of the segment's latents by ``method``: Pyro NUTS, emcee or the Laplace
    approximation at the MAP point (:mod:`bayes_talk.synthesis.samplers`); NUTS chains
    start at draws of the Laplace approximation (overdispersed around the MAP point),
