@@ -33,7 +33,7 @@ from scipy.signal import butter, filtfilt
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
-from bayes_talk.synthesis.segment_objective import maximise_segment
+from bayes_talk.synthesis.optimise import optimise_sequence
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
@@ -133,8 +133,8 @@ def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothn
                       max_iter: int, motion_var: np.ndarray) -> np.ndarray:
     """Latent points of one segment (or of its first frame) under state model ``m``.
 
-    The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`,
-    evaluated in closed form (:mod:`bayes_talk.synthesis.segment_objective`). With
+    The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`
+    (maximised by :func:`~bayes_talk.synthesis.optimise.optimise_sequence`). With
     smoothness "frame" (DESIGN.md §5) x_a itself must explain the last synthesised
     frame, which differs from the current one by the frame-to-frame motion (variance
     ``motion_var``).
@@ -144,7 +144,7 @@ def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothn
     smooth = None
     if z_prev is not None and smoothness == "frame":
         smooth = (m.predictors_["visual"], z_prev, motion_var)
-    return maximise_segment(X0, Y, m.predictors_["audio"], dyn, first=entry, smooth=smooth, max_iter=max_iter)
+    return optimise_sequence(m.predictors_["audio"], Y, X0, dyn, first=entry, smooth=smooth, max_iter=max_iter)
 
 
 def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
