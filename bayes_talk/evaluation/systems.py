@@ -77,7 +77,7 @@ class SystemConfig:
     seed: int = 0
     ssgpdm_max_frames_per_state: int = 300
     ssgpdm_min_frames_per_state: int = 12
-    ssgpdm_min_count: int = 10
+    ssgpdm_min_count: int | None = None
     ssgpdm_max_iter: int = 100
     ssgpdm_fallback_frames: int = 400
     synth_max_iter: int = 50
@@ -96,6 +96,8 @@ class SystemConfig:
             if k == "lowpass_hz":
                 if v is not None and not v > 0:
                     raise ValueError(f"lowpass_hz must be > 0 or None, got {v!r}")
+                continue
+            if k == "ssgpdm_min_count" and v is None:  # the library's size-scaled default
                 continue
             if k == "seed":
                 if not isinstance(v, (int, np.integer)) or v < 0:
