@@ -1,32 +1,9 @@
-"""Evaluation: error, correlation and calibration metrics (DESIGN §9)."""
-from bayes_talk.evaluation.metrics import (
-                                           acc,
-                                           amse,
-                                           correlation,
-                                           coverage,
-                                           crps_ensemble,
-                                           crps_gaussian,
-                                           l1,
-                                           linf,
-                                           mse,
-                                           nlpd_gaussian,
-                                           normalised_mse,
-                                           rms,
-                                           summarise,
-)
+"""Evaluation: error, correlation and calibration metrics (DESIGN §9), protocols, reports.
 
-__all__ = [
-                                           "acc",
-                                           "amse",
-                                           "correlation",
-                                           "coverage",
-                                           "crps_ensemble",
-                                           "crps_gaussian",
-                                           "l1",
-                                           "linf",
-                                           "mse",
-                                           "nlpd_gaussian",
-                                           "normalised_mse",
-                                           "rms",
-                                           "summarise",
-]
+The metrics live in :mod:`bayes_talk.evaluation.metrics` (its ``__all__`` is re-exported
+here); protocols in :mod:`~bayes_talk.evaluation.protocols`.
+"""
+from bayes_talk.evaluation import metrics
+from bayes_talk.evaluation.metrics import *  # noqa: F403
+
+__all__ = list(metrics.__all__)
