@@ -75,10 +75,29 @@ class HMMViterbi:
         self.n_states = n_states
         self.seed = seed
 
+    def _states(self, model: SGPDM) -> tuple[np.ndarray, np.ndarray]:
+        """Hidden states (indices of training latents) and the log transition matrix. They
+        do not depend on the new audio: computed once per model and cached on it."""
+        cache = model.__dict__.setdefault("_hmm_cache", {})
+        key = (self.n_states, self.seed)
+        if key not in cache:
+            N = model.X_.shape[0]
+            rng = np.random.default_rng(self.seed)
+            idx = np.sort(rng.choice(N, self.n_states, replace=False)) if N > self.n_states else np.arange(N)
+            S = torch.as_tensor(model.X_[idx])
+            M = len(idx)
+            dyn = model.dynamics_predictor_
+            if dyn is not None:
+                with torch.no_grad():
+                    trans = dyn.log_lik(S.repeat(M, 1), S.repeat_interleave(M, 0)).reshape(M, M).numpy()
+                trans = trans - logsumexp(trans, axis=1, keepdims=True)
+            else:
+                trans = np.full((M, M), -np.log(M))
+            cache[key] = (idx, trans)
+        return cache[key]
+
     def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
-        N = model.X_.shape[0]
-        rng = np.random.default_rng(self.seed)
-        idx = np.sort(rng.choice(N, self.n_states, replace=False)) if N > self.n_states else np.arange(N)
+        idx, trans = self._states(model)
         S = torch.as_tensor(model.X_[idx])
         M = len(idx)
         p = model.predictors_[view]
@@ -87,12 +106,6 @@ class HMMViterbi:
             T = Yt.shape[0]
             # emission ln p(ŷ_t | x_j): evaluate all (t, j) pairs
             emit = p.log_lik(Yt.repeat_interleave(M, 0), S.repeat(T, 1)).reshape(T, M).numpy()
-            dyn = model.dynamics_predictor_
-            if dyn is not None:
-                trans = dyn.log_lik(S.repeat(M, 1), S.repeat_interleave(M, 0)).reshape(M, M).numpy()
-                trans = trans - logsumexp(trans, axis=1, keepdims=True)
-            else:
-                trans = np.full((M, M), -np.log(M))
         start = np.full(M, -np.log(M))
         return model.X_[idx[viterbi(start, trans, emit)]].copy()
 
