@@ -82,24 +82,3 @@ def test_bad_requests():
         synthesize_many([SpeechRequest("hello there", voice="no-such-voice")], n_workers=1)
 
 
-def test_slim_child_matches_the_in_module_synthesis():
-    """The self-contained child program (python -I -S) gives the bytes and events of
-    _raw_synthesis (run through the old child entry point, in its own fresh process)."""
-    import json
-    import subprocess
-    import sys
-
-    from bayes_talk.data.speech import _assemble, _worker
-
-    req = SpeechRequest("Bright vixens jump; dozy fowl quack.", rate=190, pitch=44)
-    new = _worker(req)
-    payload = json.dumps({"text": req.text, "voice": req.voice, "rate": req.rate, "pitch": req.pitch})
-    out = subprocess.run([sys.executable, "-c",
-                          "from bayes_talk.data.speech import _child_main; _child_main()"],
-                         input=payload.encode(), capture_output=True, check=True).stdout
-    nl = out.find(b"\n")
-    head = json.loads(out[:nl])
-    old = _assemble(req, np.frombuffer(out[nl + 1:], dtype="<i2").copy(), head["sample_rate"],
-                    [(int(s), str(c)) for s, c in head["events"]], head["end"])
-    assert new.samples.tobytes() == old.samples.tobytes()
-    assert new.intervals == old.intervals and new.espeak_phones == old.espeak_phones

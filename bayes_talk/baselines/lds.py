@@ -199,6 +199,12 @@ def kalman_smoother(batch: Batch, A: np.ndarray, nu: np.ndarray, Q: np.ndarray, 
     return out
 
 
+def label_batch(encoder: LabelEncoder, seqs: list[Sequence]) -> Batch:
+    """:func:`make_batch` of the sequences' encoded frame labels and visual features."""
+    return make_batch([encoder.encode(s.labels, where=f"sequence {s.name!r}") for s in seqs],
+                      [s.aam for s in seqs])
+
+
 class SLDS(Baseline):
     """Switching LDS with known labels, trained by EM (englebienne2008 §3).
 
@@ -242,8 +248,7 @@ class SLDS(Baseline):
         self.a_init_max = float(a_init_max)
 
     def _batch(self, seqs: list[Sequence]) -> Batch:
-        return make_batch([self.encoder_.encode(s.labels, where=f"sequence {s.name!r}") for s in seqs],
-                          [s.aam for s in seqs])
+        return label_batch(self.encoder_, seqs)
 
     def fit(self, train: list[Sequence]) -> Self:
         d_y, d_z = check_train(train)
@@ -469,8 +474,7 @@ class DPDS(Baseline):
         self.gtol = float(gtol)
 
     def _batch(self, seqs: list[Sequence]) -> Batch:
-        return make_batch([self.encoder_.encode(s.labels, where=f"sequence {s.name!r}") for s in seqs],
-                          [s.aam for s in seqs])
+        return label_batch(self.encoder_, seqs)
 
     def fit(self, train: list[Sequence]) -> Self:
         d_y, d_z = check_train(train)

@@ -20,8 +20,7 @@ back on stdout), with up to ``n_workers`` of them running at once from a thread 
 child program (:data:`_CHILD`) is self-contained -- ctypes, json and sys only, the library
 and data paths come from the parent -- so a child costs ~0.03 s of CPU instead of ~0.16 s
 when it imported numpy and this module (measured, 10 syntheses). The same request always
-gives byte-identical samples and timings (tested against the in-module
-:func:`_raw_synthesis`). (A ``multiprocessing``
+gives byte-identical samples and timings (tested). (A ``multiprocessing``
 pool with the ``spawn`` method and ``max_tasks_per_child=1`` would also give fresh
 processes, but it re-imports the caller's ``__main__``, which breaks scripts without an
 ``if __name__ == "__main__"`` guard; ``fork`` would copy the caller's threads.)
@@ -38,13 +37,11 @@ sample index exactly).
 """
 from __future__ import annotations
 
-import ctypes
 import json
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from string import Template
 
@@ -133,80 +130,6 @@ class SpeechResult:
         return self.samples.shape[0] / self.sample_rate
 
 
-class _EventId(ctypes.Union):
-    _fields_ = [("number", ctypes.c_int), ("name", ctypes.c_char_p), ("string", ctypes.c_char * 8)]
-
-
-class _Event(ctypes.Structure):
-    _fields_ = [
-        ("type", ctypes.c_int),
-        ("unique_identifier", ctypes.c_uint),
-        ("text_position", ctypes.c_int),
-        ("length", ctypes.c_int),
-        ("audio_position", ctypes.c_int),
-        ("sample", ctypes.c_int),
-        ("user_data", ctypes.c_void_p),
-        ("id", _EventId),
-    ]
-
-
-assert ctypes.sizeof(_Event) == 40 or ctypes.sizeof(ctypes.c_void_p) != 8
-
-_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_short), ctypes.c_int,
-                             ctypes.POINTER(_Event))
-
-
-def _raw_synthesis(text: str, voice: str, rate: int, pitch: int) -> tuple[bytes, int, list, int]:
-    """Run espeak-ng in THIS process. Returns (int16 bytes, rate, phoneme events, end sample).
-
-    Must only be called once per process for reproducible output (see module docstring).
-    """
-    import espeakng_loader
-
-    lib = ctypes.CDLL(espeakng_loader.get_library_path())
-    lib.espeak_Initialize.restype = ctypes.c_int
-    lib.espeak_Initialize.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_char_p, ctypes.c_int]
-    sr = lib.espeak_Initialize(_AUDIO_OUTPUT_SYNCHRONOUS, 0,
-                               espeakng_loader.get_data_path().encode(), _INIT_PHONEME_EVENTS)
-    if sr <= 0:
-        raise RuntimeError(f"espeak_Initialize failed (returned {sr})")
-    lib.espeak_SetVoiceByName.argtypes = [ctypes.c_char_p]
-    if lib.espeak_SetVoiceByName(voice.encode()) != 0:
-        raise ValueError(f"espeak-ng voice {voice!r} not found (try 'en')")
-    lib.espeak_SetParameter.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int]
-    lib.espeak_SetParameter(_PARAM_RATE, int(rate), 0)
-    lib.espeak_SetParameter(_PARAM_PITCH, int(pitch), 0)
-
-    chunks: list[bytes] = []
-    events: list[tuple[int, str]] = []
-    end_sample = [-1]
-
-    def cb(wav, n, ev):
-        if wav and n > 0:
-            chunks.append(ctypes.string_at(wav, 2 * n))
-        i = 0
-        while ev[i].type != 0:
-            e = ev[i]
-            if e.type == _EVENT_PHONEME:
-                events.append((int(e.sample), e.id.string.decode("ascii", "replace")))
-            elif e.type in (_EVENT_END, _EVENT_MSG_TERMINATED) and end_sample[0] < 0:
-                end_sample[0] = int(e.sample)
-            i += 1
-        return 0
-
-    c_cb = _CALLBACK(cb)
-    lib.espeak_SetSynthCallback(c_cb)
-    buf = text.encode("utf-8")
-    lib.espeak_Synth.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_uint, ctypes.c_int,
-                                 ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p, ctypes.c_void_p]
-    err = lib.espeak_Synth(buf, len(buf) + 1, 0, _POS_CHARACTER, 0, _CHARS_UTF8, None, None)
-    if err != 0:
-        raise RuntimeError(f"espeak_Synth failed with error {err} for text {text!r}")
-    lib.espeak_Synchronize()
-    return b"".join(chunks), int(sr), events, end_sample[0]
-
-
-@lru_cache(maxsize=1)
 def _espeak_paths() -> tuple[str, str]:
     """(library path, data path) of the espeak-ng bundled in ``espeakng-loader``."""
     import espeakng_loader
@@ -247,7 +170,7 @@ def _worker(request: SpeechRequest) -> SpeechResult:
 #: ~20 ms (``python -I -S``: no site-packages, no numpy, no bayes_talk import): JSON
 #: request (text, voice, rate, pitch, library and data paths) on stdin; one JSON header
 #: line (sample rate, phoneme events, end sample, byte count) then raw little-endian
-#: int16 on stdout. The synthesis calls are the same as :func:`_raw_synthesis`.
+#: int16 on stdout.
 _CHILD = Template(r"""
 import ctypes, json, sys
 req = json.loads(sys.stdin.buffer.read().decode("utf-8"))
@@ -314,23 +237,6 @@ sys.stdout.buffer.flush()
        "p_rate": _PARAM_RATE, "p_pitch": _PARAM_PITCH, "ev_phoneme": _EVENT_PHONEME,
        "ev_end": _EVENT_END, "ev_term": _EVENT_MSG_TERMINATED, "pos": _POS_CHARACTER,
        "utf8": _CHARS_UTF8})
-
-
-def _child_main() -> None:
-    """The old child entry point (imports numpy and this module): kept for debugging;
-    :func:`_worker` runs the self-contained :data:`_CHILD` instead."""
-    req = json.loads(sys.stdin.buffer.read().decode("utf-8"))
-    try:
-        raw, sr, events, end = _raw_synthesis(req["text"], req["voice"], req["rate"], req["pitch"])
-    except Exception as exc:  # noqa: BLE001 - reported to the parent, which re-raises it
-        sys.stdout.write(json.dumps({"error": str(exc), "type": type(exc).__name__}) + "\n")
-        sys.stdout.flush()
-        raise SystemExit(1) from None
-    if sys.byteorder != "little":  # pragma: no cover
-        raw = np.frombuffer(raw, dtype="=i2").astype("<i2").tobytes()
-    head = {"sample_rate": sr, "events": events, "end": end, "n_bytes": len(raw)}
-    sys.stdout.buffer.write(json.dumps(head).encode("utf-8") + b"\n" + raw)
-    sys.stdout.buffer.flush()
 
 
 def _assemble(request: SpeechRequest, audio: np.ndarray, sr: int,
