@@ -205,6 +205,18 @@ def label_batch(encoder: LabelEncoder, seqs: list[Sequence]) -> Batch:
                       [s.aam for s in seqs])
 
 
+def _prepare_fit(model, train: list[Sequence]) -> tuple[int, int, int, Batch, np.ndarray]:
+    """Shared start of SLDS/DPDS ``fit``: check the data, fit the label encoder on
+    ``model``, batch the sequences, and the per-dimension data variance (1 where zero).
+    Returns (D_y, D_z, number of labels, batch, data variance)."""
+    d_y, d_z = check_train(train)
+    model.encoder_ = LabelEncoder().fit(train)
+    b = label_batch(model.encoder_, train)
+    data_var = b.Y[b.M].var(axis=0)
+    data_var[data_var <= 0] = 1.0
+    return d_y, d_z, model.encoder_.n_classes, b, data_var
+
+
 class SLDS(Baseline):
     """Switching LDS with known labels, trained by EM (englebienne2008 §3).
 
@@ -251,12 +263,7 @@ class SLDS(Baseline):
         return label_batch(self.encoder_, seqs)
 
     def fit(self, train: list[Sequence]) -> Self:
-        d_y, d_z = check_train(train)
-        self.encoder_ = LabelEncoder().fit(train)
-        P = self.encoder_.n_classes
-        b = self._batch(train)
-        data_var = b.Y[b.M].var(axis=0)
-        data_var[data_var <= 0] = 1.0
+        d_y, d_z, P, b, data_var = _prepare_fit(self, train)
         floor = self.var_floor * data_var
         lmean = _label_means(b, P)
         a, nu, res = _init_ar(b, P, self.a_init_max)
@@ -477,14 +484,9 @@ class DPDS(Baseline):
         return label_batch(self.encoder_, seqs)
 
     def fit(self, train: list[Sequence]) -> Self:
-        d_y, d_z = check_train(train)
-        self.encoder_ = LabelEncoder().fit(train)
-        P = self.encoder_.n_classes
-        b = self._batch(train)
-        N = b.n_frames
-        data_var = b.Y[b.M].var(axis=0)
-        data_var[data_var <= 0] = 1.0
+        d_y, d_z, P, b, data_var = _prepare_fit(self, train)
         floor = self.var_floor * data_var
+        N = b.n_frames
         lmean = _label_means(b, P)
         a0, _, _ = _init_ar(b, P, self.a_max)
         shape = a0.shape
