@@ -85,6 +85,7 @@ class SystemConfig:
     sgplvm_max_frames: int = 1500
     sgplvm_max_iter: int = 200
     sgplvm_synth_max_iter: int = 100
+    sgplvm_validation_frames: int = 300
     vp_n_states: int = 26
     vp_n_iter: int = 50
     slds_n_iter: int = 100
@@ -190,7 +191,8 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         from bayes_talk.models.sgplvm import SGPLVM
 
         return SGPLVM(latent_dim=cfg.latent_dim, max_frames=cfg.sgplvm_max_frames,
-                      max_iter=cfg.sgplvm_max_iter, seed=cfg.seed)
+                      max_iter=cfg.sgplvm_max_iter, seed=cfg.seed,
+                      validation_frames=cfg.sgplvm_validation_frames)
     from bayes_talk.baselines import REGISTRY
 
     if family == "voice-puppetry":

@@ -35,7 +35,7 @@ import logging
 import math
 import os
 import zipfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -157,9 +157,12 @@ def sgpdm_model(
 
 @dataclass
 class FitHistory:
-    """Objective (log joint) after each outer L-BFGS step."""
+    """Objective (log joint) after each outer L-BFGS step; with a monitor, its value after
+    each step (``monitor``) and the step whose parameters were kept (``best_step``, 1-based)."""
 
     log_joint: list[float] = field(default_factory=list)
+    monitor: list[float] = field(default_factory=list)
+    best_step: int | None = None
 
 
 class SGPDM:
@@ -269,12 +272,21 @@ class SGPDM:
         views: Mapping[str, np.ndarray],
         seq_lengths: Sequence[int] | None = None,
         X_init: np.ndarray | None = None,
+        monitor: Callable[[SGPDM], float] | None = None,
+        monitor_every: int = 10,
+        patience: int = 3,
     ) -> SGPDM:
         """MAP training (torch L-BFGS on the log joint of :func:`sgpdm_model`).
 
         views: name -> (N, D_v) array, rows frame-synchronous across views.
         seq_lengths: lengths of the sequences stacked in the rows (default: one sequence).
         X_init: optional (N, d) initial latents (default: PCA, see ``config.init``).
+        monitor: optional early stopping. ``monitor(model)`` (lower is better, e.g. an error
+            on held-out frames) is called on the fitted-so-far model after every
+            ``monitor_every`` L-BFGS iterations; training stops after ``patience`` calls
+            without improvement and the parameters of the best call are kept. Why this
+            exists: the MAP objective of a back-constrained GPDM is maximised by shrinking
+            the latents towards a point (docs/model.md, "Latent collapse").
         """
         cfg = self.config
         arrs, seq_lengths = self._check_views(views, seq_lengths)
@@ -291,8 +303,9 @@ class SGPDM:
             if X0.shape != (sum(seq_lengths), cfg.latent_dim):
                 raise ValueError(f"X_init has shape {X0.shape}, expected {(sum(seq_lengths), cfg.latent_dim)}")
         self._init_params(centred, X0)
-        self._optimise()
+        self._optimise(monitor, monitor_every, patience)
         self._finalise()
+        self._check_collapse()
         return self
 
     def _init_params(self, centred: Mapping[str, np.ndarray], X0: np.ndarray) -> None:
@@ -333,10 +346,14 @@ class SGPDM:
         else:
             self._X = torch.as_tensor(X0).clone().requires_grad_(True)
 
-    def _optimise(self) -> None:
+    def _optimise(self, monitor: Callable[[SGPDM], float] | None = None, monitor_every: int = 10,
+                  patience: int = 3) -> None:
         cfg = self.config
+        if monitor is not None and (monitor_every < 1 or patience < 1):
+            raise ValueError(f"monitor_every and patience must be >= 1, got {monitor_every} and {patience}")
+        step_iter = monitor_every if monitor is not None else 20
         free = self._free_tensors()
-        opt = torch.optim.LBFGS(free, lr=1.0, max_iter=20, history_size=50, line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(free, lr=1.0, max_iter=step_iter, history_size=50, line_search_fn="strong_wolfe")
 
         def closure():
             opt.zero_grad()
@@ -345,7 +362,8 @@ class SGPDM:
             return loss
 
         self.history = FitHistory([float(self.log_joint().detach())])
-        for _ in range(max(1, math.ceil(cfg.max_iter / 20))):
+        best, best_params, since = math.inf, None, 0
+        for step in range(1, max(1, math.ceil(cfg.max_iter / step_iter)) + 1):
             opt.step(closure)
             with torch.no_grad():
                 cur = float(self.log_joint())
@@ -353,10 +371,38 @@ class SGPDM:
                 raise RuntimeError("the SGPDM objective became non-finite during training")
             prev = self.history.log_joint[-1]
             self.history.log_joint.append(cur)
+            if monitor is not None:
+                self._finalise()
+                score = float(monitor(self))
+                self.history.monitor.append(score)
+                if score < best:
+                    best, since, self.history.best_step = score, 0, step
+                    best_params = [t.detach().clone() for t in free]
+                else:
+                    since += 1
+                    if since >= patience:
+                        break
             if abs(cur - prev) <= cfg.tol * max(1.0, abs(cur)):
                 break
-        log.info("SGPDM fit: log joint %.6g -> %.6g in %d steps", self.history.log_joint[0],
-                 self.history.log_joint[-1], len(self.history.log_joint) - 1)
+        if best_params is not None:
+            with torch.no_grad():
+                for t, b in zip(free, best_params):
+                    t.copy_(b)
+        log.info("SGPDM fit: log joint %.6g -> %.6g in %d steps%s", self.history.log_joint[0],
+                 self.history.log_joint[-1], len(self.history.log_joint) - 1,
+                 "" if monitor is None else f"; kept step {self.history.best_step} (monitor {best:.6g})")
+
+    def _check_collapse(self) -> None:
+        """Warn when the latents have shrunk to the scale of the dynamics noise (the MAP
+        objective's degenerate optimum, docs/model.md "Latent collapse")."""
+        if not self.config.dynamics:
+            return
+        noise_std = float(self.hyper_["beta/dyn"]) ** -0.5
+        spread = float(self.X_.std(0).mean())
+        if spread < 3.0 * noise_std:
+            log.warning("SGPDM latents have collapsed: mean latent std %.3g is below 3x the dynamics noise "
+                        "std %.3g, so the visual mapping predicts little more than the mean; train with a "
+                        "monitor (early stopping) or fewer iterations", spread, noise_std)
 
     def _finalise(self) -> None:
         """Detach parameters and build the predictors used at synthesis."""
@@ -463,6 +509,8 @@ class SGPDM:
             "views": self.view_names,
             "seq_lengths": self.seq_lengths_,
             "history": self.history.log_joint,
+            "history_monitor": self.history.monitor,
+            "history_best_step": self.history.best_step,
         }
         arrays: dict[str, np.ndarray] = {"X": self.X_}
         for v in self.view_names:
@@ -488,7 +536,8 @@ class SGPDM:
             obj = cls(SGPDMConfig(**meta["config"]))
             obj.view_names = list(meta["views"])
             obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
-            obj.history = FitHistory(list(meta.get("history", [])))
+            obj.history = FitHistory(list(meta.get("history", [])), list(meta.get("history_monitor", [])),
+                                     meta.get("history_best_step"))
             obj.X_ = np.asarray(arrays["X"], dtype=np.float64)
             obj._Y = {v: torch.as_tensor(np.asarray(arrays[f"Y/{v}"], dtype=np.float64)) for v in obj.view_names}
             obj.means_ = {v: np.asarray(arrays[f"mean/{v}"], dtype=np.float64) for v in obj.view_names}

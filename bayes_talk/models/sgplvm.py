@@ -7,6 +7,13 @@ optimisation (eq. 9) from one of two initialisers:
 
 Training frames are capped (``max_frames``, whole 25-frame chunks chosen with the seed)
 because one GP over a whole corpus costs O(N³).
+
+Early stopping (``validation_frames``, our addition; docs/model.md "Latent collapse"):
+the MAP objective of this model is maximised by shrinking the back-constrained latents
+to a point, after which the visual prediction is the training mean. Training therefore
+monitors the visual RMS error of SGPLVM A's prediction μ_Z(g(ŷ)) on held-out chunks
+(taken from the chunks left over by the frame cap, else from the chosen ones) and keeps
+the parameters with the lowest error.
 """
 from __future__ import annotations
 
@@ -17,7 +24,7 @@ import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
-from bayes_talk.synthesis.initialisers import INITIALISERS
+from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
 
 
 @dataclass
@@ -31,36 +38,54 @@ class SGPLVM:
     """deena2009's shared GPLVM with back-constraint and dynamics."""
 
     def __init__(self, latent_dim: int = 8, max_frames: int = 1500, chunk: int = 25, max_iter: int = 200,
-                 init: str = "back-constraint", seed: int = 0):
+                 init: str = "back-constraint", seed: int = 0, validation_frames: int = 300):
         if init not in INITIALISERS:
             raise ValueError(f"unknown initialiser {init!r}; choose one of {sorted(INITIALISERS)}")
+        if validation_frames < 0:
+            raise ValueError(f"validation_frames must be >= 0, got {validation_frames}")
         self.latent_dim, self.max_frames, self.chunk = latent_dim, max_frames, chunk
         self.max_iter, self.init, self.seed = max_iter, init, seed
+        self.validation_frames = validation_frames
 
     @property
     def name(self) -> str:
         return "sgplvm-a" if self.init == "back-constraint" else "sgplvm-b" if self.init == "hmm" else "sgplvm-nn"
 
     def fit(self, train: Sequence[Utterance]) -> SGPLVM:
+        """Train on whole 25-frame chunks of ``train`` (≤ ``max_frames`` frames), early-stopped
+        on ≤ ``validation_frames`` held-out frames (0: no early stopping, ``max_iter`` iterations)."""
         if not train:
             raise ValueError("no training sequences")
         rng = np.random.default_rng(self.seed)
         chunks = [(i, a, min(a + self.chunk, s.n_frames)) for i, s in enumerate(train)
                   for a in range(0, s.n_frames, self.chunk)]
-        order = rng.permutation(len(chunks))
-        chosen, n = [], 0
-        for j in order:
-            i, a, b = chunks[j]
-            if n + b - a > self.max_frames:
-                continue
-            chosen.append(chunks[j])
-            n += b - a
+        order = [chunks[j] for j in rng.permutation(len(chunks))]
+        chosen, rest = _take(order, self.max_frames)
+        held = []
+        if self.validation_frames > 0:
+            if sum(b - a for _, a, b in rest) < self.validation_frames // 2:  # too few left over: hold out chosen chunks
+                rest, chosen = chosen[:max(1, len(chosen) // 7)], chosen[max(1, len(chosen) // 7):]
+            held, _ = _take(rest, self.validation_frames)
+        if not chosen:
+            raise ValueError(f"too few training frames ({sum(s.n_frames for s in train)}) to train an SGPLVM")
         chosen.sort()
         audio = np.vstack([train[i].mfcc[a:b] for i, a, b in chosen])
         visual = np.vstack([train[i].aam[a:b] for i, a, b in chosen])
         cfg = SGPDMConfig(latent_dim=self.latent_dim, back_constraint="audio", init="pca-concat",
                           max_iter=self.max_iter, seed=self.seed)
-        self.model_ = SGPDM(cfg).fit({"audio": audio, "visual": visual}, seq_lengths=[b - a for _, a, b in chosen])
+        monitor = None
+        if held:
+            a_val = np.vstack([train[i].mfcc[a:b] for i, a, b in held])
+            z_val = np.vstack([train[i].aam[a:b] for i, a, b in held])
+            self.validation_chunks_ = sorted(held)
+
+            def monitor(model: SGPDM) -> float:
+                mu, _ = model.predict_view("visual", initialise("back-constraint", model, "audio", a_val))
+                return float(np.sqrt(np.mean((mu - z_val) ** 2)))
+
+        self.training_chunks_ = chosen
+        self.model_ = SGPDM(cfg).fit({"audio": audio, "visual": visual}, seq_lengths=[b - a for _, a, b in chosen],
+                                     monitor=monitor)
         return self
 
     def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SGPLVMResult:
@@ -80,3 +105,16 @@ class SGPLVM:
         obj.model_ = SGPDM.load(path)
         obj.latent_dim = obj.model_.config.latent_dim
         return obj
+
+
+def _take(chunks: list[tuple[int, int, int]], max_frames: int) -> tuple[list, list]:
+    """Greedily take chunks (in the given order) while the total stays ≤ max_frames;
+    returns (taken, the rest)."""
+    taken, rest, n = [], [], 0
+    for c in chunks:
+        if n + c[2] - c[1] <= max_frames:
+            taken.append(c)
+            n += c[2] - c[1]
+        else:
+            rest.append(c)
+    return taken, rest
