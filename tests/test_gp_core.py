@@ -189,6 +189,27 @@ def test_map_training_increases_log_joint_monotonically():
     assert hist[-1] > hist[0]
 
 
+def test_monitor_keeps_the_best_step_and_stops_after_patience():
+    audio, video = _toy(40)
+    scores = iter([5.0, 3.0, 4.0, 6.0, 7.0, 1.0, 1.0])
+    seen = []
+
+    def monitor(model):
+        seen.append(model.X_.copy())
+        return next(scores)
+
+    m = SGPDM(latent_dim=2, max_iter=200).fit({"audio": audio, "visual": video}, monitor=monitor,
+                                               monitor_every=5, patience=3)
+    assert m.history.monitor == [5.0, 3.0, 4.0, 6.0, 7.0]      # stopped 3 calls after the best
+    assert m.history.best_step == 2
+    assert not np.allclose(seen[1], seen[-1])                  # training did move on afterwards ...
+    np.testing.assert_array_equal(m.X_, seen[1])               # ... and the best step was restored
+    mu, _ = m.predict_view("visual", m.X_)
+    assert np.isfinite(mu).all()
+    with pytest.raises(ValueError, match="patience"):
+        SGPDM(latent_dim=2).fit({"audio": audio, "visual": video}, monitor=monitor, patience=0)
+
+
 def test_round_trip_training_audio_recovers_visual():
     audio, video = _toy(50, seed=5)
     m = SGPDM(latent_dim=2, max_iter=200).fit({"audio": audio, "visual": video})
@@ -248,3 +269,33 @@ def test_jitter_escalation_is_logged_and_failure_is_clear(caplog):
     assert "test matrix" in caplog.text and "jitter" in caplog.text
     with pytest.raises(CholeskyError, match="NaN"):
         cholesky(torch.full((3, 3), float("nan"), dtype=f64), "bad matrix")
+
+
+def test_hmm_initialiser_emissions_and_path():
+    """SGPLVM B's initialiser: its (T, M) emission table equals ln p(ŷ_t | x_j) evaluated
+    pair by pair, and on training audio the Viterbi path stays near the training latents."""
+    from bayes_talk.synthesis.initialisers import HMMViterbi, viterbi
+
+    audio, video = _toy(60, seed=3)
+    m = SGPDM(latent_dim=2, max_iter=100).fit({"audio": audio, "visual": video})
+    init = HMMViterbi(n_states=25, seed=1)
+    idx, trans = init._states(m)
+    mu, var = init._emission_params(m, "audio")
+    p = m.predictors_["audio"]
+    Y = torch.as_tensor(audio[:7])
+    S = torch.as_tensor(m.X_[idx])
+    with torch.no_grad():
+        pairwise = p.log_lik(Y.repeat_interleave(len(idx), 0), S.repeat(7, 1)).reshape(7, len(idx))
+        table = p.log_density(Y[:, None, :], mu[None], var)
+    np.testing.assert_allclose(table.numpy(), pairwise.numpy(), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(np.exp(trans).sum(1), 1.0, rtol=1e-12)
+    X0 = init(m, "audio", audio)
+    assert X0.shape == (60, 2)
+    assert all(any(np.array_equal(x, m.X_[j]) for j in idx) for x in X0)   # every point is a state
+    # hand-made 2-state chain: Viterbi follows the emissions unless switching is too costly
+    emit = np.log(np.array([[0.9, 0.1], [0.4, 0.6], [0.9, 0.1]]))
+    sticky = np.log(np.array([[0.99, 0.01], [0.01, 0.99]]))
+    free = np.log(np.full((2, 2), 0.5))
+    start = np.log([0.5, 0.5])
+    assert viterbi(start, free, emit).tolist() == [0, 1, 0]
+    assert viterbi(start, sticky, emit).tolist() == [0, 0, 0]

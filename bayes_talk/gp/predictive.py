@@ -60,9 +60,15 @@ class GPPredictor:
         """ln p(ŷ_t | x_t) for each row pair (T,), per-dimension variance σ²/w_m²
         (plus ``extra_var`` per dimension when given)."""
         mu, var = self.mean_var(Xs)
+        return self.log_density(Ys, mu, var, extra_var)
+
+    def log_density(self, Ys: torch.Tensor, mu: torch.Tensor, var: torch.Tensor,
+                    extra_var: torch.Tensor | None = None) -> torch.Tensor:
+        """ln N(ŷ; μ, σ²/w²) given μ (..., D) and σ² (...) from :meth:`mean_var`; broadcasts,
+        e.g. Ys (T, 1, D) against μ (1, M, D) and σ² (M,) gives a (T, M) table."""
         D = self.out_dim
         if extra_var is not None:
-            v = self.dim_var(var) + extra_var
+            v = var[..., None] / (self.w * self.w) + extra_var
             r = Ys - mu
             return -0.5 * (D * math.log(2.0 * math.pi) + torch.log(v).sum(-1) + (r * r / v).sum(-1))
         r = (Ys - mu) * self.w

@@ -96,17 +96,23 @@ class HMMViterbi:
             cache[key] = (idx, trans)
         return cache[key]
 
+    def _emission_params(self, model: SGPDM, view: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean (M, D) and variance (M,) of ``view`` at the hidden states (cached)."""
+        cache = model.__dict__.setdefault("_hmm_cache", {})
+        key = (self.n_states, self.seed, view)
+        if key not in cache:
+            idx, _ = self._states(model)
+            with torch.no_grad():
+                cache[key] = model.predictors_[view].mean_var(torch.as_tensor(model.X_[idx]))
+        return cache[key]
+
     def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         idx, trans = self._states(model)
-        S = torch.as_tensor(model.X_[idx])
-        M = len(idx)
-        p = model.predictors_[view]
+        mu, var = self._emission_params(model, view)
         Yt = torch.as_tensor(np.asarray(Y, dtype=np.float64))
-        with torch.no_grad():
-            T = Yt.shape[0]
-            # emission ln p(ŷ_t | x_j): evaluate all (t, j) pairs
-            emit = p.log_lik(Yt.repeat_interleave(M, 0), S.repeat(T, 1)).reshape(T, M).numpy()
-        start = np.full(M, -np.log(M))
+        with torch.no_grad():  # emission ln p(ŷ_t | x_j) for every (t, j): a (T, M) table
+            emit = model.predictors_[view].log_density(Yt[:, None, :], mu[None], var).numpy()
+        start = np.full(len(idx), -np.log(len(idx)))
         return model.X_[idx[viterbi(start, trans, emit)]].copy()
 
 

@@ -1,0 +1,44 @@
+"""deena2009's single-model SGPLVM: latent collapse of the MAP fit and early stopping."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from toydata import make_utterances
+
+from bayes_talk.gp.threads import torch_threads
+from bayes_talk.models.sgplvm import SGPLVM
+
+
+def _rms(model, seqs):
+    return float(np.mean([np.sqrt(((model.predict(s) - s.aam) ** 2).mean()) for s in seqs]))
+
+
+def test_long_map_fit_collapses_and_early_stopping_prevents_it(caplog):
+    train, test = make_utterances(8, seed=0), make_utterances(4, seed=1)
+    zero = float(np.mean([np.sqrt(((s.aam - s.aam.mean(0)) ** 2).mean()) for s in test]))
+    with torch_threads(1):
+        with caplog.at_level(logging.WARNING, logger="bayes_talk.models.sgpdm"):
+            full = SGPLVM(latent_dim=3, max_frames=200, max_iter=300, validation_frames=0).fit(train)
+        assert "collapsed" in caplog.text
+        early = SGPLVM(latent_dim=3, max_frames=200, max_iter=1000, validation_frames=60).fit(train)
+    # the converged MAP shrinks the latents to the dynamics-noise scale (std 1e-3)
+    assert full.model_.X_.std(0).mean() < 3e-3
+    h = early.model_.history
+    assert h.best_step is not None and len(h.monitor) >= h.best_step
+    assert h.monitor[h.best_step - 1] == min(h.monitor)
+    assert early.model_.X_.std(0).mean() > 2 * full.model_.X_.std(0).mean()
+    r_full, r_early = _rms(full, test), _rms(early, test)
+    assert r_early < 0.8 * r_full, (r_early, r_full)
+    assert r_early < 0.6 * zero, (r_early, zero)
+
+
+def test_validation_chunks_are_disjoint_from_training_chunks():
+    train = make_utterances(6, seed=2)
+    m = SGPLVM(latent_dim=2, max_frames=100, max_iter=10, validation_frames=50).fit(train)
+    assert set(m.validation_chunks_).isdisjoint(m.training_chunks_)
+    assert 0 < sum(b - a for _, a, b in m.validation_chunks_) <= 50
+    assert sum(b - a for _, a, b in m.training_chunks_) <= 100
+    # a training set too small to leave chunks over: validation comes out of the chosen ones
+    small = SGPLVM(latent_dim=2, max_frames=10_000, max_iter=10, validation_frames=50).fit(train[:2])
+    assert small.validation_chunks_ and set(small.validation_chunks_).isdisjoint(small.training_chunks_)
