@@ -66,7 +66,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
-                      methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures)
+                      methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
+                      lowpass_hz=args.lowpass_hz)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -88,6 +89,9 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--quick", action="store_true", help="the quick (smaller, labelled) variant")
     e.add_argument("--seed", type=int, default=None, help="replace the protocol's fixed seed (0)")
     e.add_argument("--no-figures", action="store_true", help="skip the trajectory figure")
+    e.add_argument("--lowpass-hz", type=float, default=None,
+                   help="zero-phase low-pass (Hz, e.g. 4) on every method's predicted mean, "
+                        "deena2010's post-filter (default: off)")
     e.add_argument("--json", required=True, help="output JSON; OUT.md and OUT_trajectories.png go beside it")
     e.set_defaults(func=_cmd_evaluate)
 

@@ -196,6 +196,20 @@ def test_harness_is_deterministic(utts):
             assert a["methods"][name][k] == b["methods"][name][k]
 
 
+def test_lowpass_filters_every_methods_mean(utts):
+    from bayes_talk.synthesis.sequential import lowpass
+
+    train, seq = utts[:8], utts[8]
+    cfg4 = dataclasses.replace(TINY_GP, lowpass_hz=4.0)
+    for name in ("hmm-mean", "voice-puppetry"):
+        model = S.fit_family(S.METHODS[name].family, train, TINY_GP)
+        raw, filt = S.predict(name, model, seq, TINY_GP), S.predict(name, model, seq, cfg4)
+        np.testing.assert_allclose(filt.mean, lowpass(raw.mean, 4.0), rtol=1e-12, atol=1e-12)
+        assert not np.allclose(filt.mean, raw.mean)
+    with pytest.raises(ValueError, match="lowpass_hz"):
+        dataclasses.replace(TINY_GP, lowpass_hz=0.0)
+
+
 @pytest.fixture(scope="module")
 def gp_run(utts):
     """All six GP methods (three families) on one tiny holdout split, counting trainings."""
@@ -278,6 +292,15 @@ def test_cli_evaluate_writes_json_markdown_figure(fake_corpora, capsys):
                    "--methods", "hmm-mean,dpds", "--json", str(out)])
     assert rc == 0, capsys.readouterr().err
     res = json.loads(out.read_text())
+    assert res["settings"]["lowpass_hz"] is None
+    rc = cli.main(["evaluate", "--protocol", "englebienne2008", "--corpus", str(tmp / "good"),
+                   "--methods", "hmm-mean", "--lowpass-hz", "4", "--json", str(tmp / "lp.json")])
+    assert rc == 0, capsys.readouterr().err
+    lp = json.loads((tmp / "lp.json").read_text())
+    assert lp["settings"]["lowpass_hz"] == 4.0
+    assert lp["methods"]["hmm-mean"]["mse"] != res["methods"]["hmm-mean"]["mse"]
+    assert "low-passed at 4 Hz" in (tmp / "lp.md").read_text()
+    assert "low-passed" not in (tmp / "res.md").read_text()
     for key in ("protocol", "quick", "n_train", "n_test", "methods"):
         assert key in res
     assert res["protocol"] == "englebienne2008" and res["quick"] is False

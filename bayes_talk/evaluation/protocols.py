@@ -480,8 +480,12 @@ def evaluate(
     quick: bool = False,
     seed: int | None = None,
     figures: bool = True,
+    lowpass_hz: float | None = None,
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
+
+    lowpass_hz: apply deena2010's zero-phase low-pass to every method's predicted mean
+    (recorded in the JSON under ``settings``); None: off, the protocols' default.
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -491,7 +495,8 @@ def evaluate(
     from bayes_talk.data.phones import PHONES
     from bayes_talk.evaluation import report
 
-    proto = get_protocol(protocol, quick=quick, seed=seed)
+    proto = get_protocol(protocol, quick=quick, seed=seed,
+                         **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
     out = check_writable(json_path)
     t0 = time.perf_counter()

@@ -70,6 +70,10 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
              "(deena2010 §5); NMSE divides by the ground-truth variance of the test frames; "
              "cov50/cov90 are the fractions of entries inside the central 50/90 % Gaussian "
              "predictive band (ideal 0.5/0.9).\n")
+    lp = (result.get("settings") or {}).get("lowpass_hz")
+    if lp:
+        intro += (f"Every method's predicted mean was low-passed at {lp:g} Hz (zero-phase, "
+                  "deena2010 §4.2.3) before scoring; variances are unfiltered.\n")
     parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
              f"{result.get('description', '')}.\n", intro, markdown_table(result)]
     for w in result.get("warnings", []) or []:

@@ -64,7 +64,8 @@ class SystemConfig:
     seed: seeds every model (and the switching models' subsequence caps).
     ssgpdm_*: :class:`~bayes_talk.models.switching.SwitchingConfig` settings.
     synth_max_iter: optimiser iterations per segment / utterance at synthesis.
-    lowpass_hz: optional low-pass of the switching models' mean (None: off).
+    lowpass_hz: optional zero-phase low-pass (Hz) applied to every method's predicted mean,
+        the post-filter of deena2010 §4.2.3 (None: off); variances are left as predicted.
     sgplvm_*: :class:`~bayes_talk.models.sgplvm.SGPLVM` settings.
     vp_*: Voice Puppetry settings (number of HMM states, Baum-Welch iterations).
     slds_n_iter, dpds_max_iter: EM / gradient iterations of the LDS baselines.
@@ -229,13 +230,18 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
 
     m = METHODS[resolve_methods([method])[0]]
     with torch_threads(cfg.torch_threads):
-        return _predict(m, model, seq, cfg)
+        pred = _predict(m, model, seq, cfg)
+    if cfg.lowpass_hz is not None:
+        from bayes_talk.synthesis.sequential import lowpass
+
+        pred = Prediction(lowpass(pred.mean, cfg.lowpass_hz), pred.var)
+    return pred
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
-                             lowpass_hz=cfg.lowpass_hz, max_iter=cfg.synth_max_iter)
+                             max_iter=cfg.synth_max_iter)
         return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
     if m.family == "sgplvm":
         r = model.synthesize(seq.mfcc, seq.labels, init=m.options["init"], max_iter=cfg.sgplvm_synth_max_iter)
