@@ -46,6 +46,7 @@ def utts():
 def test_method_registry_complete_and_families_shared():
     assert set(S.METHODS) == {
         "ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
+        "ssgpdm-vlmm-laplace", "ssgpdm-phone-laplace",
         "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean"}
     fam = S.group_by_family(["sgplvm-a", "hmm-mean", "sgplvm-b", "ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"])
     assert fam == {"sgplvm": ["sgplvm-a", "sgplvm-b"], "hmm-mean": ["hmm-mean"],
@@ -246,6 +247,23 @@ def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     assert m["ssgpdm-vlmm-optimise"]["train_seconds"] == m["ssgpdm-vlmm-predict"]["train_seconds"]
     for p in traj.predictions.values():
         assert p.var is not None and p.mean.shape == traj.truth.shape
+    # the posterior mean is not the MAP path, and its variance adds the spread of the draws
+    lap, opt = traj.predictions["ssgpdm-vlmm-laplace"], traj.predictions["ssgpdm-vlmm-optimise"]
+    assert not np.allclose(lap.mean, opt.mean)
+    assert "ssgpdm-vlmm-optimise" in m["ssgpdm-vlmm-laplace"]["train_shared_with"]
+
+
+def test_laplace_method_is_the_posterior_mixture(utts):
+    from bayes_talk.synthesis.posterior import sample_synthesis
+
+    cfg = dataclasses.replace(TINY_GP, posterior_draws=16)
+    model = S.fit_family("ssgpdm-phone", utts[:6], cfg)
+    seq = utts[7]
+    pred = S.predict("ssgpdm-phone-laplace", model, seq, cfg)
+    r = sample_synthesis(model, seq.mfcc, seq.labels, method="laplace", n_draws=16, seed=cfg.seed,
+                         map_iter=cfg.synth_max_iter)
+    np.testing.assert_allclose(pred.mean, r.mean, rtol=1e-10)
+    np.testing.assert_allclose(pred.var, r.draw_var.mean(0) + r.draw_mean.var(0), rtol=1e-10)
 
 
 def test_report_markdown_and_figure(gp_run, tmp_path):
