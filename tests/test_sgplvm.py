@@ -42,3 +42,31 @@ def test_validation_chunks_are_disjoint_from_training_chunks():
     # a training set too small to leave chunks over: validation comes out of the chosen ones
     small = SGPLVM(latent_dim=2, max_frames=10_000, max_iter=10, validation_frames=50).fit(train[:2])
     assert small.validation_chunks_ and set(small.validation_chunks_).isdisjoint(small.training_chunks_)
+
+
+def test_variance_calibrated_on_held_out_chunks_and_saved(tmp_path):
+    train, test = make_utterances(8, seed=0), make_utterances(4, seed=1)
+    with torch_threads(1):
+        m = SGPLVM(latent_dim=3, max_frames=200, max_iter=1000, validation_frames=60).fit(train)
+        c = m.model_.var_scale_["visual"]
+        assert c.shape == (5,) and np.all(c > 0)
+        # on the held-out chunks the calibrated variance matches the squared error on average
+        X = np.vstack([m.model_.infer_latents("audio", train[i].mfcc[a:b], "back-constraint", "sequence", 100)
+                       for i, a, b in m.validation_chunks_])
+        Z = np.vstack([train[i].aam[a:b] for i, a, b in m.validation_chunks_])
+        mu, var = m.model_.predict_view("visual", X)
+        np.testing.assert_allclose(np.mean((Z - mu) ** 2 / var, axis=0), 1.0, rtol=1e-8)
+        # and it carries over to new utterances better than the raw GP variance
+        cov = {}
+        for name, scale in (("raw", None), ("calibrated", c)):
+            m.model_.var_scale_ = {} if scale is None else {"visual": scale}
+            hits = [np.abs(r.mean - s.aam) < 1.645 * np.sqrt(r.var)
+                    for s in test for r in [m.synthesize(s.mfcc)]]
+            cov[name] = float(np.mean(np.concatenate([h.ravel() for h in hits])))
+        assert abs(cov["calibrated"] - 0.9) < abs(cov["raw"] - 0.9), cov
+        assert 0.75 < cov["calibrated"] < 0.99, cov
+        m.model_.var_scale_ = {"visual": c}
+        m.save(tmp_path / "sgplvm")
+        again = SGPLVM.load(tmp_path / "sgplvm")
+        np.testing.assert_array_equal(again.model_.var_scale_["visual"], c)
+        np.testing.assert_allclose(again.synthesize(test[0].mfcc).var, m.synthesize(test[0].mfcc).var, rtol=1e-10)

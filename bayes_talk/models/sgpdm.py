@@ -175,6 +175,7 @@ class SGPDM:
         self.view_names: list[str] = []
         self.history = FitHistory()
         self._fitted = False
+        self.var_scale_: dict[str, np.ndarray] = {}
 
     # ------------------------------------------------------------------ validation/init
     def _check_views(self, views: Mapping[str, np.ndarray], seq_lengths) -> tuple[dict, list[int]]:
@@ -439,14 +440,34 @@ class SGPDM:
             raise RuntimeError("this SGPDM is not fitted yet: call fit() or load()")
 
     def predict_view(self, view: str, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predictive mean (T, D) and per-dimension variance σ²(x)/w² (T, D) of a view (eq. 10)."""
+        """Predictive mean (T, D) and per-dimension variance σ²(x)/w² (T, D) of a view (eq. 10),
+        times the view's calibration factors when :meth:`calibrate_variance` has set them."""
         self._require_fitted()
         if view not in self.predictors_:
             raise ValueError(f"unknown view {view!r}; this model has {self.view_names}")
         p = self.predictors_[view]
         with torch.no_grad():
             mu, var = p.mean_var(torch.as_tensor(np.asarray(X, dtype=np.float64)))
-        return mu.numpy(), p.dim_var(var).numpy()
+        var = p.dim_var(var).numpy()
+        if view in self.var_scale_:
+            var = var * self.var_scale_[view]
+        return mu.numpy(), var
+
+    def calibrate_variance(self, view: str, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Post-hoc variance calibration on held-out data: factors c_m = mean_t (y_tm − μ_tm)² /
+        v_tm of the uncalibrated predictive at latents X (one per dimension), applied by
+        :meth:`predict_view` from then on (saved with the model). The MAP objective, the
+        latents and every synthesis path are unchanged; only reported variances scale."""
+        self.var_scale_.pop(view, None)
+        Y = self._check_new(view, Y)
+        mu, var = self.predict_view(view, X)
+        if mu.shape != Y.shape:
+            raise ValueError(f"calibrate_variance: {len(X)} latent points but {len(Y)} observations")
+        c = np.mean((Y - mu) ** 2 / var, axis=0)
+        self.var_scale_[view] = c
+        log.info("%s predictive variance calibrated on %d frames: factors %.3g .. %.3g (median %.3g)",
+                 view, len(Y), c.min(), c.max(), float(np.median(c)))
+        return c
 
     def infer_latents(
         self,
@@ -521,6 +542,8 @@ class SGPDM:
         if self.backconstraint is not None:
             for k, val in self.backconstraint.state().items():
                 arrays[f"bc/{k}"] = val
+        for v, c in self.var_scale_.items():
+            arrays[f"varscale/{v}"] = c
         return meta, arrays
 
     @classmethod
@@ -553,6 +576,8 @@ class SGPDM:
         obj._log = {}
         obj._fixed = hyper
         obj._finalise()
+        obj.var_scale_ = {k[len("varscale/"):]: np.asarray(a, dtype=np.float64)
+                          for k, a in arrays.items() if k.startswith("varscale/")}
         return obj
 
     def save(self, path: str | os.PathLike) -> Path:
