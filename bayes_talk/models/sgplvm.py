@@ -77,25 +77,23 @@ class SGPLVM:
         visual = np.vstack([train[i].aam[a:b] for i, a, b in chosen])
         cfg = SGPDMConfig(latent_dim=self.latent_dim, back_constraint="audio", init="pca-concat",
                           max_iter=self.max_iter, seed=self.seed)
+        self.training_chunks_, self.validation_chunks_ = chosen, sorted(held)
         monitor = None
         if held:
-            a_val = np.vstack([train[i].mfcc[a:b] for i, a, b in held])
-            z_val = np.vstack([train[i].aam[a:b] for i, a, b in held])
-            self.validation_chunks_ = sorted(held)
+            a_val = [train[i].mfcc[a:b] for i, a, b in self.validation_chunks_]
+            z_val = np.vstack([train[i].aam[a:b] for i, a, b in self.validation_chunks_])
 
             def monitor(model: SGPDM) -> float:
-                mu, _ = model.predict_view("visual", initialise("back-constraint", model, "audio", a_val))
+                X = initialise("back-constraint", model, "audio", np.vstack(a_val))
+                mu, _ = model.predict_view("visual", X)
                 return float(np.sqrt(np.mean((mu - z_val) ** 2)))
 
-        self.training_chunks_ = chosen
         self.model_ = SGPDM(cfg).fit({"audio": audio, "visual": visual}, seq_lengths=[b - a for _, a, b in chosen],
                                      monitor=monitor)
-        if held:
-            X_val = np.vstack([self.model_.infer_latents("audio", train[i].mfcc[a:b], "back-constraint", "sequence",
-                                                         max_iter=self.calibration_iter)
-                               for i, a, b in self.validation_chunks_])
-            self.model_.calibrate_variance("visual", X_val, np.vstack([train[i].aam[a:b]
-                                                                        for i, a, b in self.validation_chunks_]))
+        if held:  # calibrate at the latents SGPLVM A's sequence optimisation finds for each chunk
+            X_val = np.vstack([self.model_.infer_latents("audio", y, "back-constraint", "sequence",
+                                                         max_iter=self.calibration_iter) for y in a_val])
+            self.model_.calibrate_variance("visual", X_val, z_val)
         return self
 
     def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SGPLVMResult:
