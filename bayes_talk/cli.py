@@ -48,7 +48,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import synth
 
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
-                    init=args.init, force=args.force, video=not args.no_video)
+                    init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
+                    n_draws=args.draws, seed=args.seed)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -133,6 +134,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise")
     s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
                    help="initialiser (sgplvm: back-constraint = SGPLVM A, hmm = SGPLVM B)")
+    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default="map",
+                   help="map: the MAP path; laplace/nuts/emcee: sample the synthesis posterior and "
+                        "write its mean, variance, bands.npz and diagnostics.json (switching models)")
+    s.add_argument("--draws", type=int, default=64, help="posterior draws per segment")
+    s.add_argument("--seed", type=int, default=0, help="sampler seed")
     s.add_argument("--no-video", action="store_true", help="skip the MP4")
     s.add_argument("--force", action="store_true", help="overwrite earlier outputs in --out")
     s.set_defaults(func=_cmd_synth)

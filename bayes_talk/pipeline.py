@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.files import write_json, write_npy
+from bayes_talk.files import write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
@@ -148,17 +148,35 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)))
 
 
+POSTERIORS = ("map", "laplace", "nuts", "emcee")
+
+
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
-          force: bool = False, video: bool = True) -> dict[str, Path]:
+          force: bool = False, video: bool = True, posterior: str = "map", n_draws: int = 64,
+          seed: int = 0) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
-    landmarks, the segmentation and an MP4 with the audio into ``out_dir``."""
+    landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
+
+    posterior: "map" (the model's MAP path and GP variance) or, for a switching model, a
+    sampler of the synthesis posterior ("laplace", "nuts", "emcee"; docs/uncertainty.md):
+    then the trajectory and variance are the posterior mixture's mean and variance, and
+    ``bands.npz`` (central 50 % and 90 % bands: lower50, upper50, lower90, upper90) and
+    ``diagnostics.json`` (R-hat, ESS, divergences per segment) are written too.
+    """
     from bayes_talk.video import write_video
 
+    if posterior not in POSTERIORS:
+        raise ValueError(f"posterior must be one of {POSTERIORS}, got {posterior!r}")
     tm = load_trained(model_dir)
+    if posterior != "map" and tm.kind == "sgplvm":
+        raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
+                         "(its variances are calibrated on held-out data instead)")
     utt = read_utterance(wav, labels, tm.fps)
     out = Path(out_dir)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
+    if posterior != "map":
+        names.update(bands="bands.npz", diagnostics="diagnostics.json")
     existing = [n for n in names.values() if (out / n).exists()]
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
@@ -170,9 +188,22 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         if init not in (None, "nn"):
             raise ValueError(f"the switching model initialises by nearest neighbour; --init {init} "
                              "applies to the sgplvm model")
-        res = tm.model.synthesize(utt.mfcc, utt.labels, algorithm=algorithm)
+        if posterior == "map":
+            res = tm.model.synthesize(utt.mfcc, utt.labels, algorithm=algorithm)
+        else:
+            from bayes_talk.synthesis.posterior import sample_synthesis
+
+            res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
+                                   seed=seed, algorithm=algorithm)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
+    if posterior != "map":
+        q = res.quantiles((0.5, 0.9))
+        write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
+                                         "lower90": q[0.9][0], "upper90": q[0.9][1]})
+        write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
+                                                "summary": res.summary, "segments": res.diagnostics})
+        written.update(bands=out / names["bands"], diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)
         written[key] = out / names[key]

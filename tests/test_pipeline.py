@@ -54,6 +54,31 @@ def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_
     assert (out / "trajectory.npy").stat().st_mtime_ns == before
 
 
+def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, corpus_dir, tmp_path):
+    wav, lab = _first_utterance(corpus_dir)
+    out = tmp_path / "post"
+    args = ["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--no-video"]
+    assert main(args + ["--out", str(out), "--posterior", "laplace", "--draws", "16"]) == 0
+    traj, var = np.load(out / "trajectory.npy"), np.load(out / "variance.npy")
+    with np.load(out / "bands.npz") as b:
+        lo50, hi50, lo90, hi90 = b["lower50"], b["upper50"], b["lower90"], b["upper90"]
+    assert lo90.shape == traj.shape and np.all(lo90 <= lo50) and np.all(lo50 <= hi50) and np.all(hi50 <= hi90)
+    assert np.mean((lo90 <= traj) & (traj <= hi90)) > 0.95          # the mean sits inside its own band
+    diag = json.loads((out / "diagnostics.json").read_text())
+    segs = json.loads((out / "segments.json").read_text())["segments"]
+    assert diag["method"] == "laplace" and diag["n_draws"] == 16 and len(diag["segments"]) == len(segs)
+    # the posterior mean differs from the MAP path; its variance adds the spread of the draws
+    ref = tmp_path / "map"
+    assert main(args + ["--out", str(ref)]) == 0
+    assert not np.allclose(traj, np.load(ref / "trajectory.npy"))
+    assert var.shape == traj.shape and np.all(var > 0)
+    assert not (ref / "bands.npz").exists()
+    # a sampler for a model that has none is refused by name
+    from bayes_talk.pipeline import synth
+    with pytest.raises(ValueError, match="posterior must be one of"):
+        synth(model_dir, wav, lab, tmp_path / "bad", posterior="gibbs")
+
+
 def test_train_refuses_a_non_empty_directory(corpus_dir, tmp_path):
     (tmp_path / "mine.txt").write_text("keep me")
     assert main(["train", str(corpus_dir), "--out", str(tmp_path)]) == 2
