@@ -241,3 +241,26 @@ def test_aam_separates_bilabial_closure_from_open_vowels(big_corpus):
     acc = float(np.mean(pred == yte))
     print(f"nearest-centroid accuracy {acc:.3f} on {len(yte)} held-out frames")
     assert acc >= 0.90
+
+
+def test_test_corpus_projected_through_another_aam(small, tmp_path):
+    """A separately built corpus (own seed, own AAM) is featurised in another corpus's
+    AAM space: same dimension as that AAM, equal to projecting its frames directly, its
+    own cache untouched; frames of another size are refused naming both."""
+    from bayes_talk.features.aam import AAM
+
+    other = build_corpus(tmp_path / "o", n_utterances=2, seed=3, image_size=96)
+    with pytest.raises(ValueError, match=r"96x96.*128x128"):
+        load_corpus(other, aam=small / "aam.npz")
+    own = build_corpus(tmp_path / "p", n_utterances=2, seed=3)
+    proj = load_corpus(own, aam=small / "aam.npz", mean_removal=False)
+    aam = AAM.load(small / "aam.npz")
+    assert proj.aam_path == small / "aam.npz"
+    fr = load_npz(own / "utterances/utt0000.frames.npz")["frames"]
+    lm = load_npz(own / "utterances/utt0000.landmarks.npz")["landmarks"]
+    T = proj[0].n_frames
+    np.testing.assert_allclose(proj[0].aam, aam.project(fr[:T], lm[:T]), atol=1e-10)
+    assert not (own / "features.npz").exists()            # its own cache is another file
+    native = load_corpus(own, mean_removal=False)
+    assert native.aam_path == own / "aam.npz"
+    assert not np.allclose(native[0].aam[:, :3], proj[0].aam[:, :3])

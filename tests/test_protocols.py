@@ -289,13 +289,14 @@ def fake_corpora(monkeypatch, tmp_path):
 
     def fake_load(path, **kw):
         name = Path(path).name
-        loaded.append(name)
+        loaded.append((name, kw.get("aam")))
         seqs = {"good": lambda: make_utterances(12, seed=5), "test": lambda: make_utterances(3, seed=6),
                 "small-dz": lambda: make_utterances(3, seed=6, Dz=4),
                 "odd-phones": lambda: make_utterances(3, seed=6)}[name]()
         phones = list(PHONES) + (["zz"] if name == "odd-phones" else [])
         manifest = {"phone_set": phones, "aam": {"path": "aam.npz", "sha256": name}}   # each its own AAM
-        return Corpus(path=Path(path), kind="built", sequences=seqs, manifest=manifest)
+        return Corpus(path=Path(path), kind="built", sequences=seqs, manifest=manifest,
+                      aam_path=Path(path) / "aam.npz")
 
     monkeypatch.setattr("bayes_talk.data.corpus.load_corpus", fake_load)
     tiny_eng = dataclasses.replace(P.PROTOCOLS["englebienne2008"], n_folds=3, system=TINY_GP)
@@ -334,12 +335,12 @@ def test_cli_test_corpus_and_refusals(fake_corpora, capsys):
     tmp, loaded = fake_corpora
     base = ["evaluate", "--protocol", "englebienne2008", "--corpus", str(tmp / "good"), "--methods", "hmm-mean"]
     out = tmp / "tc.json"
-    with pytest.warns(UserWarning, match="different basis"):
-        assert cli.main(base + ["--test-corpus", str(tmp / "test"), "--json", str(out)]) == 0
+    assert cli.main(base + ["--test-corpus", str(tmp / "test"), "--json", str(out)]) == 0
     res = json.loads(out.read_text())
     assert res["scheme"] == "test-corpus" and res["n_train"] == 12 and res["n_test"] == 3
-    assert res["same_aam"] is False and "different basis" in res["warnings"][0]
-    assert "different basis" in (tmp / "tc.md").read_text()
+    # the test frames are projected through the training corpus's AAM, not their own
+    assert loaded == [("good", None), ("test", tmp / "good" / "aam.npz")]
+    assert res["test_features"] == "projected through the training corpus's AAM"
     for bad, what in (("small-dz", "visual feature dimension"), ("odd-phones", "phone set")):
         capsys.readouterr()
         assert cli.main(base + ["--test-corpus", str(tmp / bad), "--json", str(tmp / "x.json")]) == 2

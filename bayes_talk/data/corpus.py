@@ -581,6 +581,8 @@ class Corpus:
     aam: object | None = None
     fps: float = FPS
     sample_rate: int = 0
+    #: the ``aam.npz`` the visual features were projected through (None: precomputed)
+    aam_path: Path | None = None
 
     def __len__(self) -> int:
         return len(self.sequences)
@@ -830,8 +832,24 @@ def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed:
                        texture_inset=AAM_TEXTURE_INSET)
 
 
+def _check_projectable(root: Path, kind: str, manifest: dict, items: list[_Item], aam,
+                       aam_path: Path) -> None:
+    """Refuse (ValueError naming both) frames that ``aam`` cannot project: another image
+    size or landmark count than the AAM was learned on."""
+    size = manifest.get("image_size") if kind == "built" else None
+    n_lm = {s.get("n_landmarks") for s in manifest.get("sequences", [])} if kind == "built" else set()
+    if size is not None and (int(size), int(size)) != tuple(aam.image_shape):
+        raise ValueError(f"cannot project {root} through {aam_path}: its frames are {size}x{size} "
+                         f"pixels, the AAM's are {aam.image_shape[0]}x{aam.image_shape[1]}")
+    bad = sorted(n for n in n_lm if n is not None and int(n) != aam.n_landmarks)
+    if bad:
+        raise ValueError(f"cannot project {root} through {aam_path}: its frames have {bad[0]} landmarks, "
+                         f"the AAM has {aam.n_landmarks}")
+
+
 def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = True,
-                seed: int = 0, n_workers: int | None = None) -> Corpus:
+                seed: int = 0, n_workers: int | None = None,
+                aam: str | Path | None = None) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Sequence` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -847,8 +865,15 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
     offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
     sequences on, else none); the features do not depend on it.
+
+    ``aam``: the ``aam.npz`` of *another* corpus (or model) to project this corpus's
+    frames through instead of its own AAM -- how a separately built test corpus is scored
+    in the training corpus's parameter space (``evaluate --test-corpus``). The frames'
+    image size and landmark count must match that AAM (ValueError naming both); the
+    features are cached in ``<path>/features-<aam hash>.npz``, beside the corpus's own.
     """
     root = Path(path)
+    foreign_aam = aam
     if not root.is_dir():
         raise ValueError(f"{root}: corpus directory not found")
     mpath = root / _MANIFEST
@@ -873,7 +898,17 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     if needs_aam and any(it.features is not None for it in items):
         raise ValueError(f"{root}: mixes precomputed visual features (*.visual.npy) and frames; "
                          "use one kind for the whole corpus")
-    if needs_aam:
+    if foreign_aam is not None and not needs_aam:
+        raise ValueError(f"{root}: has precomputed visual features (*.visual.npy), which cannot be "
+                         f"projected through another AAM ({foreign_aam})")
+    if foreign_aam is not None:
+        from bayes_talk.features.aam import AAM
+
+        aam_path = Path(foreign_aam)
+        aam = AAM.load(aam_path)
+        aam_files = [aam_path.with_suffix(".json"), aam_path.with_suffix(".npz")]
+        _check_projectable(root, kind, manifest, items, aam, aam_path)
+    elif needs_aam:
         from bayes_talk.features.aam import AAM
 
         if kind == "built":
@@ -890,6 +925,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
             aam_files = sorted(p for p in root.iterdir() if p.name.startswith("aam") and p.is_file())
     key = _cache_key(items, aam_files, kind)
     cpath = root / _CACHE_NAME
+    if aam_files and aam_files[0].parent.resolve() != root.resolve():  # a foreign AAM
+        cpath = root / f"features-{_sha256(aam_files[0])[:12]}.npz"
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
@@ -937,4 +974,4 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     summary = manifest if kind == "built" else {"kind": "user", "audio_rate": rate, "fps": FPS,
                                                  "n_utterances": len(items)}
     return Corpus(path=root, kind=kind, sequences=seqs, manifest=summary, aam=aam, fps=FPS,
-                  sample_rate=rate)
+                  sample_rate=rate, aam_path=aam_path if aam is not None else None)

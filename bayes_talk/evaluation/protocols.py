@@ -501,7 +501,14 @@ def evaluate(
     out = check_writable(json_path)
     t0 = time.perf_counter()
     train_c = load_corpus(corpus)
-    test_c = load_corpus(test_corpus) if test_corpus is not None else None
+    test_c = None
+    if test_corpus is not None:
+        # score the test frames in the training corpus's AAM space: project them through it
+        try:
+            test_c = load_corpus(test_corpus, aam=train_c.aam_path)
+        except ValueError as exc:
+            raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
+                             f"{corpus}: {exc}") from exc
     load_s = time.perf_counter() - t0
 
     def phone_set(c):
@@ -513,15 +520,9 @@ def evaluate(
         train_phone_set=phone_set(train_c), test_phone_set=phone_set(test_c) if test_c is not None else None)
     result["corpus"] = str(Path(corpus).resolve())
     result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
+    result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
+                               if train_c.aam_path is not None else "the test corpus's precomputed features")
     result["load_seconds"] = load_s
-    if test_c is not None and train_c.kind == "built" and test_c.kind == "built":
-        same = train_c.manifest.get("aam") == test_c.manifest.get("aam")
-        result["same_aam"] = bool(same)
-        if not same:
-            msg = ("the test corpus has its own AAM: its parameters live in a different basis from the "
-                   "training corpus's, so the errors mix model error with the basis change")
-            warnings.warn(msg, UserWarning, stacklevel=2)
-            result["warnings"] = [msg]
     md_path = out.with_suffix(".md")
     png_path = out.with_name(out.stem + "_trajectories.png")
     result["outputs"] = {"json": out.name, "markdown": md_path.name, "figure": png_path.name if figures else None}
