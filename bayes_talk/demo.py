@@ -4,8 +4,8 @@
 2. hold out the last utterances, train the switching SGPDM with VLMM states on the rest;
 3. synthesise the held-out sentences from their audio and phone labels (Algorithm 1,
    sequential optimisation, and Algorithm 2, sequential prediction), with and without
-   the zero-phase low-pass of deena2010 §4.2.3, beside Brand's Voice Puppetry and the
-   per-phone mean face;
+   the zero-phase low-pass of deena2010 §4.2.3, beside Brand's Voice Puppetry, the
+   per-phone mean face and the ridge / MLP regressions on label and MFCC context windows;
 4. print AMSE and ACC against the ground truth and write ``OUT/metrics.json``;
 5. write ``OUT/side_by_side.mp4``: ground truth | synthesis, with the speech.
 """
@@ -62,7 +62,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
         smooth = [lowpass(r.mean, LOWPASS_HZ) for r in res]
         rows[f"ssgpdm-vlmm-{alg} +{LOWPASS_HZ:g}Hz low-pass"] = {"amse": amse(truth, smooth),
                                                                  "acc": acc(truth, smooth)}
-    for name in ("voice-puppetry", "hmm-mean"):
+    for name in ("voice-puppetry", "hmm-mean", "context-ridge", "context-mlp"):
         ref = REGISTRY[name]().fit(train)
         pred = [ref.predict(s) for s in test]
         rows[name] = {"amse": amse(truth, pred), "acc": acc(truth, pred)}

@@ -353,7 +353,7 @@ def test_hmm_mean_by_hand():
 
 # ----------------------------------------------------------------------------- interface
 def test_registry_and_bad_inputs(slds_fit):
-    assert set(REGISTRY) == {"voice-puppetry", "slds", "dpds", "hmm-mean"}
+    assert set(REGISTRY) == {"voice-puppetry", "slds", "dpds", "hmm-mean", "context-ridge", "context-mlp"}
     assert all(cls.name == key for key, cls in REGISTRY.items())
     good = slds_fit[3][:2]
     no_aam = Sequence("x", np.zeros((5, 4)), None, ["sil"] * 5)

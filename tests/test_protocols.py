@@ -47,7 +47,8 @@ def test_method_registry_complete_and_families_shared():
     assert set(S.METHODS) == {
         "ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
         "ssgpdm-vlmm-laplace", "ssgpdm-phone-laplace",
-        "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean"}
+        "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean",
+        "context-ridge", "context-mlp"}
     fam = S.group_by_family(["sgplvm-a", "hmm-mean", "sgplvm-b", "ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"])
     assert fam == {"sgplvm": ["sgplvm-a", "sgplvm-b"], "hmm-mean": ["hmm-mean"],
                    "ssgpdm-vlmm": ["ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"]}
@@ -233,7 +234,8 @@ def gp_run(utts):
 
 def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     res, traj, calls = gp_run
-    assert sorted(calls) == ["sgplvm", "ssgpdm-phone", "ssgpdm-vlmm"]          # shared training
+    assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "ssgpdm-phone",
+                             "ssgpdm-vlmm"]                                    # shared training
     m = res["methods"]
     assert set(m) == {k for k, v in S.METHODS.items() if v.has_variance}
     for e in m.values():

@@ -1,4 +1,5 @@
-"""Published baselines (DESIGN §7): Voice Puppetry, SLDS, DPDS, per-phone mean.
+"""Published baselines (DESIGN §7): Voice Puppetry, SLDS, DPDS, per-phone mean; and the
+context-window regressions a practitioner tries first (ridge and MLP, issue #15).
 
 ``REGISTRY`` maps each model's ``name`` to its class::
 
@@ -9,12 +10,14 @@
 from __future__ import annotations
 
 from bayes_talk.baselines.base import Baseline
+from bayes_talk.baselines.context import ContextRidge
+from bayes_talk.baselines.context_mlp import ContextMLP
 from bayes_talk.baselines.hmm_mean import HMMMean
 from bayes_talk.baselines.lds import DPDS, SLDS
 from bayes_talk.baselines.voice_puppetry import VoicePuppetry
 
 REGISTRY: dict[str, type[Baseline]] = {
-    cls.name: cls for cls in (VoicePuppetry, SLDS, DPDS, HMMMean)
+    cls.name: cls for cls in (VoicePuppetry, SLDS, DPDS, HMMMean, ContextRidge, ContextMLP)
 }
 
-__all__ = ["DPDS", "REGISTRY", "SLDS", "Baseline", "HMMMean", "VoicePuppetry"]
+__all__ = ["DPDS", "REGISTRY", "SLDS", "Baseline", "ContextMLP", "ContextRidge", "HMMMean", "VoicePuppetry"]

@@ -127,6 +127,22 @@ class LabelEncoder:
         self.counts_: np.ndarray = np.array([counts[p] for p in self.classes_], dtype=np.int64)
         return self
 
+    @classmethod
+    def from_counts(cls, classes: list[str], counts: np.ndarray) -> LabelEncoder:
+        """A fitted encoder from its ``classes_`` and ``counts_`` (e.g. read from a saved model)."""
+        counts = np.asarray(counts, dtype=np.int64)
+        if len(classes) != counts.shape[0] or counts.ndim != 1:
+            raise ValueError(f"{len(classes)} classes but counts of shape {counts.shape}")
+        if list(classes) != sorted(set(classes)):
+            raise ValueError("classes must be sorted and distinct")
+        for lab in classes:
+            check_phone(lab, where="label encoder")
+        enc = cls()
+        enc.classes_ = list(classes)
+        enc.index_ = {p: i for i, p in enumerate(enc.classes_)}
+        enc.counts_ = counts
+        return enc
+
     @property
     def n_classes(self) -> int:
         return len(self.classes_)

@@ -152,7 +152,7 @@ PROTOCOLS: dict[str, Protocol] = {
     "deena2010": Protocol(
         "deena2010", "deena2010 §5, Table 1", "holdout", (("AMSE", "mse"), ("ACC", "corr")),
         ("ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
-         "ssgpdm-vlmm-laplace", "voice-puppetry"), SystemConfig(latent_dim=6),
+         "ssgpdm-vlmm-laplace", "voice-puppetry", "context-ridge", "context-mlp"), SystemConfig(latent_dim=6),
         n_train=250, n_test=28),
     "englebienne2008": Protocol(
         "englebienne2008", "englebienne2008 §4, Fig. 4", "kfold",

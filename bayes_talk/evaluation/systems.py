@@ -20,6 +20,8 @@ voice-puppetry              voice-puppetry      Brand (1999)
 slds                        slds                switching LDS with known labels
 dpds                        dpds                englebienne2008
 hmm-mean                    hmm-mean            per-phone mean face
+context-ridge               context-ridge       ridge on label/MFCC context windows (#15)
+context-mlp                 context-mlp         one-hidden-layer MLP on the same windows
 ==========================  ==================  ==========================================
 
 The ``*-laplace`` methods (our addition, DESIGN.md §6) replace Algorithm 1's MAP point by
@@ -28,8 +30,9 @@ the posterior over each segment's latents (Laplace approximation at the MAP poin
 report the mean and variance of the resulting visual mixture, i.e. the Bayes estimate
 under squared error rather than the mode.
 
-Our GP methods return a predictive variance with the mean (``Prediction.var``); the
-baselines return a mean only. ``log_likelihood`` gives a per-utterance test
+Our GP methods return a predictive variance with the mean (``Prediction.var``); so do the
+context regressions (their cross-validated / held-out residual variance, ``predict_var``);
+the other baselines return a mean only. ``log_likelihood`` gives a per-utterance test
 log-likelihood where the method defines one: the baselines' own
 ``log_likelihood(seq)``, and for our methods the Gaussian predictive density
 Σ_t Σ_d ln N(z_td; μ_td, σ²_td) (frame-wise marginals: not the joint density of the
@@ -152,6 +155,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("slds", "slds", "SLDS", False),
     Method("dpds", "dpds", "DPDS", False),
     Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
+    Method("context-ridge", "context-ridge", "ridge on label/MFCC context windows", True),
+    Method("context-mlp", "context-mlp", "MLP on label/MFCC context windows", True),
 )}
 
 FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values()))
@@ -219,6 +224,10 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         return REGISTRY[family](max_iter=cfg.dpds_max_iter)
     if family == "hmm-mean":
         return REGISTRY[family]()
+    if family == "context-ridge":
+        return REGISTRY[family]()
+    if family == "context-mlp":
+        return REGISTRY[family](seed=cfg.seed)
     raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
 
 
@@ -268,6 +277,9 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
     if m.family == "sgplvm":
         r = model.synthesize(seq.mfcc, seq.labels, init=m.options["init"], max_iter=cfg.sgplvm_synth_max_iter)
         return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+    if m.has_variance and hasattr(model, "predict_var"):  # the context regressions
+        return Prediction(np.asarray(model.predict(seq), np.float64),
+                          np.asarray(model.predict_var(seq), np.float64))
     return Prediction(np.asarray(model.predict(seq), np.float64), None)
 
 
