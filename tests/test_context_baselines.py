@@ -205,16 +205,20 @@ def test_save_load_round_trip_and_damaged_files(which, ridge_fit, mlp_fit, linea
     with pytest.raises(ValueError, match="format expected"):
         other.load(path)
     path.write_text(json.dumps(meta)[:50])
-    with pytest.raises(ValueError, match="not valid JSON"):
+    with pytest.raises(ValueError, match="truncated or not JSON"):
         cls.load(path)
     path.write_text(json.dumps(meta))
     npz = path.with_suffix(".npz")
     data = npz.read_bytes()
     npz.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="truncated or corrupt"):
+        cls.load(path)
+    model.save(path, overwrite=True)                     # intact arrays, JSON of another save
+    path.write_text(json.dumps({**meta, "npz_sha256": "0" * 64}))
     with pytest.raises(ValueError, match="SHA-256"):
         cls.load(path)
     npz.unlink()
-    with pytest.raises(ValueError, match="not found"):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
         cls.load(path)
 
 

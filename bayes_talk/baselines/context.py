@@ -45,7 +45,6 @@ the label encoder, the MFCC standardisation, ``coef_``/``intercept_`` and the va
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass
@@ -288,35 +287,23 @@ def write_saved(path: str | os.PathLike, fmt: str, meta: dict[str, Any], arrays:
 
 
 def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Read a pair written by :func:`write_saved`; ValueError naming the file and the problem
-    for a missing, truncated, modified, wrong-format or wrong-version file."""
+    """Read a pair written by :func:`write_saved`. A missing file is FileNotFoundError; a
+    truncated, modified, foreign, wrong-format or wrong-version file a ValueError naming
+    the file and the problem."""
+    from bayes_talk.models.sgpdm import read_model_files
+
     jpath, npath = _paths(path)
-    for p in (jpath, npath):
-        if not p.exists():
-            raise ValueError(f"model file {p}: not found")
-    try:
-        meta = json.loads(jpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"model file {jpath}: not valid JSON (truncated?): {exc}") from None
+    meta, arrays = read_model_files(jpath, npath)
     if not isinstance(meta, dict):
         raise ValueError(f"model file {jpath}: expected a JSON object, found {type(meta).__name__}")  # noqa: TRY004
     if meta.get("format") != fmt:
         raise ValueError(f"model file {jpath}: format expected {fmt!r}, found {meta.get('format')!r}")
     if meta.get("version") != FORMAT_VERSION:
         raise ValueError(f"model file {jpath}: version expected {FORMAT_VERSION}, found {meta.get('version')!r}")
-    data = npath.read_bytes()
-    digest = hashlib.sha256(data).hexdigest()
+    digest = hashlib.sha256(npath.read_bytes()).hexdigest()
     if digest != meta.get("npz_sha256"):
         raise ValueError(f"model file {npath}: SHA-256 expected {meta.get('npz_sha256')}, found {digest} "
-                         "(truncated, modified or from another model)")
-    import io
-    import zipfile
-
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        raise ValueError(f"model file {npath}: unreadable arrays: {exc}") from None
+                         "(modified or from another model)")
     for k, shape in (meta.get("arrays") or {}).items():
         if k not in arrays:
             raise ValueError(f"model file {npath}: array {k!r} missing")
