@@ -131,13 +131,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--audio", required=True, help="WAV file")
     s.add_argument("--labels", required=True, help="HTK .lab or Praat .TextGrid")
     s.add_argument("--out", required=True, help="output directory")
-    s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise")
+    s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise",
+                   help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
     s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
                    help="initialiser (sgplvm: back-constraint = SGPLVM A, hmm = SGPLVM B)")
-    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default="map",
-                   help="map: the MAP path; laplace/nuts/emcee: sample the synthesis posterior and "
-                        "write its mean, variance, bands.npz and diagnostics.json (switching models)")
-    s.add_argument("--draws", type=int, default=64, help="posterior draws per segment")
+    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default=None,
+                   help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
+                        "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
+                        "write the posterior mean, variance, bands.npz and diagnostics.json")
+    s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
     s.add_argument("--seed", type=int, default=0, help="sampler seed")
     s.add_argument("--no-video", action="store_true", help="skip the MP4")
     s.add_argument("--force", action="store_true", help="overwrite earlier outputs in --out")

@@ -152,22 +152,26 @@ POSTERIORS = ("map", "laplace", "nuts", "emcee")
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
-          force: bool = False, video: bool = True, posterior: str = "map", n_draws: int = 64,
+          force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
           seed: int = 0) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
-    posterior: "map" (the model's MAP path and GP variance) or, for a switching model, a
-    sampler of the synthesis posterior ("laplace", "nuts", "emcee"; docs/uncertainty.md):
-    then the trajectory and variance are the posterior mixture's mean and variance, and
-    ``bands.npz`` (central 50 % and 90 % bands: lower50, upper50, lower90, upper90) and
-    ``diagnostics.json`` (R-hat, ESS, divergences per segment) are written too.
+    posterior: for a switching model, the whole-utterance synthesis posterior by "laplace"
+    (the default), "nuts" or "emcee" (docs/uncertainty.md): the trajectory and variance are
+    the posterior mixture's mean and variance, and ``bands.npz`` (central 50 % and 90 %
+    bands: lower50, upper50, lower90, upper90) and ``diagnostics.json`` (MAP convergence,
+    R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
+    (``algorithm`` 1 or 2, deena2010) with the GP variance, the only choice (and the
+    default) for an sgplvm model.
     """
     from bayes_talk.video import write_video
 
+    tm = load_trained(model_dir)
+    if posterior is None:
+        posterior = "map" if tm.kind == "sgplvm" else "laplace"
     if posterior not in POSTERIORS:
         raise ValueError(f"posterior must be one of {POSTERIORS}, got {posterior!r}")
-    tm = load_trained(model_dir)
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
@@ -194,7 +198,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             from bayes_talk.synthesis.posterior import sample_synthesis
 
             res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
-                                   seed=seed, algorithm=algorithm)
+                                   seed=seed)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if posterior != "map":
@@ -202,7 +206,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
                                          "lower90": q[0.9][0], "upper90": q[0.9][1]})
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
-                                                "summary": res.summary, "segments": res.diagnostics})
+                                                "diagnostics": res.diagnostics, "warnings": res.warnings})
         written.update(bands=out / names["bands"], diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)

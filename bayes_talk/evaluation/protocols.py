@@ -152,7 +152,7 @@ PROTOCOLS: dict[str, Protocol] = {
     "deena2010": Protocol(
         "deena2010", "deena2010 §5, Table 1", "holdout", (("AMSE", "mse"), ("ACC", "corr")),
         ("ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
-         "ssgpdm-vlmm-laplace", "voice-puppetry", "context-ridge", "context-mlp"), SystemConfig(latent_dim=6),
+         "ssgpdm-vlmm-posterior", "voice-puppetry", "context-ridge", "context-mlp"), SystemConfig(latent_dim=6),
         n_train=250, n_test=28),
     "englebienne2008": Protocol(
         "englebienne2008", "englebienne2008 §4, Fig. 4", "kfold",
@@ -170,12 +170,12 @@ _QUICK: dict[str, tuple[dict, dict]] = {
     "deena2010": (
         {"n_train": 100, "n_test": 20},
         {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
-         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300, "synth_max_iter": 30,
+         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300,
          "vp_n_states": 12, "vp_n_iter": 20}),
     "englebienne2008": (
         {"n_folds": 4, "n_use": 40},
         {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
-         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300, "synth_max_iter": 30,
+         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300,
          "sgplvm_max_frames": 400, "sgplvm_max_iter": 40, "sgplvm_synth_max_iter": 30,
          "vp_n_states": 12, "vp_n_iter": 20, "slds_n_iter": 30, "dpds_max_iter": 100}),
 }

@@ -11,9 +11,9 @@ ssgpdm-vlmm-optimise        ssgpdm-vlmm         deena2010 Algorithm 1, VLMM stat
 ssgpdm-vlmm-predict         ssgpdm-vlmm         deena2010 Algorithm 2, VLMM states
 ssgpdm-phone-optimise       ssgpdm-phone        Algorithm 1, phone states (SSGPDM-phoneme)
 ssgpdm-phone-predict        ssgpdm-phone        Algorithm 2, phone states
-ssgpdm-vlmm-laplace         ssgpdm-vlmm         ours: posterior mean of Algorithm 1's segment
-                                                posteriors (Laplace), VLMM states
-ssgpdm-phone-laplace        ssgpdm-phone        the same with phone states
+ssgpdm-vlmm-posterior       ssgpdm-vlmm         ours: mean and variance of the whole-utterance
+                                                synthesis posterior (Laplace), VLMM states
+ssgpdm-phone-posterior      ssgpdm-phone        the same with phone states
 sgplvm-a                    sgplvm              deena2009, back-constraint initialiser
 sgplvm-b                    sgplvm              deena2009, HMM/Viterbi initialiser
 voice-puppetry              voice-puppetry      Brand (1999)
@@ -24,11 +24,11 @@ context-ridge               context-ridge       ridge on label/MFCC context wind
 context-mlp                 context-mlp         one-hidden-layer MLP on the same windows
 ==========================  ==================  ==========================================
 
-The ``*-laplace`` methods (our addition, DESIGN.md §6) replace Algorithm 1's MAP point by
-the posterior over each segment's latents (Laplace approximation at the MAP point,
-:func:`~bayes_talk.synthesis.posterior.sample_synthesis`, ``posterior_draws`` draws) and
-report the mean and variance of the resulting visual mixture, i.e. the Bayes estimate
-under squared error rather than the mode.
+The ``*-posterior`` methods (our addition, DESIGN.md §6) replace Algorithm 1's path by the
+posterior over the whole utterance's latents (:mod:`bayes_talk.synthesis.joint`; Laplace
+approximation at the joint MAP, :func:`~bayes_talk.synthesis.posterior.sample_synthesis`,
+``posterior_draws`` draws) and report the mean and variance of the resulting visual
+mixture, i.e. the Bayes estimate under squared error rather than the mode.
 
 Our GP methods return a predictive variance with the mean (``Prediction.var``); so do the
 context regressions (their cross-validated / held-out residual variance, ``predict_var``);
@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
     "FAMILIES",
@@ -76,7 +77,7 @@ class SystemConfig:
     seed: seeds every model (and the switching models' subsequence caps).
     ssgpdm_*: :class:`~bayes_talk.models.switching.SwitchingConfig` settings.
     synth_max_iter: optimiser iterations per segment / utterance at synthesis.
-    posterior_draws: draws per segment of the ``*-laplace`` methods.
+    posterior_draws: posterior draws of the ``*-posterior`` methods.
     lowpass_hz: optional zero-phase low-pass (Hz) applied to every method's predicted mean,
         the post-filter of deena2010 §4.2.3 (None: off); variances are left as predicted.
     sgplvm_*: :class:`~bayes_talk.models.sgplvm.SGPLVM` settings.
@@ -94,7 +95,7 @@ class SystemConfig:
     ssgpdm_min_count: int | None = None
     ssgpdm_max_iter: int = 100
     ssgpdm_fallback_frames: int = 400
-    synth_max_iter: int = 50
+    synth_max_iter: int = SEGMENT_MAX_ITER
     lowpass_hz: float | None = None
     posterior_draws: int = 64
     sgplvm_max_frames: int = 1500
@@ -145,10 +146,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            {"algorithm": "optimise"}),
     Method("ssgpdm-phone-predict", "ssgpdm-phone", "SSGPDM-phoneme seq. prediction", True,
            {"algorithm": "predict"}),
-    Method("ssgpdm-vlmm-laplace", "ssgpdm-vlmm", "SSGPDM-VLMM posterior mean (Laplace, ours)", True,
-           {"algorithm": "optimise", "posterior": "laplace"}),
-    Method("ssgpdm-phone-laplace", "ssgpdm-phone", "SSGPDM-phoneme posterior mean (Laplace, ours)", True,
-           {"algorithm": "optimise", "posterior": "laplace"}),
+    Method("ssgpdm-vlmm-posterior", "ssgpdm-vlmm", "SSGPDM-VLMM utterance posterior (Laplace, ours)", True,
+           {"posterior": "laplace"}),
+    Method("ssgpdm-phone-posterior", "ssgpdm-phone", "SSGPDM-phoneme utterance posterior (Laplace, ours)",
+           True, {"posterior": "laplace"}),
     Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
     Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
     Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
@@ -267,8 +268,7 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
         from bayes_talk.synthesis.posterior import sample_synthesis
 
         r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
-                             n_draws=cfg.posterior_draws, seed=cfg.seed, algorithm=m.options["algorithm"],
-                             map_iter=cfg.synth_max_iter)
+                             n_draws=cfg.posterior_draws, seed=cfg.seed)
         return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],

@@ -54,7 +54,7 @@ class GPPredictor:
         mu = Ks.mT @ self.A + self.mean
         V = solve_lower(self.L, Ks)
         var = rbf_diag(Xs, self.alpha, self.alpha_lin) - (V * V).sum(0) + 1.0 / self.beta
-        return mu, var.clamp_min(1e-12)
+        return mu, var.clamp_min(1.0 / self.beta)  # σ² ≥ β⁻¹ exactly; only round-off goes below
 
     def log_lik(self, Ys: torch.Tensor, Xs: torch.Tensor, extra_var: torch.Tensor | None = None) -> torch.Tensor:
         """ln p(ŷ_t | x_t) for each row pair (T,), per-dimension variance σ²/w_m²

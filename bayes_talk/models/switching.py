@@ -257,12 +257,14 @@ class SwitchingSGPDM:
         return self.states_model_.segment(labels, unknown="sil")
 
     def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
-                   smoothness: str | bool = True, lowpass_hz: float | None = None, max_iter: int = 20):
-        """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`."""
-        from bayes_talk.synthesis.sequential import synthesize
+                   smoothness: str | bool = True, lowpass_hz: float | None = None,
+                   max_iter: int | None = None):
+        """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`
+        (``max_iter`` None: its ``SEGMENT_MAX_ITER``)."""
+        from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
 
         return synthesize(self, mfcc, labels, algorithm=algorithm, smoothness=smoothness,
-                          lowpass_hz=lowpass_hz, max_iter=max_iter)
+                          lowpass_hz=lowpass_hz, max_iter=SEGMENT_MAX_ITER if max_iter is None else max_iter)
 
     def predict(self, seq: Utterance, **kw) -> np.ndarray:
         """Mean AAM trajectory for a test utterance (uses its mfcc and labels only)."""

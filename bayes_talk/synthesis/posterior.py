@@ -1,39 +1,33 @@
-"""The synthesis posterior of the switching SGPDM and its sampling (DESIGN.md §6).
+"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS and emcee (DESIGN.md §6).
 
-With hyperparameters and training latents fixed at their MAP values, the posterior of a
-segment's latent points given the audio is the normalised form of the objective that
-Algorithm 1 optimises (:func:`bayes_talk.synthesis.optimise.sequence_log_density`, with
-the same ``first`` and ``extra`` terms as :mod:`bayes_talk.synthesis.sequential`):
+All four read one density, the whole-utterance synthesis model of
+:mod:`bayes_talk.synthesis.joint` (every segment's latents jointly: entry distributions,
+each state's dynamics, the audio GP, the smoothness factors across state changes, and
+adjacent blocks of one state model linked by its dynamics), through its closed-form numpy
+twin :class:`~bayes_talk.synthesis.joint.UtteranceDensity` (tested equal to the Pyro
+program's log joint). Hyperparameters, training latents and entry distributions stay at
+their trained MAP values.
 
-    p(X*_seg | Ŷ) ∝ N(x_first; μ_π, Σ_π) · Π_t p_π(x_t | x_{t−1}) · Π_t p_π(ŷ_t | x_t) · s(x_first)
+1. **MAP** (:func:`maximise_utterance`): start at deena2010's Algorithm 1 path (block by
+   block, :func:`bayes_talk.synthesis.sequential.synthesize`), then maximise the joint
+   density by L-BFGS in coordinates whitened by the Laplace precision at that start.
+   Converged when max |∂ ln p/∂x| ≤ ``gtol`` (reported, with the iteration count).
+2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws.
+3. **nuts**: Pyro NUTS on z with X = X_MAP + L z, L the Cholesky factor of the Laplace
+   covariance (an affine map: the target is unchanged and close to N(0, I) where the
+   Laplace approximation is good); chains start at z ~ N(0, 2²I), overdispersed.
+4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0.
+   In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
 
-s is the smoothness factor N(z̄_{a−1}; μ_Z(x_a), σ²_Z(x_a)/w² + s²_Δ) under π's visual GP,
-where z̄_{a−1} is the *posterior-mean* visual of the previous segment's last frame (the
-MAP path uses its MAP visual there). Segments are walked in order as in Algorithm 1:
-
-1. the segment's MAP point by L-BFGS from the nearest-neighbour initialisation
-   (:func:`~bayes_talk.synthesis.sequential.optimise_segment`, the point Algorithm 1 uses);
-2. draws of the segment's latents by ``method``: Pyro NUTS, emcee or the Laplace
-   approximation at the MAP point (:mod:`bayes_talk.synthesis.samplers`); NUTS chains
-   start at draws of the Laplace approximation (overdispersed around the MAP point),
-   emcee walkers in a small ball around it;
-3. per draw s, the visual predictive N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²); the segment's
-   posterior-mean visual conditions the next segment's smoothness factor.
-
-With ``algorithm="predict"`` (Algorithm 2) only the first latent point of a segment is
-sampled (its one-frame posterior: entry prior, audio likelihood, smoothness factor) and
-each draw is rolled forward by the dynamics mean.
-
-Segments are sampled independently given the previous segment's posterior mean, so the
-s-th utterance-level draw concatenates the s-th draw of every segment.
-
-The visual predictive of frame t is the mixture (1/S) Σ_s N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²):
-:attr:`PosteriorSynthesis.mean` is its mean, :attr:`PosteriorSynthesis.var` its variance
-(mean of the GP variances + variance of the GP means), and
-:meth:`PosteriorSynthesis.quantiles` gives central bands from samples of the mixture.
+The visual prediction of frame t is the mixture over draws s of
+N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²) under the frame's state model: :attr:`PosteriorSynthesis.mean`
+is its mean, :attr:`PosteriorSynthesis.var` its variance, :meth:`PosteriorSynthesis.quantiles`
+central bands from samples of it. ``method="map"`` gives the one-component "mixture" at
+the MAP path (the GP predictive only).
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -41,108 +35,174 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from bayes_talk.evaluation.diagnostics import chain_diagnostics, summarise_segments
+from bayes_talk.evaluation.diagnostics import chain_diagnostics
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
-from bayes_talk.synthesis.optimise import sequence_log_density
-from bayes_talk.synthesis.samplers import METHODS, Draws, laplace_gaussian, run_sampler
-from bayes_talk.synthesis.sequential import ALGORITHMS, SMOOTHNESS, _check_inputs, optimise_segment
+from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
+from bayes_talk.synthesis.samplers import Draws, run_emcee, run_nuts
+from bayes_talk.synthesis.sequential import _check_inputs, synthesize
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
 
+log = logging.getLogger(__name__)
+
 DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
+POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee")
+#: Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
+MAP_MAX_ITER = 100
+#: the joint MAP has converged when max |∂ ln p / ∂x| is at most this
+MAP_GTOL = 1e-3
+#: ... or when the Newton decrement (nats still to gain) is at most this
+MAP_DTOL = 1e-6
+#: convergence thresholds of the samplers (Vehtari et al. 2021)
+RHAT_MAX, ESS_MIN = 1.01, 400
 
 
 @dataclass
-class SegmentDensity:
-    """The log posterior of one segment as a function of its flattened latents (n_free·d,)."""
+class MapResult:
+    """The joint MAP path and how the optimiser got there."""
 
-    model: object  # the state's SGPDM
-    Y: torch.Tensor  # audio frames whose latents are free (n_free, D_y)
-    first: tuple[torch.Tensor, torch.Tensor]  # entry mean, Cholesky factor of Σ_π
-    extra: object  # smoothness term or None
-    d: int
-
-    @property
-    def n_free(self) -> int:
-        return int(self.Y.shape[0])
-
-    @property
-    def dynamics(self):
-        return self.model.dynamics_predictor_ if self.n_free > 1 else None
-
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        X = x.reshape(self.n_free, self.d)
-        return sequence_log_density(X, self.Y, self.model.predictors_["audio"], self.dynamics,
-                                    self.first, self.extra)
+    latents: np.ndarray  # (T, d)
+    log_density: float
+    grad_norm: float  # max |∂ ln p/∂x| at the result
+    n_iter: int
+    converged: bool
+    start_log_density: float  # at Algorithm 1's path
+    hessian: np.ndarray | None = None  # ∇² ln p at the result
+    decrement: float = float("nan")  # ½ gᵀ(−∇² ln p)⁻¹ g at the result (nats)
+    hessian_modified: int = 0  # eigenvalues of −∇² ln p floored (not a strict maximum if > 0)
 
 
-def segment_density(m, Y: np.ndarray, entry: tuple[np.ndarray, np.ndarray], z_prev: np.ndarray | None,
-                    motion_var: np.ndarray, smoothness: str = "frame") -> SegmentDensity:
-    """The segment posterior with the terms :func:`sequential._optimise_segment` uses."""
-    mu, cov = entry
-    first = (torch.as_tensor(mu, dtype=torch.float64),
-             torch.linalg.cholesky(torch.as_tensor(cov, dtype=torch.float64)))
-    extra = None
-    if z_prev is not None and smoothness != "off":
-        vis = m.predictors_["visual"]
-        z = torch.as_tensor(np.asarray(z_prev, dtype=np.float64).reshape(1, -1))
-        mv = torch.as_tensor(np.asarray(motion_var, dtype=np.float64))
-        extra = lambda Xs: vis.log_lik(z, Xs[:1], mv).sum()
-    return SegmentDensity(m, torch.as_tensor(np.asarray(Y, dtype=np.float64)), first, extra,
-                          int(m.X_.shape[1]))
+def _floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
+    """Eigen-decomposition of P = −H with eigenvalues floored at floor·max|λ| (and |λ| used
+    for negative ones): (eigenvalues, eigenvectors, number modified)."""
+    P = -0.5 * (H + H.T)
+    lam, U = np.linalg.eigh(P)
+    lo = floor * max(1.0, float(np.max(np.abs(lam))))
+    n_mod = int(np.sum(lam < lo))
+    return np.maximum(np.abs(lam), lo), U, n_mod
+
+
+def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = MAP_MAX_ITER,
+                       gtol: float = MAP_GTOL, dtol: float = MAP_DTOL, newton_steps: int = 3) -> MapResult:
+    """The joint MAP from X0 (Algorithm 1's path): L-BFGS (scipy) on the log density in the
+    coordinates whitened by the Laplace precision at X0, x = X0 + L z with L Lᵀ = (−∇² ln p)⁻¹
+    (eigenvalues floored), so the badly scaled latent directions (posterior sds spanning
+    orders of magnitude) look alike to the optimiser, then up to ``newton_steps`` Newton
+    steps with the exact Hessian. Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when the
+    negative Hessian is positive definite and the Newton decrement ½ gᵀ(−∇²ln p)⁻¹g (the
+    log density a Newton step would still gain) is at most ``dtol`` nats: with dynamics
+    noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is then 10⁻⁶ away
+    from the mode, so the gradient alone is not scale-free. The Hessian at the result is
+    returned for Laplace."""
+    from scipy.optimize import minimize
+
+    x0 = np.asarray(X0, dtype=np.float64).reshape(-1).copy()
+    f0, g0 = dens(x0)
+    lam, U, _ = _floored_precision(dens.hessian(x0))
+    L = U / np.sqrt(lam)
+    best = {"f": f0, "x": x0, "g": g0.reshape(-1)}
+
+    def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
+        x = x0 + L @ z
+        f, g = dens(x)
+        g = g.reshape(-1)
+        if np.isfinite(f) and f > best["f"]:
+            best.update(f=f, x=x, g=g)
+        return -f, -(L.T @ g)
+
+    def done(z) -> None:
+        if np.max(np.abs(best["g"])) <= gtol:
+            raise StopIteration
+
+    res = minimize(neg, np.zeros_like(x0), jac=True, method="L-BFGS-B", callback=done,
+                   options={"maxiter": max_iter, "gtol": 1e-12, "ftol": 1e-15, "maxcor": 30})
+    x, f, g = best["x"], best["f"], best["g"]
+    n_iter = int(res.nit)
+    # Newton polish with the exact Hessian (needed for Laplace anyway)
+    for _ in range(newton_steps + 1):
+        H = dens.hessian(x)
+        lam, U, n_mod = _floored_precision(H)
+        step = U @ ((U.T @ g) / lam)
+        decrement = 0.5 * float(g @ step)          # predicted gain of a Newton step (nats)
+        gnorm = float(np.max(np.abs(g)))
+        converged = gnorm <= gtol or (n_mod == 0 and decrement <= dtol)
+        if converged:
+            break
+        t = 1.0
+        for _ in range(20):
+            fn, gn = dens(x + t * step)
+            if np.isfinite(fn) and fn > f:
+                break
+            t *= 0.5
+        else:
+            break
+        x, f, g = x + t * step, fn, gn.reshape(-1)
+        n_iter += 1
+    return MapResult(x.reshape(dens.T, dens.d), float(f), gnorm, n_iter, converged, float(f0), H,
+                     decrement, n_mod)
 
 
 @dataclass
 class PosteriorSynthesis:
-    """Posterior synthesis of one utterance.
+    """Posterior synthesis of one utterance (the result type of every synthesis path).
 
-    latents: (S, T, d) latent draws; draw_mean / draw_var: (S, T, D_z) the visual GP mean
-    and per-dimension variance σ²_Z/w² at each draw; map_latents: (T, d) the segment MAP
-    points the samplers started from; diagnostics: one dict per segment; summary: the
-    worst case over segments.
+    latents: (C, S, T, d) latent draws (C chains of S draws; C = S = 1 for ``map``);
+    draw_mean / draw_var: (C, S, T, D_z) visual GP mean and per-dimension variance σ²_Z/w²
+    at each draw; map: the joint MAP; diagnostics: sampler and optimiser diagnostics of
+    the utterance (R-hat, ESS, divergences, Hessian, convergence); warnings: the failed
+    convergence checks, in words.
     """
 
     method: str
-    algorithm: str
     latents: np.ndarray
     draw_mean: np.ndarray
     draw_var: np.ndarray
-    map_latents: np.ndarray
+    map: MapResult
     segments: list[Segment]
     model_states: list[tuple[str, ...]]
-    diagnostics: list[dict]
+    diagnostics: dict
     seed: int
-    seconds: float
-    summary: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def n_draws(self) -> int:
-        return int(self.draw_mean.shape[0])
+        return int(self.draw_mean.shape[0] * self.draw_mean.shape[1])
+
+    @property
+    def map_latents(self) -> np.ndarray:
+        return self.map.latents
+
+    def _flat(self, a: np.ndarray) -> np.ndarray:
+        return a.reshape((-1,) + a.shape[2:])
 
     @property
     def mean(self) -> np.ndarray:
         """Mixture mean (T, D_z)."""
-        return self.draw_mean.mean(0)
+        return self._flat(self.draw_mean).mean(0)
 
     @property
     def var(self) -> np.ndarray:
         """Mixture variance (T, D_z) = mean of the GP variances + variance of the GP means."""
-        return self.draw_var.mean(0) + self.draw_mean.var(0)
+        return self._flat(self.draw_var).mean(0) + self._flat(self.draw_mean).var(0)
 
     @property
     def gp_var(self) -> np.ndarray:
         """Average GP variance over draws (T, D_z) (the mixture variance without the spread)."""
-        return self.draw_var.mean(0)
+        return self._flat(self.draw_var).mean(0)
+
+    @property
+    def summary(self) -> dict:
+        return self.diagnostics
 
     def sample(self, n: int = 2000, seed: int | None = None) -> np.ndarray:
         """n samples (n, T, D_z) of the visual mixture: component k mod S, then its Gaussian."""
         rng = np.random.default_rng(self.seed + 1 if seed is None else seed)
-        S = self.n_draws
-        comp = np.resize(rng.permutation(S), n)
-        return self.draw_mean[comp] + np.sqrt(self.draw_var[comp]) * rng.standard_normal(
-            (n,) + self.draw_mean.shape[1:])
+        dm, dv = self._flat(self.draw_mean), self._flat(self.draw_var)
+        comp = np.resize(rng.permutation(dm.shape[0]), n)
+        return dm[comp] + np.sqrt(dv[comp]) * rng.standard_normal((n,) + dm.shape[1:])
 
     def quantiles(self, levels=DEFAULT_LEVELS, n_samples: int = 2000,
                   seed: int | None = None) -> dict[float, tuple[np.ndarray, np.ndarray]]:
@@ -152,170 +212,176 @@ class PosteriorSynthesis:
         if any(not 0 < q < 1 for q in levels):
             raise ValueError(f"levels must be in (0, 1), got {levels}")
         s = self.sample(n_samples, seed)
-        out = {}
-        for q in levels:
-            lo, hi = np.quantile(s, [0.5 - q / 2, 0.5 + q / 2], axis=0)
-            out[q] = (lo, hi)
-        return out
+        return {q: tuple(np.quantile(s, [0.5 - q / 2, 0.5 + q / 2], axis=0)) for q in levels}
 
 
 def sample_synthesis(
     model: SwitchingSGPDM,
     mfcc: np.ndarray,
     labels,
-    method: str = "nuts",
-    n_draws: int = 200,
+    method: str = "laplace",
+    n_draws: int = 64,
     seed: int = 0,
-    algorithm: str = "optimise",
     smoothness: str | bool = "frame",
     warmup: int | None = None,
-    chains: int = 2,
-    map_iter: int = 100,
+    chains: int = 4,
+    map_iter: int = MAP_MAX_ITER,
     emcee_thin: int = 5,
-    precondition: bool = True,
     sampler_kw: dict | None = None,
 ) -> PosteriorSynthesis:
-    """Sample the synthesis posterior of one utterance segment by segment.
+    """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
-    method: "nuts" (Pyro NUTS, ``chains`` chains of ceil(n_draws / chains) draws after
-        ``warmup`` adaptation steps, default 200), "emcee" (walkers max(32, 4·dim), burn-in
-        ``warmup`` steps, default 500, then draws thinned by ``emcee_thin``) or "laplace"
-        (n_draws iid Gaussian draws at the MAP point).
-    n_draws: draws kept per segment (pooled over chains / walkers, evenly subsampled).
-    map_iter: L-BFGS iterations of the segment MAP (the sampler start / Laplace centre).
-    precondition: NUTS and emcee sample z with x = x_MAP + L z, L the Cholesky factor of
-        the Laplace covariance (an affine map: the target is unchanged, its geometry is
-        close to N(0, I)); NUTS chains then start at z ~ N(0, I), emcee walkers in a ball
-        of radius 0.1 around z = 0.
-    sampler_kw: extra keywords for the sampler (e.g. ``max_tree_depth``, ``n_walkers``).
+    n_draws: draws kept in all (pooled over chains; NUTS: ceil(n_draws / chains) per chain
+        after ``warmup`` adaptation steps, default 300; emcee: burn-in ``warmup`` steps,
+        default 500, then draws thinned by ``emcee_thin``).
+    map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
+    sampler_kw: extra keywords for the sampler (``target_accept``, ``max_tree_depth``,
+        ``n_walkers``, ...).
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if algorithm not in ALGORITHMS:
-        raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    if method not in POSTERIOR_METHODS:
+        raise ValueError(f"method must be one of {POSTERIOR_METHODS}, got {method!r}")
     smoothness = "frame" if smoothness is True else "off" if smoothness is False else smoothness
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
-    if n_draws < 8:
+    if method != "map" and n_draws < 8:
         raise ValueError(f"n_draws must be >= 8, got {n_draws}")
     mfcc = _check_inputs(model, mfcc, labels)
     t0 = time.perf_counter()
     with torch_threads(1):
-        res = _sample(model, mfcc, labels, method, n_draws, seed, algorithm, smoothness, warmup, chains,
-                      map_iter, emcee_thin, precondition, dict(sampler_kw or {}))
+        res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
+                      emcee_thin, dict(sampler_kw or {}))
     res.seconds = time.perf_counter() - t0
+    for w in res.warnings:
+        log.warning("%s", w)
     return res
 
 
-class _Whitened:
-    """log p(x_MAP + L z) as a function of z (the constant Jacobian |L| is dropped)."""
+class _Potential(torch.autograd.Function):
+    """ln p(X_MAP + L z) and its gradient Lᵀ∇ln p from the numpy twin, as a torch function."""
 
-    def __init__(self, dens, x_map: np.ndarray, cov: np.ndarray):
-        self.dens = dens
-        self.x_map = np.asarray(x_map, dtype=np.float64)
-        self.L = np.linalg.cholesky(cov + 1e-12 * np.trace(cov) / len(cov) * np.eye(len(cov)))
-        self._x, self._L = torch.as_tensor(self.x_map), torch.as_tensor(self.L)
+    @staticmethod
+    def forward(ctx, z, fn):
+        f, g = fn(z.detach().numpy())
+        ctx.save_for_backward(torch.as_tensor(g))
+        return torch.as_tensor(f, dtype=torch.float64)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        (g,) = ctx.saved_tensors
+        return grad_out * g, None
+
+
+class _Whitened:
+    """z ↦ (ln p(X_MAP + L z), Lᵀ ∇ ln p) for the samplers."""
+
+    def __init__(self, dens: UtteranceDensity, x_map: np.ndarray, L: np.ndarray):
+        self.dens, self.x_map, self.L = dens, x_map.reshape(-1), L
+
+    def numpy(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = self.dens(self.x_map + self.L @ z)
+        return f, self.L.T @ g.reshape(-1)
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
-        return self.dens(self._x + self._L @ z)
+        if z.ndim == 2:  # a batch of walkers (emcee)
+            return torch.stack([self(zz) for zz in z])
+        return _Potential.apply(z, self.numpy)
 
     def to_x(self, Z: np.ndarray) -> np.ndarray:
         return self.x_map + Z @ self.L.T
 
 
-def _pool(draws: Draws, n: int) -> np.ndarray:
-    """n draws evenly spaced through the pooled (chain-major) draws."""
-    flat = draws.flat
-    idx = np.linspace(0, len(flat) - 1, n).round().astype(int)
-    return flat[idx]
+def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
+            skw) -> PosteriorSynthesis:
+    plan = make_plan(model, mfcc, labels, smoothness)
+    dens = UtteranceDensity(plan)
+    T, d = plan.n_frames, plan.latent_dim
+    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness).latents
+    mp = maximise_utterance(dens, start, max_iter=map_iter)
+    lam, U, n_mod = _floored_precision(mp.hessian)
+    L = U / np.sqrt(lam)                         # Laplace covariance = L Lᵀ
+    diag: dict = {"map_converged": mp.converged, "map_grad_norm": mp.grad_norm, "map_iter": mp.n_iter,
+                  "map_decrement": mp.decrement,
+                  "map_log_density": mp.log_density, "algorithm1_log_density": mp.start_log_density,
+                  "hessian_modified": n_mod, "dim": T * d, "n_segments": len(plan.blocks)}
+    warn: list[str] = []
+    if not mp.converged:
+        warn.append(f"synthesis MAP did not converge: max |gradient| {mp.grad_norm:.3g} > {MAP_GTOL}, "
+                    f"Newton decrement {mp.decrement:.3g} nats, {n_mod} non-positive Hessian eigenvalues, "
+                    f"after {mp.n_iter} iterations")
+    x_map = mp.latents.reshape(-1)
+    rng = np.random.default_rng(seed)
+    if method == "map":
+        Xs = x_map[None, None]
+    elif method == "laplace":
+        Xs = (x_map[None] + rng.standard_normal((n_draws, T * d)) @ L.T)[None]
+    elif method == "nuts":
+        g = _Whitened(dens, x_map, L)
+        per_chain = -(-n_draws // chains)
+        z0 = 2.0 * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
+        kw = {"warmup": 300 if warmup is None else warmup, **skw}
+        draws = run_nuts(g, z0, n_draws=per_chain, chains=chains, seed=seed, **kw)
+        Xs = g.to_x(draws.samples)
+        diag.update(_sampler_diagnostics(draws))
+    else:  # emcee
+        g = _Whitened(dens, x_map, L)
+        W = skw.pop("n_walkers", None) or max(32, 2 * T * d)
+        W += W % 2
+        per_walker = max(20, -(-n_draws // W))
+        draws = run_emcee(g, np.zeros(T * d), n_draws=per_walker, seed=seed,
+                          warmup=500 if warmup is None else warmup, thin=emcee_thin,
+                          n_walkers=W, ball=0.1, n_keep=min(W, 16), **skw)
+        Xs = g.to_x(draws.samples)
+        diag.update(_sampler_diagnostics(draws))
+    Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
+    if method in ("nuts", "emcee"):
+        warn += _convergence_warnings(method, diag)
+    zm, zv = visual_predictive(plan, Xs)
+    return PosteriorSynthesis(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
+                              warnings=warn)
 
 
-def _sample(model, mfcc, labels, method, n_draws, seed, algorithm, smoothness, warmup, chains, map_iter,
-            emcee_thin, precondition, skw) -> PosteriorSynthesis:
-    segments = model.segment(list(labels))
-    T, Dz, d = mfcc.shape[0], model.dims_[1], model.config.latent_dim
-    S = n_draws
-    lat = np.zeros((S, T, d))
-    zm, zv = np.zeros((S, T, Dz)), np.zeros((S, T, Dz))
-    xmap = np.zeros((T, d))
-    used, diags = [], []
-    for i, seg in enumerate(segments):
-        a, b = seg.start, seg.stop
-        key, m = model.model_for(seg.state)
-        used.append(key)
-        z_prev = zm[:, a - 1].mean(0) if a > 0 else None
-        n_free = b - a if algorithm == "optimise" else 1
-        dens = segment_density(m, mfcc[a:a + n_free], model.entry_[key], z_prev, model.motion_var_, smoothness)
-        # the MAP point of Algorithm 1 itself (same density, closed-form objective)
-        Xm = optimise_segment(m, mfcc[a:a + n_free], z_prev, model.entry_[key], smoothness, map_iter,
-                              model.motion_var_)
-        xmap[a:a + n_free] = Xm
-        seg_seed = int(seed) * 1_000_003 + 7919 * i
-        x_flat = Xm.reshape(-1)
-        # precondition by the Laplace approximation: x = x_MAP + L z, L L^T = (-∇² log p)^-1.
-        # The latent posteriors are badly conditioned (posterior sds spanning ~2 orders of
-        # magnitude, strongly correlated), which a diagonal mass matrix cannot fix.
-        _, cov_l, info_l = laplace_gaussian(dens, x_flat)
-        g = _Whitened(dens, x_flat, cov_l) if (precondition and method != "laplace") else None
-        if method == "nuts":
-            kw = dict(warmup=200 if warmup is None else warmup, chains=chains)
-            rng = np.random.default_rng(seg_seed + 1)
-            n = x_flat.size
-            if g is not None:  # chains start at draws of the Laplace approximation (z ~ N(0, I))
-                x0 = rng.standard_normal((chains, n)) if chains > 1 else np.zeros(n)
-            else:
-                x0 = rng.multivariate_normal(x_flat, cov_l, size=chains, method="eigh") if chains > 1 else x_flat
-            per_chain = -(-S // chains)
-            draws = run_sampler("nuts", g or dens, x0, per_chain, seg_seed, **kw, **skw)
-        elif method == "emcee":
-            W = skw.get("n_walkers") or max(32, 4 * x_flat.size)
-            W += W % 2
-            per_walker = max(20, -(-S // W))
-            x0, ball = (np.zeros(x_flat.size), 0.1) if g is not None else (x_flat, 1e-3)
-            draws = run_sampler("emcee", g or dens, x0, per_walker, seg_seed,
-                                warmup=500 if warmup is None else warmup, thin=emcee_thin,
-                                **{"ball": ball, **skw, "n_walkers": W})
-        else:
-            draws = run_sampler("laplace", dens, x_flat, S, seg_seed, **skw)
-        if g is not None:
-            draws.samples = g.to_x(draws.samples)
-        Xs = _pool(draws, S).reshape(S, n_free, d)
-        if n_free < b - a:
-            Xs = _roll(m, Xs, b - a)
-        lat[:, a:b] = Xs
-        with torch.no_grad():
-            mu, var = m.predictors_["visual"].mean_var(torch.as_tensor(Xs.reshape(-1, d)))
-            v = m.predictors_["visual"].dim_var(var)
-        zm[:, a:b] = mu.numpy().reshape(S, b - a, Dz)
-        zv[:, a:b] = v.numpy().reshape(S, b - a, Dz)
-        diag = {k: v for k, v in chain_diagnostics(draws.samples).items() if k not in ("rhat", "ess_bulk",
-                                                                                     "ess_tail")}
-        st = draws.stats
-        if "divergences" in st:
-            diag["divergences"] = int(sum(st["divergences"]))
-            diag["accept_prob"] = float(np.mean(st["accept_prob"]))
-        if "acceptance_fraction" in st:
-            diag["acceptance_fraction"] = st["acceptance_fraction"]
-            diag["n_walkers"] = st["n_walkers"]
-        diag["hessian_floored"] = info_l["n_floored"]
-        diag["min_eig_precision"] = info_l["min_eig_precision"]
-        diag.update(start=a, stop=b, state=" ".join(key), dim=int(x_flat.size), seconds=draws.seconds)
-        diags.append(diag)
-    return PosteriorSynthesis(method, algorithm, lat, zm, zv, xmap, segments, used, diags, int(seed), 0.0,
-                              summarise_segments(diags))
+def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """μ_Z and σ²_Z/w² (C, S, T, D_z) at latent draws Xs (C, S, T, d), frame by frame under
+    the frame's state model."""
+    C, S, T, d = Xs.shape
+    Dz = plan.blocks[0].model.predictors_["visual"].out_dim
+    zm, zv = np.zeros((C, S, T, Dz)), np.zeros((C, S, T, Dz))
+    for b in plan.blocks:
+        a, e = b.start, b.stop
+        mu, var = b.model.predict_view("visual", Xs[:, :, a:e].reshape(-1, d))
+        zm[:, :, a:e] = mu.reshape(C, S, e - a, Dz)
+        zv[:, :, a:e] = var.reshape(C, S, e - a, Dz)
+    return zm, zv
 
 
-def _roll(m, X1: np.ndarray, n: int) -> np.ndarray:
-    """Algorithm 2 for every draw: X1 (S, 1, d) first points, then x_{t+1} = μ_x(x_t)."""
-    dyn = m.dynamics_predictor_
-    out = [X1[:, 0]]
-    with torch.no_grad():
-        for _ in range(n - 1):
-            if dyn is None:
-                out.append(out[-1].copy())
-            else:
-                out.append(dyn.mean_var(torch.as_tensor(out[-1]))[0].numpy())
-    return np.stack(out, axis=1)
+def _sampler_diagnostics(draws: Draws) -> dict:
+    cd = chain_diagnostics(draws.samples)
+    out = {k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "n_chains", "n_draws")}
+    st = draws.stats
+    if "divergences" in st:
+        out["divergences"] = int(sum(st["divergences"]))
+        out["step_size"] = [float(s) for s in st["step_size"]]
+    if "acceptance_fraction" in st:
+        out["acceptance_fraction"] = float(st["acceptance_fraction"])
+    out["sampler_seconds"] = float(draws.seconds)
+    return out
 
 
-__all__ = ["DEFAULT_LEVELS", "PosteriorSynthesis", "SegmentDensity", "sample_synthesis", "segment_density"]
+def _convergence_warnings(method: str, diag: dict) -> list[str]:
+    """Failed thresholds (R-hat ≤ 1.01, bulk and tail ESS ≥ 400, no divergences), in words."""
+    fails = []
+    if not diag.get("rhat_max", np.inf) <= RHAT_MAX:
+        fails.append(f"R-hat {diag.get('rhat_max', float('nan')):.3g} > {RHAT_MAX}")
+    for k in ("ess_bulk_min", "ess_tail_min"):
+        if not diag.get(k, 0.0) >= ESS_MIN:
+            fails.append(f"{k.replace('_min', '').replace('_', ' ')} ESS {diag.get(k, float('nan')):.3g} < {ESS_MIN}")
+    if diag.get("divergences", 0) > 0:
+        fails.append(f"{diag['divergences']} divergent transitions")
+    if not fails:
+        return []
+    return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; "
+            "run more draws/warm-up or use the Laplace posterior"]
+
+
+__all__ = ["DEFAULT_LEVELS", "MAP_GTOL", "MAP_MAX_ITER", "MapResult", "POSTERIOR_METHODS", "PosteriorSynthesis",
+           "MAP_DTOL", "maximise_utterance", "sample_synthesis", "visual_predictive"]

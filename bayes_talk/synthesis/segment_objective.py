@@ -9,7 +9,7 @@ two agree to round-off).
 
 For a GP predictor with training inputs X (N×d), A = K⁻¹Y, K⁻¹, and an input x:
 
-    k_i = α exp(−γ/2 ‖x − X_i‖²),  μ = kᵀA + ȳ,  s = α − kᵀK⁻¹k + β⁻¹
+    k_i = α exp(−γ/2 ‖x − X_i‖²),  μ = kᵀA + ȳ,  s = α − kᵀK⁻¹k + β⁻¹ = α − ‖L⁻¹k‖² + β⁻¹
     ℓ(y | x) = Σ_m ln N(y_m; μ_m, v_m),  v_m = s / w_m² (+ e_m, an optional extra variance)
 
     ∂ℓ/∂μ_m = r_m / v_m,   ∂ℓ/∂s = Σ_m (r_m²/v_m − 1) / (2 v_m w_m²),   r = y − μ
@@ -25,32 +25,69 @@ import math
 
 import numpy as np
 import torch
+from scipy.linalg.lapack import dtrtrs
 
 from bayes_talk.gp.predictive import GPPredictor
 
 LOG_2PI = math.log(2.0 * math.pi)
+#: L-BFGS iterations per segment (Algorithms 1 and 2): the one default of the library, the
+#: command line and the evaluation protocols (SystemConfig.synth_max_iter)
+SEGMENT_MAX_ITER = 50
 
 
 class _NumpyGP:
-    """Arrays of a fitted :class:`GPPredictor`, cached on it once."""
+    """Arrays of a fitted :class:`GPPredictor`, cached on it once.
+
+    Every predictive goes through the Cholesky factor L of K (DESIGN.md §2, §6): with
+    V = L⁻¹k(X, x), σ² = α − Σ V² + β⁻¹ and K⁻¹k = L⁻ᵀV. An explicit K⁻¹ cancels
+    catastrophically when β is large (β_x = 10⁶ for the dynamics: σ² came out 0.18 instead
+    of 7.4e-8 in the silence state). σ² is floored at β⁻¹, its exact lower bound.
+    """
 
     def __init__(self, p: GPPredictor):
         self.X = p.X.numpy()
         self.A = p.A.numpy()
-        self.Kinv = torch.cholesky_inverse(p.L).numpy()
+        self.L = np.asfortranarray(p.L.numpy())
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
         self.w2 = (p.w * p.w).numpy()
         self.mean = p.mean.numpy()
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
+    def _solve(self, B: np.ndarray, trans: int = 0) -> np.ndarray:
+        """L⁻¹B (trans=0) or L⁻ᵀB (trans=1) by LAPACK's triangular solve (dtrtrs)."""
+        x, info = dtrtrs(self.L, B, lower=1, trans=trans)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"triangular solve failed (LAPACK info {info})")
+        return x
+
+    def kernel(self, Xs: np.ndarray) -> np.ndarray:
+        """k(Xs, X) (T×N)."""
+        diff = Xs[:, None, :] - self.X[None, :, :]
+        return self.alpha * np.exp(-0.5 * self.gamma * (diff * diff).sum(-1))
+
+    def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
+        k = self.kernel(Xs)
+        V = self._solve(k.T)
+        s = np.maximum(self.alpha - (V * V).sum(0) + 1.0 / self.beta, 1.0 / self.beta)
+        return k @ self.A + self.mean, s
+
+    def mean_vjp(self, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
+        """Σ_m G_tm ∂μ_m(x_t)/∂x_t for each row (T×d): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
+        c = self.kernel(Xs) * (G @ self.A.T)
+        return -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)
+
     def loglik(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None):
         """ℓ summed over rows, ∂ℓ/∂Xs (T×d), ∂ℓ/∂Y (T×D)."""
         diff = Xs[:, None, :] - self.X[None, :, :]                 # T×N×d
         k = self.alpha * np.exp(-0.5 * self.gamma * (diff * diff).sum(-1))  # T×N
         mu = k @ self.A + self.mean                                  # T×D
-        Kk = k @ self.Kinv                                           # T×N
-        s = np.maximum(self.alpha - (Kk * k).sum(-1) + 1.0 / self.beta, 1e-12)  # T
+        V = self._solve(k.T)                                          # N×T: L⁻¹k
+        Kk = self._solve(V, trans=1).T                                # T×N: K⁻¹k = L⁻ᵀL⁻¹k
+        s_raw = self.alpha - (V * V).sum(0) + 1.0 / self.beta
+        floor = 1.0 / self.beta
+        s = np.maximum(s_raw, floor)                                  # T
         v = s[:, None] / self.w2[None, :]
         if extra_var is not None:
             v = v + extra_var[None, :]
@@ -58,6 +95,7 @@ class _NumpyGP:
         ll = -0.5 * (LOG_2PI * r.size + np.log(v).sum() + (r * r / v).sum())
         g_mu = r / v                                                 # T×D
         g_s = ((r * r / v - 1.0) / (2.0 * v) / self.w2[None, :]).sum(-1)  # T
+        g_s = np.where(s_raw > floor, g_s, 0.0)
         c = k * (g_mu @ self.A.T - 2.0 * g_s[:, None] * Kk)          # T×N
         g_x = -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)   # T×d
         return ll, g_x, -g_mu
@@ -112,7 +150,7 @@ def maximise_segment(
     dynamics: GPPredictor | None = None,
     first: tuple[np.ndarray, np.ndarray] | None = None,
     smooth: tuple[GPPredictor, np.ndarray, np.ndarray] | None = None,
-    max_iter: int = 20,
+    max_iter: int = SEGMENT_MAX_ITER,
 ) -> np.ndarray:
     """argmax of :func:`segment_objective` from X0 by scipy's L-BFGS-B.
 

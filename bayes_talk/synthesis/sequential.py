@@ -34,11 +34,13 @@ from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
 from bayes_talk.synthesis.optimise import optimise_sequence
+from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingSGPDM
 
 ALGORITHMS = ("optimise", "predict")
+
 SMOOTHNESS = ("frame", "off")
 DEFAULT_SMOOTHNESS = "frame"
 _NN = NearestNeighbour()
@@ -87,7 +89,7 @@ def synthesize(
     algorithm: str = "optimise",
     smoothness: str | bool = DEFAULT_SMOOTHNESS,
     lowpass_hz: float | None = None,
-    max_iter: int = 20,
+    max_iter: int = SEGMENT_MAX_ITER,
 ) -> SynthesisResult:
     """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance.
 
@@ -161,7 +163,7 @@ def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
     return np.vstack(out)
 
 
-__all__ = ["ALGORITHMS", "SynthesisResult", "lowpass", "synthesize", "synthesize_many"]
+__all__ = ["ALGORITHMS", "SEGMENT_MAX_ITER", "SynthesisResult", "lowpass", "synthesize", "synthesize_many"]
 
 
 _WORKER_MODEL: "SwitchingSGPDM | None" = None
