@@ -94,7 +94,7 @@ def test_bias_correction_is_exact_on_a_gaussian_case():
     assert np.mean((truth - pred.mean) ** 2) / np.mean(pred.var) == pytest.approx(1.0, rel=0.03)
 
 
-def test_gain_fractions_zero_scores_0_oracle_1(built):
+def test_gain_fractions_zero_scores_0_oracle_1(built, tmp_path):
     proto = get_protocol("deena2010", oracle_draws=4)
     result, _ = run_protocol(proto, built[:2], ["zero", "oracle"], test_sequences=built[2:],
                              train_phone_set=PHONES, test_phone_set=PHONES)
@@ -103,6 +103,13 @@ def test_gain_fractions_zero_scores_0_oracle_1(built):
     assert g["oracle"]["amse"] == pytest.approx(1.0) and g["oracle"]["nmse"] == pytest.approx(1.0)
     o = result["methods"]["oracle"]
     assert o["mse_corrected"]["mean"] < o["mse"]["mean"] < result["methods"]["zero"]["mse"]["mean"]
+    from bayes_talk.evaluation.report import gain_table, write_markdown
+
+    table = gain_table(result)
+    assert "| zero | 0.000 | 0.000 |" in table and "| oracle | 1.000 | 1.000 |" in table
+    assert "bias-corrected for its 4 draws" in table
+    md = write_markdown(result, tmp_path / "r.md").read_text()
+    assert table in md and "AMSE (bias-corr.)" in md
 
 
 def test_gain_fraction_arithmetic():

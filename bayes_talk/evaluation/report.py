@@ -76,8 +76,7 @@ def gain_table(result: dict[str, Any]) -> str:
                 f"draws: AMSE {_fmt(o['mse_corrected'])}, NMSE {_fmt(o.get('nmse_corrected'))} (raw: "
                 f"{_fmt(o.get('mse'))}, {_fmt(o.get('nmse'))}).")
     lines = ["Fraction of the achievable gain, (zero − method) / (zero − oracle): 0 = a still face, "
-             "1 = the generator's own mean given the true phone timing." + note + "
-",
+             "1 = the generator's own mean given the true phone timing." + note + "\n",
              "| method | gain AMSE | gain NMSE |", "|---|---:|---:|"]
     for n, g in rows:
         cells = ["–" if g.get(k) is None else f"{g[k]:.3f}" for k in ("amse", "nmse")]
