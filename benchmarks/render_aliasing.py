@@ -144,7 +144,7 @@ def measure(supersample: tuple[int, float], tr_timings, tr_tracks, tr_seed, ho_t
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--supersample", default="1:0,2:0.5,4:0.5",
+    ap.add_argument("--supersample", default="1:0,2:0.7",
                     help="comma-separated renderers FACTOR:PSF_PX (1:0 = point sampling, format 1)")
     ap.add_argument("--train-corpus", type=Path, help="built corpus whose .lab timings and seed drive the AAM fit")
     ap.add_argument("--heldout-corpus", type=Path, help="built corpus of held-out timings and seed")
