@@ -126,3 +126,18 @@ def test_gain_fraction_arithmetic():
 def test_oracle_draws_below_two_are_refused():
     with pytest.raises(ValueError, match="oracle_draws must be >= 2"):
         SystemConfig(oracle_draws=1)
+
+
+def test_score_with_ceiling_for_the_demo():
+    from bayes_talk.evaluation.ceiling import score_with_ceiling
+
+    rng = np.random.default_rng(1)
+    truth = [rng.normal(size=(40, 3)) for _ in range(3)]
+    half = [0.5 * t for t in truth]
+    bias = [np.full((40, 3), 0.01) for _ in truth]
+    rows = score_with_ceiling(truth, {"zero": [np.zeros_like(t) for t in truth], "oracle": truth,
+                                      "half": half}, {"oracle": bias})
+    assert rows["oracle"]["amse"] == pytest.approx(-0.01)          # perfect, minus its bias
+    assert rows["zero"]["gain_amse"] == 0.0 and rows["oracle"]["gain_nmse"] == 1.0
+    z = rows["zero"]["amse"]
+    assert rows["half"]["gain_amse"] == pytest.approx((z - 0.25 * z) / (z + 0.01))
