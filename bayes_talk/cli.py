@@ -39,7 +39,8 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import train
 
-    out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force)
+    out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
+                holdout=args.holdout, holdout_list=args.holdout_list)
     print(f"model written to {out}")
     return 0
 
@@ -68,7 +69,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
-                      lowpass_hz=args.lowpass_hz)
+                      lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -93,6 +94,8 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--lowpass-hz", type=float, default=None,
                    help="zero-phase low-pass (Hz, e.g. 4) on every method's predicted mean, "
                         "deena2010's post-filter (default: off)")
+    e.add_argument("--oracle-draws", type=int, default=None,
+                   help="generator draws per utterance of method oracle (default 32, >= 2)")
     e.add_argument("--json", required=True, help="output JSON; OUT.md and OUT_trajectories.png go beside it")
     e.set_defaults(func=_cmd_evaluate)
 
@@ -124,6 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
     t.add_argument("--force", action="store_true", help="allow writing into a non-empty directory")
+    th = t.add_mutually_exclusive_group()
+    th.add_argument("--holdout", type=int, default=None, metavar="N",
+                    help="hold the corpus's last N utterances out of training (recorded in the model)")
+    th.add_argument("--holdout-list", default=None, metavar="FILE",
+                    help="hold out the utterances named in FILE (one name a line, e.g. utt0249)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels")

@@ -80,8 +80,14 @@ def fit_model(model, train: list[Sequence], workers: int = 2):
 
 
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
-          force: bool = False, **overrides) -> Path:
-    """Train a model of ``kind`` on every utterance of a corpus and save it to ``out_dir``."""
+          force: bool = False, holdout: int | None = None,
+          holdout_list: str | os.PathLike | None = None, **overrides) -> Path:
+    """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
+
+    Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
+    utterances (corpus order), or ``holdout_list``, a file naming them one a line (see
+    :func:`select_holdout`). The descriptor records the held-out names (``held_out``).
+    """
     from bayes_talk.data.corpus import load_corpus
 
     out = Path(out_dir)
@@ -90,6 +96,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
     corpus = load_corpus(corpus_dir)
+    train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
+    corpus.sequences = train_seqs
     model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers)
     out.mkdir(parents=True, exist_ok=True)
     if kind == "sgplvm":
@@ -103,8 +111,48 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "format": DESCRIPTOR_FORMAT, "version": DESCRIPTOR_VERSION, "kind": kind,
         "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
+        "held_out": held_out,
     })
     return out
+
+
+def select_holdout(sequences: list[Sequence], holdout: int | None = None,
+                   holdout_list: str | os.PathLike | None = None,
+                   where: str = "corpus") -> tuple[list[Sequence], list[str]]:
+    """(training sequences, held-out names): the last ``holdout`` utterances, or those
+    named in the file ``holdout_list`` (one name a line; blank lines and ``#`` comments
+    skipped). ValueError naming the problem: both given, N outside [0, n - 1], an unknown
+    or repeated name, or nothing left to train on."""
+    seqs = list(sequences)
+    if holdout is not None and holdout_list is not None:
+        raise ValueError("give either holdout (a count) or holdout_list (a file), not both")
+    if holdout is not None:
+        if not isinstance(holdout, (int, np.integer)) or isinstance(holdout, bool) or not 0 <= holdout < len(seqs):
+            raise ValueError(f"holdout: expected an integer in [0, {len(seqs) - 1}] for the "
+                             f"{len(seqs)} utterances of {where}, found {holdout!r}")
+        names = [s.name for s in seqs[len(seqs) - int(holdout):]] if holdout else []
+    elif holdout_list is not None:
+        path = Path(holdout_list)
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read the hold-out list ({exc})") from exc
+        names = [ln.split("#", 1)[0].strip() for ln in lines]
+        names = [n for n in names if n]
+        known = {s.name for s in seqs}
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise ValueError(f"{path}: utterance(s) {unknown[:5]} are not in {where} "
+                             f"(its names look like {seqs[0].name!r})")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"{path}: utterance(s) {dup[:5]} listed more than once")
+        if len(names) >= len(seqs):
+            raise ValueError(f"{path}: holds out all {len(seqs)} utterances of {where}; nothing left to train on")
+    else:
+        return seqs, []
+    out = set(names)
+    return [s for s in seqs if s.name not in out], names
 
 
 def _aam_offset(corpus) -> np.ndarray:

@@ -110,13 +110,15 @@ def test_render_deterministic_and_mouth_appearance_changes(corpus):
     np.testing.assert_array_equal(a, b)
     ap = face.inner_lip_aperture(lm)
     inner = face.LANDMARK_GROUPS["inner_lip"]
-    dark = np.empty(len(lm))
+    darkest = np.empty(len(lm))
     for t in range(len(lm)):
         x0, y0 = np.floor(lm[t, inner].min(axis=0)).astype(int)
         x1, y1 = np.ceil(lm[t, inner].max(axis=0)).astype(int)
-        dark[t] = (a[t, y0:y1 + 1, x0:x1 + 1] < 60).sum()
-    assert np.all(dark[ap == 0] == 0)            # closed lips: no cavity visible
-    assert np.mean(dark[ap > 5] > 5) > 0.9        # wide open: a dark cavity
+        darkest[t] = a[t, y0:y1 + 1, x0:x1 + 1].min()
+    # the camera's optics and pixel integration spread the (grey 32-42) cavity between the
+    # teeth, often 1-2 px tall, over its neighbours; lips and skin stay above ~95
+    assert np.all(darkest[ap == 0] > 85)              # closed lips: no cavity visible
+    assert np.mean(darkest[ap > 5] < 80) > 0.9        # wide open: a dark cavity
 
 
 def test_teeth_show_in_labiodental():
@@ -127,7 +129,9 @@ def test_teeth_show_in_labiodental():
     inner = face.LANDMARK_GROUPS["inner_lip"]
     x0, y0 = np.floor(lm[k, inner].min(axis=0)).astype(int)
     x1, y1 = np.ceil(lm[k, inner].max(axis=0)).astype(int)
-    assert img[y0:y1 + 1, x0:x1 + 1].max() > 190   # bright upper teeth between the lips
+    # bright upper teeth between the lips (grey 228, a 1-2 px band: the camera's optics
+    # and pixel integration mix it with the lips); lips and skin there stay below ~140
+    assert img[y0:y1 + 1, x0:x1 + 1].max() > 170
 
 
 def test_fast_warp_matches_skimage_on_interior_pixels(corpus):
@@ -160,3 +164,35 @@ def test_cavity_triangles_tile_the_inner_lip_polygon():
     x, y = poly[:, 0], poly[:, 1]
     poly_area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
     assert area == pytest.approx(poly_area, rel=1e-9)
+
+
+def _subpixel_aliasing(corpus, **camera) -> float:
+    """Variance of a still face's AAM appearance parameters under sub-pixel translation,
+    as a fraction of the held-out appearance variance of talking faces (same renderer,
+    its own AAM). A perfect camera + AAM gives 0: Procrustes removes the translation."""
+    from bayes_talk.features.aam import AAM
+
+    lm_fit = np.concatenate([lm[::4] for _, lm, _ in corpus[:12]])
+    aam = AAM.fit(render.render_frames(lm_fit, **camera), lm_fit, variance=0.99, texture_inset=1.0)
+    lm_test = np.concatenate([lm for _, lm, _ in corpus[24:]])
+    talk = aam.project(render.render_frames(lm_test, **camera), lm_test)[:, aam.param_slices["combined"]]
+    offsets = np.array([(dx, dy) for dx in np.arange(0, 1, 0.2) for dy in np.arange(0, 1, 0.2)])
+    still = face.reference_shape(128)[None] + offsets[:, None, :]
+    c = aam.project(render.render_frames(still, **camera), still)[:, aam.param_slices["combined"]]
+    return float(c.var(axis=0).sum() / talk.var(axis=0).sum())
+
+
+def test_area_integrating_camera_removes_subpixel_aliasing(corpus):
+    old = _subpixel_aliasing(corpus, supersample=1, psf_px=0.0)    # format-1 point sampling
+    new = _subpixel_aliasing(corpus)                                # the corpus default
+    print(f"\nsub-pixel translation / talking-face appearance variance: point sampling {old:.4f}, "
+          f"camera model {new:.4f}")
+    assert new < 0.25 * old
+
+
+def test_render_rejects_bad_camera_settings():
+    lm = face.reference_shape(128)[None]
+    with pytest.raises(ValueError, match="supersample"):
+        render.render_frames(lm, supersample=0)
+    with pytest.raises(ValueError, match="psf_px"):
+        render.render_frames(lm, psf_px=-1.0)

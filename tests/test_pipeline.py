@@ -108,3 +108,43 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
     (other / "bayes_talk_model.json").write_text(json.dumps(desc))
     with pytest.raises(ValueError, match="truncated or corrupt"):
         load_trained(other)
+
+
+class _Recorder:
+    """Stands in for a model: records what it was trained on (no training cost)."""
+
+    def __init__(self):
+        self.names: list[str] = []
+
+    def save(self, path):
+        Path(path).mkdir(parents=True, exist_ok=True)
+
+
+def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monkeypatch):
+    import bayes_talk.pipeline as pipeline
+
+    seen = []
+
+    def fake_fit(model, train, workers=2):
+        rec = _Recorder()
+        rec.names = [s.name for s in train]
+        seen.append(rec.names)
+        return rec
+
+    monkeypatch.setattr(pipeline, "fit_model", fake_fit)
+    lst = tmp_path / "held.txt"
+    lst.write_text("utt0003\n# a comment\n\nutt0007\n")
+    out = pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m1", workers=1, holdout_list=lst)
+    desc = json.loads((out / "bayes_talk_model.json").read_text())
+    assert desc["held_out"] == ["utt0003", "utt0007"] and desc["n_train"] == 8
+    assert len(seen[-1]) == 8 and not {"utt0003", "utt0007"} & set(seen[-1])
+    # --holdout N: the last N, from the command line
+    assert main(["train", str(corpus_dir), "--out", str(tmp_path / "m2"), "--holdout", "3"]) == 0
+    desc = json.loads((tmp_path / "m2" / "bayes_talk_model.json").read_text())
+    assert desc["held_out"] == ["utt0007", "utt0008", "utt0009"] and seen[-1][-1] == "utt0006"
+    # bad lists are refused naming the file and the problem
+    lst.write_text("utt0003\nnope\n")
+    with pytest.raises(ValueError, match=r"held\.txt: utterance\(s\) \['nope'\] are not in"):
+        pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m3", workers=1, holdout_list=lst)
+    with pytest.raises(ValueError, match=r"holdout: expected an integer in \[0, 9\]"):
+        pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m4", workers=1, holdout=10)

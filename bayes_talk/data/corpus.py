@@ -75,7 +75,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FORMAT_NAME = "bayes_talk-corpus"
-FORMAT_VERSION = 1
+#: 2: frames rendered with camera area integration and optics (render.RENDER_SUPERSAMPLE,
+#: render.CAMERA_PSF_PX, recorded in the manifest's "renderer"); 1: point-sampled
+#: frames. The file layout is the same, so both are read.
+FORMAT_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
 FPS = 25.0
 AAM_FRAMES_PER_PHONE = 4
 AAM_VARIANCE = 0.99
@@ -314,7 +318,7 @@ def _utterance_task(a: dict) -> tuple[dict, dict]:
     intervals = [(round(s * 1e7) / 1e7, round(e * 1e7) / 1e7, p) for s, e, p in res.intervals]
     rng = np.random.default_rng([seed, i, 1])
     lm = face_landmarks(intervals, T, fps=FPS, image_size=image_size, rng=rng)
-    frames = render_frames(lm, image_size=image_size)
+    frames = render_frames(lm, image_size=image_size, **renderer_settings(FORMAT_VERSION))
     name = f"utt{i:04d}"
     rel = {k: f"utterances/{name}{ext}" for k, ext in
            (("wav", ".wav"), ("lab", ".lab"), ("landmarks", ".landmarks.npz"),
@@ -357,6 +361,17 @@ def _features_task(a: dict) -> tuple[dict, dict]:
     else:
         vis = np.asarray(_cached_aam(a["aam"]).project(frames, lm), np.float64)
     return {}, {"mfcc": mf, "visual": vis}
+
+
+def renderer_settings(format_version: int) -> dict:
+    """How the frames of a built corpus of ``format_version`` were rendered: keyword
+    arguments of :func:`~bayes_talk.data.render.render_frames` (a version-1 manifest has
+    no "renderer" entry: point sampling, ideal lens)."""
+    from bayes_talk.data import render
+
+    if int(format_version) < 2:
+        return {"supersample": 1, "psf_px": 0.0}
+    return {"supersample": int(render.RENDER_SUPERSAMPLE), "psf_px": float(render.CAMERA_PSF_PX)}
 
 
 # ---------------------------------------------------------------------------------------
@@ -545,6 +560,7 @@ def build_corpus(
         "voice": voice,
         "n_utterances": int(n_utterances),
         "synthesiser": "espeak-ng via espeakng-loader (one fresh process per utterance)",
+        "renderer": renderer_settings(int(FORMAT_VERSION)),
         "aam": {"path": "aam.npz", "files": aam_files, "variance": AAM_VARIANCE,
                 "texture_inset": AAM_TEXTURE_INSET,
                 "n_params": int(aam.n_params), "frames_per_phone": int(aam_frames_per_phone),
@@ -630,9 +646,9 @@ def _check_audio_vs_labels(wav: Path, lab: Path, n_samples: int, sr: int, interv
 
 
 def _built_items(root: Path, m: dict) -> tuple[list[_Item], int]:
-    if m.get("format_version") != FORMAT_VERSION:
+    if m.get("format_version") not in _READABLE_VERSIONS:
         raise ValueError(f"{root / _MANIFEST}: format_version {m.get('format_version')!r}, "
-                         f"expected {FORMAT_VERSION}")
+                         f"expected one of {list(_READABLE_VERSIONS)}")
     if float(m.get("fps", -1)) != FPS:
         raise ValueError(f"{root / _MANIFEST}: fps {m.get('fps')!r}, expected {FPS}")
     rate = int(m["audio_rate"])
@@ -957,6 +973,11 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                 arrays[f"mfcc/{n}"], arrays[f"visual/{n}"], arrays[f"labels/{n}"] = mf, vis, lab
             save_npz(cpath, **arrays)
 
+    # how the visual features were made, for method "oracle" (bayes_talk.evaluation.ceiling)
+    gen = {"corpus_kind": kind, "aam_path": str(aam_path) if aam is not None else None}
+    if kind == "built":
+        gen.update(image_size=int(manifest["image_size"]),
+                   renderer=manifest.get("renderer") or renderer_settings(manifest["format_version"]))
     seqs = []
     for it in items:
         mf, vis, lab = cached[it.name]
@@ -967,7 +988,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
             lm = (load_npz(it.landmarks, ("landmarks",))["landmarks"] if it.landmarks.suffix == ".npz"
                   else np.load(it.landmarks, allow_pickle=False))[: it.n_frames].astype(np.float64)
         meta = dict(it.meta, intervals=list(it.intervals), aam_mean=mean,
-                    label_path=str(it.labels), mean_removed=bool(mean_removal))
+                    label_path=str(it.labels), mean_removed=bool(mean_removal), **gen)
         seqs.append(Sequence(name=it.name, mfcc=mf, aam=vis - mean,
                              labels=[PHONES[i] for i in lab], landmarks=lm, audio_path=it.wav,
                              meta=meta))

@@ -39,6 +39,8 @@ __all__ = [
     "face_triangles",
     "rasterise_triangles",
     "render_frames",
+    "CAMERA_PSF_PX",
+    "RENDER_SUPERSAMPLE",
     "warp_piecewise_affine",
 ]
 
@@ -46,6 +48,14 @@ _BATCH = 32          # frames rasterised together (amortises NumPy call overhead
 _EDGE_TOL = 1e-7     # barycentric tolerance: pixel centres on edges belong to both
 _SUPERSAMPLE = 4     # texture is painted at 4x and box-filtered (anti-aliasing)
 _TEXTURE_BLUR_PX = 0.7
+#: sub-pixel samples per pixel side of :func:`render_frames` (camera area integration);
+#: 1 = point sampling at pixel centres (the corpus renderer of format version 1)
+RENDER_SUPERSAMPLE = 2
+#: camera optics: Gaussian point-spread function, sd in pixels, applied to the scene
+#: before pixel integration (0 = ideal lens)
+CAMERA_PSF_PX = 0.7
+#: frames rasterised together, at 1x; divided by supersample**2 (memory per batch)
+_RENDER_BATCH = 32
 
 
 def rasterise_triangles(
@@ -216,10 +226,18 @@ def _polyline_distance(line: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.n
     return d
 
 
-@lru_cache(maxsize=4)
-def _texture_cached(image_size: int) -> np.ndarray:
-    """Paint the face in design units over the reference shape (see module docstring)."""
-    ss = _SUPERSAMPLE
+@lru_cache(maxsize=8)
+def _texture_cached(image_size: int, fine: int = 1) -> np.ndarray:
+    """Paint the face in design units over the reference shape (see module docstring).
+
+    ``fine``: pixels per image pixel side of the returned texture, (image_size * fine)^2;
+    pixel ``j`` of it has its centre at image coordinate ``(j + 0.5) / fine - 0.5``. It
+    is painted at ``fine * m`` samples per pixel (``m = round(4 / fine)``, at least 1),
+    box-filtered to ``fine`` and blurred by 0.7 image pixels (``0.7 fine`` texture
+    pixels): the same continuous scene at every ``fine`` (``fine = 1`` is the version-1
+    texture, bit for bit).
+    """
+    ss = int(fine) * max(1, round(_SUPERSAMPLE / int(fine)))
     k = image_size / _face.DESIGN_SIZE
     sub = (np.arange(image_size * ss) + 0.5) / ss - 0.5          # pixel coordinates
     gx, gy = np.meshgrid(sub, sub)
@@ -277,10 +295,9 @@ def _texture_cached(image_size: int) -> np.ndarray:
     img -= 14.0 * np.exp(-(x**2 / (2 * 9.0**2) + (y - (outer[9, 1] + 4.0)) ** 2 / (2 * 1.8**2)))
     cavity = _poly_mask(inner, x, y)
     img = img * (1 - cavity) + 40.0 * cavity
-    img = downscale_local_mean(img, (ss, ss))
-    # A slight blur (sd 0.7 px) keeps edges below the sampling limit, so sub-pixel
-    # motion does not alias into texture variation the AAM would have to model.
-    img = gaussian_filter(img, _TEXTURE_BLUR_PX)
+    img = downscale_local_mean(img, (ss // fine, ss // fine))
+    # A slight blur (sd 0.7 px) softens the painted edges (the scene, not the camera).
+    img = gaussian_filter(img, _TEXTURE_BLUR_PX * fine)
     return np.clip(img, 0.0, 255.0)
 
 
@@ -313,11 +330,23 @@ def cavity_triangles(image_size: int = 128) -> np.ndarray:
     return all_inner & inside
 
 
-@lru_cache(maxsize=4)
-def _background_cached(image_size: int) -> np.ndarray:
-    r = np.arange(image_size)[:, None] / image_size
-    c = np.arange(image_size)[None, :] / image_size
+@lru_cache(maxsize=8)
+def _background_cached(image_size: int, fine: int = 1) -> np.ndarray:
+    """The backdrop at ``fine`` samples per pixel side (sub-pixel centres, see
+    :func:`_to_fine`); linear in (row, column), so its pixel means are the
+    ``fine = 1`` values."""
+    idx = np.arange(image_size * fine, dtype=np.float64)
+    if fine > 1:
+        idx = (idx + 0.5) / fine - 0.5
+    r = idx[:, None] / image_size
+    c = idx[None, :] / image_size
     return 70.0 + 40.0 * r + 10.0 * c
+
+
+def _to_fine(points: np.ndarray, fine: int) -> np.ndarray:
+    """Image pixel coordinates -> coordinates on the ``fine`` x grid, whose pixel ``j``
+    has its centre at image coordinate ``(j + 1/2) / fine - 1/2``."""
+    return points if fine == 1 else (points + 0.5) * fine - 0.5
 
 
 def background(image_size: int = 128) -> np.ndarray:
@@ -358,41 +387,73 @@ def _cavity_colour(lm: np.ndarray, frame: np.ndarray, px: np.ndarray, py: np.nda
     return a_up * teeth_up + (1.0 - a_up) * (a_lo * teeth_lo + (1.0 - a_lo) * dark)
 
 
-def render_frames(landmarks: np.ndarray, image_size: int = 128) -> np.ndarray:
+def render_frames(landmarks: np.ndarray, image_size: int = 128,
+                  supersample: int = RENDER_SUPERSAMPLE, psf_px: float = CAMERA_PSF_PX) -> np.ndarray:
     """Grayscale frames (T, image_size, image_size) uint8 of the face at the landmarks.
 
     Deterministic (no randomness; the texture and triangulation are fixed functions of
     ``image_size``). Landmarks are (T, 57, 2) pixel coordinates (x = column, y = row),
     as from :func:`~bayes_talk.data.face.face_landmarks` with the same ``image_size``.
+
+    Camera model (``supersample`` = s, default :data:`RENDER_SUPERSAMPLE`; ``psf_px`` =
+    sigma, default :data:`CAMERA_PSF_PX`): the lens blurs the scene with a Gaussian
+    point-spread function of sd sigma pixels and each pixel integrates the blurred scene
+    over its square, approximated by the mean of s x s samples at its sub-pixel centres,
+
+        I[r, c] = (1 / s^2) sum_{i,j<s} (G_sigma * L)(c - 1/2 + (j + 1/2)/s, r - 1/2 + (i + 1/2)/s),
+
+    where L is the continuous scene (the texture warped piecewise-affinely onto the
+    landmarks, the mouth cavity, the backdrop). The frame is rendered at s x resolution
+    (landmarks mapped by ``p -> (p + 1/2) s - 1/2``, the texture painted at s x), blurred
+    by ``scipy.ndimage.gaussian_filter`` (sd ``sigma s`` fine pixels) and area-averaged
+    with :func:`skimage.transform.downscale_local_mean`. Point sampling with an ideal lens
+    (s = 1, sigma = 0: the format-1 corpus, reproduced bit for bit) resamples sharp
+    texture edges at positions that shift with sub-pixel head motion; that aliasing
+    showed up as AAM modes (benchmarks/render_aliasing.py, docs/face.md). Cost grows as s^2.
     """
     _face._check_image_size(image_size)
+    if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or supersample < 1:
+        raise ValueError(f"supersample: expected an int >= 1, found {supersample!r}")
+    if not (np.isfinite(psf_px) and psf_px >= 0):
+        raise ValueError(f"psf_px: expected a finite number >= 0, found {psf_px!r}")
     lm = np.asarray(landmarks, dtype=np.float64)
     if lm.ndim != 3 or lm.shape[1:] != (_face.N_LANDMARKS, 2):
         raise ValueError(f"landmarks: expected shape (T, {_face.N_LANDMARKS}, 2), found {lm.shape}")
     if not np.all(np.isfinite(lm)):
         raise ValueError("landmarks: expected finite coordinates, found NaN or inf")
     n = int(image_size)
-    tex = _texture_cached(n)[None]
-    ref = _face.reference_shape(n)
+    s = int(supersample)
+    N = n * s
+    tex = _texture_cached(n, s)[None]
+    ref = _to_fine(_face.reference_shape(n), s)                # in fine texture pixels
     tri = _triangles_cached(n)
     cav = cavity_triangles(n)
-    bg = _background_cached(n).reshape(-1)
+    bg = _background_cached(n, s).reshape(-1)
     k = n / _face.DESIGN_SIZE
+    lm_fine = _to_fine(lm, s)
     T = lm.shape[0]
-    out = np.empty((T, n * n), dtype=np.uint8)
-    for b0 in range(0, T, _BATCH):
-        b1 = min(T, b0 + _BATCH)
-        frame, pixel, t_id, bary = rasterise_triangles(lm[b0:b1], tri, (n, n))
+    batch = max(1, _RENDER_BATCH // (s * s))
+    out = np.empty((T, n, n), dtype=np.uint8)
+    for b0 in range(0, T, batch):
+        b1 = min(T, b0 + batch)
+        frame, pixel, t_id, bary = rasterise_triangles(lm_fine[b0:b1], tri, (N, N))
         sv = ref[tri[t_id]]
         vals = bilinear_sample(tex, None, np.einsum("nk,nk->n", bary, sv[..., 0]),
-                         np.einsum("nk,nk->n", bary, sv[..., 1]))
+                               np.einsum("nk,nk->n", bary, sv[..., 1]))
         in_cav = cav[t_id]
         if in_cav.any():
             pc = pixel[in_cav]
-            vals[in_cav] = _cavity_colour(lm[b0:b1], frame[in_cav], (pc % n).astype(np.float64),
-                                          (pc // n).astype(np.float64), k)
-        img = np.empty((b1 - b0, n * n))
+            # sub-pixel centres in image pixel coordinates
+            px = ((pc % N).astype(np.float64) + 0.5) / s - 0.5
+            py = ((pc // N).astype(np.float64) + 0.5) / s - 0.5
+            vals[in_cav] = _cavity_colour(lm[b0:b1], frame[in_cav], px, py, k)
+        img = np.empty((b1 - b0, N * N))
         img[:] = bg
         img[frame, pixel] = vals
+        img = img.reshape(b1 - b0, N, N)
+        if psf_px > 0:
+            img = gaussian_filter(img, (0.0, psf_px * s, psf_px * s), mode="nearest")
+        if s > 1:
+            img = downscale_local_mean(img, (1, s, s))
         out[b0:b1] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    return out.reshape(T, n, n)
+    return out

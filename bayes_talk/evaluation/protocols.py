@@ -53,6 +53,7 @@ import scipy.stats
 
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.evaluation import metrics as M
+from bayes_talk.evaluation.ceiling import add_gain_fractions
 from bayes_talk.evaluation.systems import (
     METHODS,
     SystemConfig,
@@ -324,6 +325,11 @@ def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | No
         out["coverage_90"] = M.coverage([z], [mean - _Z90 * sd], [mean + _Z90 * sd])
         out["crps"] = M.crps_gaussian([z], [mean], [sd])
         out["nlpd"] = M.nlpd_gaussian([z], [mean], [sd * sd])
+    if getattr(pred, "mse_bias", None) is not None:  # oracle: remove its finite-sample bias
+        b = np.asarray(pred.mse_bias, np.float64).mean(axis=0)
+        keep = variance > 0
+        out["mse_corrected"] = out["mse"] - float(b.mean())
+        out["nmse_corrected"] = out["nmse"] - float(np.mean(b[keep] / variance[keep]))
     return out
 
 
@@ -446,6 +452,7 @@ def run_protocol(
         entry["n_test_frames"] = synth_frames[name]
         entry["per_split"] = per_split[name]
         result_methods[name] = entry
+    add_gain_fractions(result_methods)
     n_train = [len(s.train) for s in splits]
     n_test = [len(s.test) for s in splits]
     result = {
@@ -481,6 +488,7 @@ def evaluate(
     seed: int | None = None,
     figures: bool = True,
     lowpass_hz: float | None = None,
+    oracle_draws: int | None = None,
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
 
@@ -496,7 +504,8 @@ def evaluate(
     from bayes_talk.evaluation import report
 
     proto = get_protocol(protocol, quick=quick, seed=seed,
-                         **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}))
+                         **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
+                         **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
     out = check_writable(json_path)
     t0 = time.perf_counter()

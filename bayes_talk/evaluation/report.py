@@ -17,12 +17,13 @@ import numpy as np
 
 from bayes_talk.files import atomic_write, write_text
 
-__all__ = ["markdown_table", "plot_trajectories", "write_json", "write_markdown"]
+__all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
 
 _COLUMNS = (  # (metric key, column label)
     ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
     ("log_likelihood_per_frame", "log-lik/frame"), ("coverage_50", "cov50"), ("coverage_90", "cov90"),
     ("crps", "CRPS"), ("nlpd", "NLPD"),
+    ("mse_corrected", "AMSE (bias-corr.)"), ("nmse_corrected", "NMSE (bias-corr.)"),
 )
 
 
@@ -60,6 +61,29 @@ def markdown_table(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def gain_table(result: dict[str, Any]) -> str:
+    """Markdown table of every method's fraction of the achievable gain on AMSE and NMSE,
+    ``(zero - method) / (zero - oracle)`` (:mod:`bayes_talk.evaluation.ceiling`); "" when
+    the run had no ``zero`` and ``oracle``."""
+    methods = result.get("methods", {})
+    rows = [(n, e["gain_fraction"]) for n, e in methods.items() if isinstance(e.get("gain_fraction"), dict)]
+    if not rows:
+        return ""
+    o = methods.get("oracle", {})
+    note = ""
+    if isinstance(o.get("mse_corrected"), dict):
+        note = (f" The oracle's figures are bias-corrected for its {result.get('settings', {}).get('oracle_draws')} "
+                f"draws: AMSE {_fmt(o['mse_corrected'])}, NMSE {_fmt(o.get('nmse_corrected'))} (raw: "
+                f"{_fmt(o.get('mse'))}, {_fmt(o.get('nmse'))}).")
+    lines = ["Fraction of the achievable gain, (zero − method) / (zero − oracle): 0 = a still face, "
+             "1 = the generator's own mean given the true phone timing." + note + "\n",
+             "| method | gain AMSE | gain NMSE |", "|---|---:|---:|"]
+    for n, g in rows:
+        cells = ["–" if g.get(k) is None else f"{g[k]:.3f}" for k in ("amse", "nmse")]
+        lines.append(f"| {n} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
     """Markdown report: title, what was run, the table and a pointer to the figure."""
     quick = " (QUICK variant — not the paper's protocol)" if result.get("quick") else ""
@@ -76,6 +100,8 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
                   "deena2010 §4.2.3) before scoring; variances are unfiltered.\n")
     parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
              f"{result.get('description', '')}.\n", intro, markdown_table(result)]
+    if gain_table(result):
+        parts.append(gain_table(result))
     for w in result.get("warnings", []) or []:
         parts.append(f"> Warning: {w}\n")
     fig = (result.get("outputs") or {}).get("figure")

@@ -22,7 +22,13 @@ dpds                        dpds                englebienne2008
 hmm-mean                    hmm-mean            per-phone mean face
 context-ridge               context-ridge       ridge on label/MFCC context windows (#15)
 context-mlp                 context-mlp         one-hidden-layer MLP on the same windows
+zero                        zero                each utterance's mean (0 after mean removal)
+oracle                      oracle              generator average given the true timing
+                                                (built corpora only; the ceiling)
 ==========================  ==================  ==========================================
+
+``zero`` and ``oracle`` bracket every method: see :mod:`bayes_talk.evaluation.ceiling`
+(the oracle's finite-sample bias correction, the achievable-gain fraction).
 
 The ``*-posterior`` methods (our addition, DESIGN.md §6) replace Algorithm 1's path by the
 posterior over the whole utterance's latents (:mod:`bayes_talk.synthesis.joint`; Laplace
@@ -107,6 +113,8 @@ class SystemConfig:
     slds_n_iter: int = 100
     dpds_max_iter: int = 200
     torch_threads: int = 1
+    #: generator draws per utterance of method ``oracle`` (>= 2)
+    oracle_draws: int = 32
 
     def __post_init__(self) -> None:
         for k, v in vars(self).items():
@@ -122,6 +130,9 @@ class SystemConfig:
                 continue
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{k} must be a positive integer, got {v!r}")
+        if self.oracle_draws < 2:
+            raise ValueError(f"oracle_draws must be >= 2 (the oracle's bias correction needs an "
+                             f"across-draw variance), got {self.oracle_draws!r}")
 
 
 @dataclass(frozen=True)
@@ -158,6 +169,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
     Method("context-ridge", "context-ridge", "ridge on label/MFCC context windows", True),
     Method("context-mlp", "context-mlp", "MLP on label/MFCC context windows", True),
+    Method("zero", "zero", "zero (utterance mean, still face)", True),
+    Method("oracle", "oracle", "oracle (generator mean given the true timing)", True),
 )}
 
 FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values()))
@@ -165,10 +178,13 @@ FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values
 
 @dataclass
 class Prediction:
-    """mean: (T, D_z); var: (T, D_z) predictive variance, or None for a point predictor."""
+    """mean: (T, D_z); var: (T, D_z) predictive variance, or None for a point predictor;
+    mse_bias: (T, D_z) known finite-sample excess of the squared error (``oracle``'s
+    s^2 / K), subtracted in the ``*_corrected`` metrics; None for every other method."""
 
     mean: np.ndarray
     var: np.ndarray | None = None
+    mse_bias: np.ndarray | None = None
 
 
 def resolve_methods(names: str | Iterable[str] | None, default: Sequence[str] = ()) -> list[str]:
@@ -229,6 +245,10 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         return REGISTRY[family]()
     if family == "context-mlp":
         return REGISTRY[family](seed=cfg.seed)
+    if family in ("zero", "oracle"):
+        from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel
+
+        return ZeroModel() if family == "zero" else OracleModel(n_draws=cfg.oracle_draws, seed=cfg.seed)
     raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
 
 
@@ -264,6 +284,8 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
+    if m.family in ("zero", "oracle"):
+        return Prediction(*model.predict(seq))
     if m.family.startswith("ssgpdm-") and "posterior" in m.options:
         from bayes_talk.synthesis.posterior import sample_synthesis
 
