@@ -77,4 +77,27 @@ def summarise_segments(per_segment: list[dict]) -> dict:
     return out
 
 
-__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "summarise_segments"]
+#: thresholds of :func:`convergence_problems`: split R-hat above this (Gelman & Rubin's
+#: classic 1.1; Vehtari et al. 2021 recommend 1.01 for final inference), bulk ESS below this
+RHAT_MAX = 1.1
+ESS_BULK_MIN = 20.0
+
+
+def convergence_problems(summary: dict) -> list[str]:
+    """What is wrong with a sampler run's :func:`summarise_segments` summary: R-hat above
+    :data:`RHAT_MAX`, bulk ESS below :data:`ESS_BULK_MIN`, or any divergent transition.
+    [] means no diagnostic failed."""
+    out = []
+    r = summary.get("rhat_max")
+    if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
+        out.append(f"R-hat {r:.3g} > {RHAT_MAX}")
+    e = summary.get("ess_bulk_min")
+    if e is not None and (not np.isfinite(e) or e < ESS_BULK_MIN):
+        out.append(f"bulk ESS {e:.3g} < {ESS_BULK_MIN:g}")
+    dv = summary.get("divergences")
+    if dv:
+        out.append(f"{int(dv)} divergent transitions")
+    return out
+
+
+__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "convergence_problems", "summarise_segments"]
