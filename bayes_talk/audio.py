@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.features.mfcc import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+
 __all__ = ["CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings", "cmvn", "downmix",
            "feature_statistics", "load_audio", "resample"]
 
@@ -132,12 +134,12 @@ class AudioSettings:
 
     sample_rate: int
     fps: float = 25.0
-    n_mfcc: int = 20
-    window_s: float = 0.060
-    n_mels: int = 40
+    n_mfcc: int = N_MFCC
+    window_s: float = WINDOW_S
+    n_mels: int = N_MELS
     cmvn: str = DEFAULT_CMVN
     #: mel filterbank upper edge (Hz); None: sr/2, the front end before issue 12
-    fmax: float | None = 8000.0
+    fmax: float | None = FMAX_HZ
 
     def __post_init__(self) -> None:
         if self.cmvn not in CMVN_MODES:

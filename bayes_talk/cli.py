@@ -227,12 +227,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_HANDLER: logging.Handler | None = None
+
+
+def _log_to_stderr(level: int, fmt: str) -> None:
+    """One stderr handler on the root logger (replacing the one an earlier ``main`` added,
+    leaving any other handler alone)."""
+    global _HANDLER
+    root = logging.getLogger()
+    if _HANDLER is not None:
+        root.removeHandler(_HANDLER)
+    _HANDLER = logging.StreamHandler(sys.stderr)
+    _HANDLER.setFormatter(logging.Formatter(fmt))
+    root.addHandler(_HANDLER)
+    root.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     verbose, quiet = getattr(args, "verbose", False), getattr(args, "quiet", False)
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
-    logging.basicConfig(level=level, format="bayes-talk: %(levelname)s: %(message)s"
-                        if not verbose else "%(asctime)s %(name)s %(levelname)s: %(message)s", force=True)
+    _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
+                   else "bayes-talk: %(levelname)s: %(message)s")
     logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging
     from bayes_talk.progress import set_enabled
 

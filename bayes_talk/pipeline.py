@@ -260,7 +260,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         problems = convergence_problems(res.summary)
         if problems:
             log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
-                        "unreliable; raise --draws or use --posterior laplace", posterior, "; ".join(problems))
+                        "unreliable; raise --draws%s", posterior, "; ".join(problems),
+                        "" if posterior == "laplace" else " or use --posterior laplace")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
                                                 "summary": res.summary, "segments": res.diagnostics})

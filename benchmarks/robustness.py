@@ -32,9 +32,10 @@ import soundfile as sf
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.audio import resample  # noqa: E402
-from bayes_talk.files import write_json  # noqa: E402
-from bayes_talk.pipeline import load_trained, read_utterance, train  # noqa: E402
+from bayes_talk.audio import resample
+from bayes_talk.features.mfcc import FMAX_HZ
+from bayes_talk.files import write_json
+from bayes_talk.pipeline import load_trained, read_utterance, train
 
 CONDITIONS = ("minus6dB", "plus6dB", "sr16000", "sr44100", "stereo_one_silent", "silent")
 
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
         for label, cm in runs:
             t0 = time.perf_counter()
             mdir = train(a.train, a.model, tmp / f"model_{cm}", cmvn=cm,
-                         fmax=8000.0 if label == "new" else None)
+                         fmax=FMAX_HZ if label == "new" else None)
             t1 = time.perf_counter()
             work = tmp / f"audio_{cm}"
             work.mkdir()

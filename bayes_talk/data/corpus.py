@@ -935,7 +935,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     MFCCs), so every consumer -- ``train``, ``evaluate``, the benchmarks -- sees the features
     ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
     ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
-    8 kHz; None: sr/2, the features before issue 12, cached in ``features.npz``; other values
+    7.6 kHz; None: sr/2, the features before issue 12, cached in ``features.npz``; other values
     are cached in ``features-fmax<Hz>.npz``, so caches of both front ends live side by side).
     """
     from bayes_talk.audio import cmvn as _cmvn

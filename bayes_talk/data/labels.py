@@ -193,6 +193,16 @@ def read_textgrid_tiers(path: str | Path) -> dict[str, list]:
         pos += 1
         return v
 
+    def count(what: str) -> int:
+        v = take("n", what)
+        try:
+            n = int(v)
+        except ValueError:
+            raise ValueError(f"{path}: malformed TextGrid, {what} must be a whole number, found {v!r}") from None
+        if n < 0:
+            raise ValueError(f"{path}: malformed TextGrid, {what} must be >= 0, found {n}")
+        return n
+
     if take("s", "'ooTextFile'") != "ooTextFile" or take("s", "'TextGrid'") != "TextGrid":
         raise ValueError(f"{path}: not a Praat TextGrid text file (expected File type "
                          "'ooTextFile', Object class 'TextGrid')")
@@ -200,14 +210,14 @@ def read_textgrid_tiers(path: str | Path) -> dict[str, list]:
     take("n", "xmax")
     if take("f", "<exists>") != "<exists>":
         return {}
-    n_tiers = int(take("n", "tier count"))
+    n_tiers = count("tier count")
     tiers: dict[str, list] = {}
     for _ in range(n_tiers):
         cls = take("s", "tier class")
         name = take("s", "tier name")
         take("n", "tier xmin")
         take("n", "tier xmax")
-        n = int(take("n", "item count"))
+        n = count("item count")
         items: list = []
         for _ in range(n):
             if cls == "IntervalTier":

@@ -30,10 +30,12 @@ __all__ = ["FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wa
 N_MFCC = 20
 WINDOW_S = 0.060
 N_MELS = 40
-#: upper edge of the mel filterbank (Hz): 8 kHz, the band a 16 kHz recording holds, so that
-#: a model's features do not change with the recording's rate (issue 12; before, sr/2).
+#: upper edge of the mel filterbank (Hz): 7.6 kHz, inside the pass band of a 16 kHz
+#: recording (soxr keeps ~0.95 of its 8 kHz Nyquist), so that a model's features do not
+#: change with the recording's rate (issue 12; before, sr/2 -- and 8 kHz still moved the
+#: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
 #: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
-FMAX_HZ = 8000.0
+FMAX_HZ = 7600.0
 
 
 def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
