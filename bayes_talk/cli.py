@@ -71,7 +71,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
-                      lowpass_hz=args.lowpass_hz, min_utterances=args.min_utterances)
+                      lowpass_hz=args.lowpass_hz, min_utterances=args.min_utterances,
+                      cmvn=args.cmvn)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -101,6 +102,8 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--min-utterances", type=_non_negative_int, default=None,
                    help="evaluate a corpus smaller than the protocol needs (but at least this many "
                         "utterances) with the protocol's split scaled to it; the report says so")
+    e.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
+                   help="per-utterance cepstral normalisation of the MFCCs (as train --cmvn)")
     e.set_defaults(func=_cmd_evaluate)
 
 

@@ -83,7 +83,10 @@ def fit_model(model, train: list[Sequence], workers: int = 2):
     from bayes_talk.progress import ProgressMapper
 
     if isinstance(model, SwitchingSGPDM) and workers > 1:
-        with ProcessPoolExecutor(workers) as ex:
+        import signal
+
+        # Ctrl-C is handled by the parent (bayes-talk: error: interrupted), not printed by each worker
+        with ProcessPoolExecutor(workers, initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as ex:
             return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
     if isinstance(model, SwitchingSGPDM):
         return model.fit(train, executor=ProgressMapper(None, "training states", "state"))

@@ -281,7 +281,13 @@ _PROGRESS = {"utterance": "building utterances", "features": "featurising"}
 
 
 def _worker_main() -> None:
-    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`)."""
+    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`).
+
+    Ctrl-C is the parent's to handle (it closes our stdin): ignored here, so a worker
+    never prints a KeyboardInterrupt traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)            # stray prints from libraries go to stderr, not the protocol
     sys.stdout = sys.stderr

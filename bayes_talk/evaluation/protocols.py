@@ -505,6 +505,7 @@ def evaluate(
     figures: bool = True,
     lowpass_hz: float | None = None,
     min_utterances: int | None = None,
+    cmvn: str = "mean",
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
 
@@ -512,7 +513,8 @@ def evaluate(
     (recorded in the JSON under ``settings``); None: off, the protocols' default.
     min_utterances: let a corpus smaller than the protocol needs (but with at least this
     many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
-    JSON and Markdown carry a warning saying so.
+    JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
+    normalisation of both corpora's MFCCs (``load_corpus(cmvn=...)``; "mean" as ``train``).
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -527,12 +529,12 @@ def evaluate(
     names = resolve_methods(methods, proto.default_methods)
     out = check_writable(json_path)
     t0 = time.perf_counter()
-    train_c = load_corpus(corpus)
+    train_c = load_corpus(corpus, cmvn=cmvn)
     test_c = None
     if test_corpus is not None:
         # score the test frames in the training corpus's AAM space: project them through it
         try:
-            test_c = load_corpus(test_corpus, aam=train_c.aam_path)
+            test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn)
         except ValueError as exc:
             raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
                              f"{corpus}: {exc}") from exc
@@ -553,6 +555,7 @@ def evaluate(
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
                                if train_c.aam_path is not None else "the test corpus's precomputed features")
     result["load_seconds"] = load_s
+    result["cmvn"] = cmvn
     if small_note:
         result["warnings"] = [*(result.get("warnings") or []), small_note]
         result["scaled_for_small_corpus"] = True
