@@ -252,7 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
     _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
                    else "bayes-talk: %(levelname)s: %(message)s")
-    logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging
+    logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
+    import warnings
+
+    warnings.formatwarning = lambda message, category, *a, **k: f"{category.__name__}: {message}"
     from bayes_talk.progress import set_enabled
 
     set_enabled(not quiet)

@@ -43,8 +43,9 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     ``sample_rate``: resample the audio to it (the model's training rate; one log line);
     ``cmvn``: the model's cepstral normalisation (:func:`bayes_talk.audio.cmvn`); ``tier``:
     the TextGrid tier holding the phones; ``fmax``: the model's mel filterbank edge (None:
-    sr/2, the front end of models trained before it was recorded). Raises ValueError naming both files when the
-    labels and the audio disagree in length by more than two frames.
+    sr/2, the front end of models trained before it was recorded). Raises ValueError
+    naming both files when the labels and the audio disagree in length by more than two
+    frames.
     """
     from bayes_talk.audio import cmvn as _cmvn
     from bayes_talk.data.labels import frame_labels, read_labels
@@ -86,7 +87,8 @@ def fit_model(model, train: list[Sequence], workers: int = 2):
         import signal
 
         # Ctrl-C is handled by the parent (bayes-talk: error: interrupted), not printed by each worker
-        with ProcessPoolExecutor(workers, initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as ex:
+        with ProcessPoolExecutor(workers, initializer=signal.signal,
+                                 initargs=(signal.SIGINT, signal.SIG_IGN)) as ex:
             return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
     if isinstance(model, SwitchingSGPDM):
         return model.fit(train, executor=ProgressMapper(None, "training states", "state"))

@@ -7,6 +7,7 @@ silent. :func:`bar` wraps an iterable, :class:`ProgressMapper` wraps an executor
 """
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
@@ -14,6 +15,7 @@ from typing import Any
 __all__ = ["ProgressMapper", "bar", "enabled", "set_enabled"]
 
 _ENABLED = True
+log = logging.getLogger(__name__)
 
 
 def set_enabled(on: bool) -> None:
@@ -32,12 +34,23 @@ def enabled() -> bool:
 
 
 def bar(iterable: Iterable, total: int | None = None, desc: str = "", unit: str = "it") -> Iterator:
-    """``iterable`` with a tqdm bar (done / total, rate, ETA) when :func:`enabled`."""
+    """``iterable`` with a tqdm bar (done / total, rate, ETA) when :func:`enabled`; else, with
+    INFO logging on (``-v``), one log line at every tenth of ``total``."""
     if not enabled():
+        if total and log.isEnabledFor(logging.INFO):
+            return _logged(iterable, total, desc or "progress", unit)
         return iter(iterable)
     from tqdm.auto import tqdm
 
     return iter(tqdm(iterable, total=total, desc=desc, unit=unit, leave=False, dynamic_ncols=True))
+
+
+def _logged(iterable: Iterable, total: int, desc: str, unit: str) -> Iterator:
+    step = max(1, total // 10)
+    for k, item in enumerate(iterable, 1):
+        yield item
+        if k % step == 0 or k == total:
+            log.info("%s: %d/%d %s", desc, k, total, unit)
 
 
 class ProgressMapper:

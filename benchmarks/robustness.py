@@ -9,13 +9,13 @@ sample rate and cepstral normalisation, then the model's MAP synthesis) from
 
 and reports the RMS difference of each variant's AAM trajectory from the original's,
 averaged over utterances, and its ratio to the silent audio's difference (acceptance:
-every ratio below 0.1). With ``--compare-off`` the same is measured for the front end
+every ratio below 0.1). With ``--frontends new,before`` the same is measured for the front end
 before issue 12 (no cepstral normalisation, mel bands up to sr/2, no resampling: a model
 trained with ``cmvn="off", fmax=None`` and the audio read at its own rate; stereo is
 downmixed by the new rule in both, so that row does not show the old channel average).
 
     python benchmarks/robustness.py --train /work/data/v1/train250 --test /work/data/v1/heldout40 \
-        --compare-off --json benchmarks/results/robustness.json
+        --frontends new,before --json benchmarks/results/robustness.json
 """
 from __future__ import annotations
 
@@ -96,7 +96,8 @@ def main(argv=None) -> int:
     ap.add_argument("--test", default="/work/data/v1/heldout40", help="held-out corpus")
     ap.add_argument("--model", default="ssgpdm-phone", help="model kind")
     ap.add_argument("--n-test", type=int, default=None, help="first N held-out utterances (default all)")
-    ap.add_argument("--compare-off", action="store_true", help="also measure the front end without CMVN")
+    ap.add_argument("--frontends", default="new",
+                    help="comma-separated: new (this front end), before (before issue 12)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/robustness.json"))
     a = ap.parse_args(argv)
     result = {"train_corpus": a.train, "test_corpus": a.test, "model": a.model, "algorithm": "optimise",
@@ -104,7 +105,8 @@ def main(argv=None) -> int:
                         "mean over utterances", "frontends": {}}
     with tempfile.TemporaryDirectory(prefix="bt_robust_") as tmp:
         tmp = Path(tmp)
-        runs = [("new", "mean")] + ([("before_issue12", "off")] if a.compare_off else [])
+        known = {"new": ("new", "mean"), "before": ("before_issue12", "off")}
+        runs = [known[f] for f in a.frontends.split(",")]
         for label, cm in runs:
             t0 = time.perf_counter()
             mdir = train(a.train, a.model, tmp / f"model_{cm}", cmvn=cm,

@@ -403,3 +403,15 @@ def test_small_corpus_protocol_is_scaled_with_a_note():
     assert scale_protocol(p, 300, 20) == (p, None)
     with pytest.raises(ValueError, match="fewer than --min-utterances 40"):
         scale_protocol(p, 30, 40)
+
+
+def test_progress_is_silent_off_a_terminal_and_logged_with_verbose(caplog):
+    from bayes_talk.progress import ProgressMapper, bar, enabled
+
+    assert not enabled()                                   # pytest's stderr is not a terminal
+    with caplog.at_level(logging.WARNING, logger="bayes_talk.progress"):
+        assert list(bar(range(5), 5, "x")) == list(range(5))
+    assert not caplog.records
+    with caplog.at_level(logging.INFO, logger="bayes_talk.progress"):
+        assert list(ProgressMapper(None, "training states", "state").map(abs, [-1, -2, 3])) == [1, 2, 3]
+    assert [r.getMessage() for r in caplog.records][-1] == "training states: 3/3 state"

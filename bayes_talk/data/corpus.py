@@ -941,8 +941,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     MFCCs), so every consumer -- ``train``, ``evaluate``, the benchmarks -- sees the features
     ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
     ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
-    7.6 kHz; None: sr/2, the features before issue 12, cached in ``features.npz``; other values
-    are cached in ``features-fmax<Hz>.npz``, so caches of both front ends live side by side).
+    7.6 kHz; None: sr/2, the features before issue 12); part of the cache key.
     """
     from bayes_talk.audio import cmvn as _cmvn
 
@@ -1002,9 +1001,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     cpath = root / _CACHE_NAME
     if aam_files and aam_files[0].parent.resolve() != root.resolve():  # a foreign AAM
         cpath = root / f"features-{_sha256(aam_files[0])[:12]}.npz"
-    if fmax is not None:  # the issue-12 front end: its own key and file
+    if fmax is not None:  # the issue-12 front end: its own key (None keeps the older caches valid)
         key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
-        cpath = cpath.with_name(f"{cpath.stem}-fmax{float(fmax):g}.npz")
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
