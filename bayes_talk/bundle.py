@@ -87,16 +87,18 @@ def verify_bundle(directory: str | Path) -> dict[str, str]:
 class OutputSet:
     """The files one run writes into ``directory``; see the module docstring."""
 
-    def __init__(self, directory: str | Path) -> None:
+    def __init__(self, directory: str | Path, known: tuple[str, ...] = ()) -> None:
         self.directory = Path(directory)
         self.record = self.directory / OUTPUT_RECORD
+        self.known = tuple(known)
 
     def previous(self) -> list[str]:
-        """Files the previous run recorded (relative names; [] without a record)."""
+        """Files the previous run recorded (relative names); without a record (a run from
+        before records were kept), those of the tool's fixed output names (``known``) present."""
         try:
             files = json.loads(self.record.read_text(encoding="utf-8"))["files"]
         except (OSError, ValueError, KeyError, TypeError):
-            return []
+            return [n for n in self.known if (self.directory / n).is_file()]
         return [f for f in files if isinstance(f, str) and ".." not in Path(f).parts and "/" not in f]
 
     def commit(self, written: list[str | Path]) -> list[str]:

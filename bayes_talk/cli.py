@@ -9,11 +9,12 @@ Sub-commands::
                      [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR ...
     bayes-talk demo [--out DIR]
-
--v/--verbose and -q/--quiet may be given anywhere on the line.
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR
                         [--test-corpus DIR] [--methods a,b,...] [--quick] [--seed S]
                         [--no-figures] --json OUT.json
+
+-v/--verbose and -q/--quiet may be given anywhere on the line; ``COMMAND --help`` shows
+every option with its default.
 """
 from __future__ import annotations
 

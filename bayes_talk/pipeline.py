@@ -198,6 +198,9 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
 
 
 POSTERIORS = ("map", "laplace", "nuts", "emcee")
+#: every file name synth can write (docs/outputs.md)
+SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
+                      "bands.npz", "diagnostics.json")
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
@@ -231,7 +234,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     utt = read_utterance(wav, labels, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
                          tier=tier, fmax=tm.audio.fmax)
     out = Path(out_dir)
-    outputs = OutputSet(out)
+    outputs = OutputSet(out, SYNTH_OUTPUT_NAMES)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
     if posterior != "map":

@@ -245,6 +245,11 @@ def test_synth_force_replaces_the_whole_output_set(model_dir, corpus_dir, tmp_pa
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [".bayes_talk_outputs.json", "landmarks.npy", "mine.txt", "segments.json", "trajectory.npy",
          "variance.npy"])
+    # a run from before output records were kept: synth's own file names count as its
+    (out / ".bayes_talk_outputs.json").unlink()
+    (out / "bands.npz").write_bytes(b"an old run's bands")
+    assert main(args + ["--no-video", "--force"]) == 0
+    assert not (out / "bands.npz").exists() and (out / "mine.txt").exists()
 
 
 # --- row 9: a posterior that did not converge ------------------------------------------------

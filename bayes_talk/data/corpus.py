@@ -359,7 +359,7 @@ def _features_task(a: dict) -> tuple[dict, dict]:
                landmarks=None if a["landmarks"] is None else Path(a["landmarks"]),
                features=None if a["features"] is None else Path(a["features"]))
     y, sr = load_wav(it.wav)
-    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax"))
+    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ))
     frames, lm, feats = _load_visual(it)
     if feats is not None:
         vis = feats
