@@ -12,6 +12,9 @@ Sub-commands::
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR
                         [--test-corpus DIR] [--methods a,b,...] [--quick] [--seed S]
                         [--no-figures] --json OUT.json
+
+-v/--verbose and -q/--quiet may be given anywhere on the line; ``COMMAND --help`` shows
+every option with its default.
 """
 from __future__ import annotations
 
@@ -33,6 +36,7 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         image_size=args.image_size,
         force=args.force,
     )
+    print(f"corpus written to {args.out_dir}")
     return 0
 
 
@@ -40,7 +44,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import train
 
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
-                holdout=args.holdout, holdout_list=args.holdout_list)
+                holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn)
     print(f"model written to {out}")
     return 0
 
@@ -50,7 +54,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
-                    n_draws=args.draws, seed=args.seed)
+                    n_draws=args.draws, seed=args.seed, tier=args.tier)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -69,7 +73,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
-                      lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws)
+                      lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
+                      min_utterances=args.min_utterances, cmvn=args.cmvn)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -81,8 +86,9 @@ def _add_evaluate_parser(sub) -> None:
     from bayes_talk.evaluation.protocols import PROTOCOLS
     from bayes_talk.evaluation.systems import METHODS
 
-    e = sub.add_parser("evaluate", help="run a published evaluation protocol (JSON + Markdown + figure)")
-    e.add_argument("--protocol", required=True, choices=sorted(PROTOCOLS))
+    e = sub.add_parser("evaluate", help="run a published evaluation protocol (JSON + Markdown + figure)",
+                       **_SUB_KW)
+    e.add_argument("--protocol", required=True, choices=sorted(PROTOCOLS), help="protocol (docs/evaluation.md)")
     e.add_argument("--corpus", required=True, help="corpus directory (built or user)")
     e.add_argument("--test-corpus", default=None,
                    help="train on all of --corpus, test on all of this corpus")
@@ -97,33 +103,94 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
     e.add_argument("--json", required=True, help="output JSON; OUT.md and OUT_trajectories.png go beside it")
+    e.add_argument("--min-utterances", type=_non_negative_int, default=None,
+                   help="evaluate a corpus smaller than the protocol needs (but at least this many "
+                        "utterances) with the protocol's split scaled to it; the report says so")
+    e.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
+                   help="per-utterance cepstral normalisation of the MFCCs (as train --cmvn)")
     e.set_defaults(func=_cmd_evaluate)
 
 
+SYNTH_OUTPUTS = """\
+outputs in --out (docs/outputs.md):
+  trajectory.npy   (T, n_params) float64 AAM parameters per 25 Hz frame, MEAN-REMOVED: add the
+                   model's AAM offset (bayes_talk_model.json "aam_offset") before using them
+  variance.npy     (T, n_params) predictive variance of each parameter
+  landmarks.npy    (T, P, 2) landmark (x, y) pixels = AAM shape of trajectory + offset
+  segments.json    the state segmentation (switching models) and fps
+  face.mp4         rendered frames with the audio (unless --no-video)
+  bands.npz, diagnostics.json   with --posterior laplace|nuts|emcee
+frames in Python:
+  from bayes_talk.pipeline import load_trained; import numpy as np
+  tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
+  landmarks, _ = tm.aam.reconstruct(p); frames = tm.aam.render(p)   # (T, H, W) uint8
+"""
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in every option's help (not for required options, flags, or a None default,
+    whose help says what happens); epilogs kept as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.required or action.default in (None, False, argparse.SUPPRESS):
+            return action.help or ""
+        return super()._get_help_string(action)
+
+
+def _verbosity_parser(suppress: bool) -> argparse.ArgumentParser:
+    """-v/-q, accepted before or after the sub-command (sub-parsers must not reset them)."""
+    kw = {"default": argparse.SUPPRESS} if suppress else {"default": False}
+    v = argparse.ArgumentParser(add_help=False)
+    v.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO level)", **kw)
+    v.add_argument("-q", "--quiet", action="store_true", help="errors only; no progress bars", **kw)
+    return v
+
+
+_SUB_KW = {"formatter_class": _HelpFormatter, "parents": [_verbosity_parser(True)]}
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {v}")
+    return v
+
+
+def _positive_int(text: str) -> int:
+    v = _non_negative_int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, found {v}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bayes-talk", description=__doc__.splitlines()[0])
-    p.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO level)")
+    p = argparse.ArgumentParser(prog="bayes-talk", description=__doc__.splitlines()[0],
+                                parents=[_verbosity_parser(False)], formatter_class=_HelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
 
     # --- corpus -------------------------------------------------------------------------
-    corpus = sub.add_parser("corpus", help="build the built-in talking-head corpus")
+    corpus = sub.add_parser("corpus", help="build the built-in talking-head corpus", **_SUB_KW)
     csub = corpus.add_subparsers(dest="corpus_command", required=True)
-    b = csub.add_parser("build", help="synthesise speech, faces and frames into OUT_DIR")
-    b.add_argument("out_dir")
-    b.add_argument("--n-utterances", type=int, default=300)
-    b.add_argument("--seed", type=int, default=0)
-    b.add_argument("--sentences", default=None, help="text file, one sentence a line")
-    b.add_argument("--voice", default="en")
-    b.add_argument("--image-size", type=int, default=128)
+    b = csub.add_parser("build", help="synthesise speech, faces and frames into OUT_DIR", **_SUB_KW)
+    b.add_argument("out_dir", help="directory to create (or an empty one)")
+    b.add_argument("--n-utterances", type=_positive_int, default=300, help="utterances to synthesise")
+    b.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (>= 0)")
+    b.add_argument("--sentences", default=None,
+                   help="text file, one sentence a line (default: the built-in English sentences)")
+    b.add_argument("--voice", default="en", help="English espeak-ng voice (en, en-us, en-gb, ...)")
+    b.add_argument("--image-size", type=_positive_int, default=128, help="frame width and height, pixels")
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
     b.set_defaults(func=_cmd_corpus_build)
 
     # --- train / synth -------------------------------------------------------------------
     from bayes_talk.pipeline import MODEL_KINDS
 
-    t = sub.add_parser("train", help="train a model on a corpus directory")
-    t.add_argument("corpus_dir")
-    t.add_argument("--model", choices=MODEL_KINDS, default="ssgpdm-vlmm")
+    t = sub.add_parser("train", help="train a model on a corpus directory", **_SUB_KW)
+    t.add_argument("corpus_dir", help="built or user corpus directory")
+    t.add_argument("--model", choices=MODEL_KINDS, default="ssgpdm-vlmm", help="model kind (docs/model.md)")
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
     t.add_argument("--force", action="store_true", help="allow writing into a non-empty directory")
@@ -132,12 +199,20 @@ def build_parser() -> argparse.ArgumentParser:
                     help="hold the corpus's last N utterances out of training (recorded in the model)")
     th.add_argument("--holdout-list", default=None, metavar="FILE",
                     help="hold out the utterances named in FILE (one name a line, e.g. utt0249)")
+    t.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
+                   help="per-utterance cepstral mean (and variance) normalisation of the MFCCs, "
+                        "recorded in the model and applied the same way by synth")
     t.set_defaults(func=_cmd_train)
 
-    s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels")
-    s.add_argument("model_dir")
-    s.add_argument("--audio", required=True, help="WAV file")
+    s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",
+                       epilog=SYNTH_OUTPUTS, **_SUB_KW)
+    s.add_argument("model_dir", help="directory written by train")
+    s.add_argument("--audio", required=True,
+                   help="WAV file (any rate: resampled to the model's; stereo downmixed)")
     s.add_argument("--labels", required=True, help="HTK .lab or Praat .TextGrid")
+    s.add_argument("--tier", default=None,
+                   help="TextGrid tier with the phones (default: 'phones'/'phone' if present, else "
+                        "the first tier of known phones)")
     s.add_argument("--out", required=True, help="output directory")
     s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise",
                    help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
@@ -148,14 +223,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
                         "write the posterior mean, variance, bands.npz and diagnostics.json")
     s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
-    s.add_argument("--seed", type=int, default=0, help="sampler seed")
+    s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--no-video", action="store_true", help="skip the MP4")
-    s.add_argument("--force", action="store_true", help="overwrite earlier outputs in --out")
+    s.add_argument("--force", action="store_true",
+                   help="replace an earlier run's outputs in --out (its files this run does not write "
+                        "are removed)")
     s.set_defaults(func=_cmd_synth)
 
     # --- demo ---------------------------------------------------------------------------
-    d = sub.add_parser("demo", help="the main job on the built-in corpus")
-    d.add_argument("--out", default="demo_out")
+    d = sub.add_parser("demo", help="the main job on the built-in corpus", **_SUB_KW)
+    d.add_argument("--out", default="demo_out", help="output directory")
     d.set_defaults(func=_cmd_demo)
 
     # --- evaluate -----------------------------------------------------------------------
@@ -163,15 +240,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_HANDLER: logging.Handler | None = None
+
+
+def _log_to_stderr(level: int, fmt: str) -> None:
+    """One stderr handler on the root logger (replacing the one an earlier ``main`` added,
+    leaving any other handler alone)."""
+    global _HANDLER
+    root = logging.getLogger()
+    if _HANDLER is not None:
+        root.removeHandler(_HANDLER)
+    _HANDLER = logging.StreamHandler(sys.stderr)
+    _HANDLER.setFormatter(logging.Formatter(fmt))
+    root.addHandler(_HANDLER)
+    root.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
-    )
+    verbose, quiet = getattr(args, "verbose", False), getattr(args, "quiet", False)
+    level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
+    _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
+                   else "bayes-talk: %(levelname)s: %(message)s")
+    logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
+    import warnings
+
+    warnings.formatwarning = lambda message, category, *a, **k: f"{category.__name__}: {message}"
+    from bayes_talk.progress import set_enabled
+
+    set_enabled(not quiet)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+    except KeyboardInterrupt:
+        print("bayes-talk: error: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, RuntimeError) as exc:
         print(f"bayes-talk: error: {exc}", file=sys.stderr)
         return 2
 

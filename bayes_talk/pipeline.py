@@ -32,26 +32,34 @@ DESCRIPTOR = "bayes_talk_model.json"
 DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
 DESCRIPTOR_VERSION = 1
 LABEL_TOLERANCE_S = 0.08
+_DEFAULT = object()
 
 
-def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float = 25.0) -> Sequence:
+def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float = 25.0, *,
+                   sample_rate: int | None = None, cmvn: str = "off", tier: str | None = None,
+                   fmax: float | None = None) -> Sequence:
     """MFCCs and frame labels of a WAV and its HTK .lab or Praat TextGrid.
 
-    Raises ValueError naming both files when the labels and the audio disagree in length
-    by more than two frames.
+    ``sample_rate``: resample the audio to it (the model's training rate; one log line);
+    ``cmvn``: the model's cepstral normalisation (:func:`bayes_talk.audio.cmvn`); ``tier``:
+    the TextGrid tier holding the phones; ``fmax``: the model's mel filterbank edge (None:
+    sr/2, the front end of models trained before it was recorded). Raises ValueError
+    naming both files when the labels and the audio disagree in length by more than two
+    frames.
     """
+    from bayes_talk.audio import cmvn as _cmvn
     from bayes_talk.data.labels import frame_labels, read_labels
     from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
 
     wav, labels = Path(wav), Path(labels)
-    y, sr = load_wav(wav)
-    intervals = read_labels(labels)
+    y, sr = load_wav(wav, sample_rate)
+    intervals = read_labels(labels, tier=tier)
     dur, end = y.size / sr, intervals[-1][1]
     if abs(end - dur) > LABEL_TOLERANCE_S:
         raise ValueError(f"{labels}: labels end at {end:.3f} s but {wav} lasts {dur:.3f} s "
                          f"(audio and labels must describe the same utterance)")
     T = frame_count(y.size, sr, fps)
-    feats = mfcc(y, sr, T, fps=fps, where=str(wav))
+    feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn)
     return Sequence(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
 
 
@@ -70,36 +78,59 @@ def new_model(kind: str, **overrides):
 
 
 def fit_model(model, train: list[Sequence], workers: int = 2):
-    """Fit, training the switching model's states in ``workers`` processes."""
+    """Fit, training the switching model's states in ``workers`` processes (a progress bar
+    of states done / total on a terminal, bayes_talk.progress)."""
     from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.progress import ProgressMapper
 
     if isinstance(model, SwitchingSGPDM) and workers > 1:
-        with ProcessPoolExecutor(workers) as ex:
-            return model.fit(train, executor=ex)
+        import signal
+
+        # Ctrl-C is handled by the parent (bayes-talk: error: interrupted), not printed by each worker
+        with ProcessPoolExecutor(workers, initializer=signal.signal,
+                                 initargs=(signal.SIGINT, signal.SIG_IGN)) as ex:
+            return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
+    if isinstance(model, SwitchingSGPDM):
+        return model.fit(train, executor=ProgressMapper(None, "training states", "state"))
     return model.fit(train)
 
 
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
           force: bool = False, holdout: int | None = None,
-          holdout_list: str | os.PathLike | None = None, **overrides) -> Path:
+          holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
+          **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
     utterances (corpus order), or ``holdout_list``, a file naming them one a line (see
     :func:`select_holdout`). The descriptor records the held-out names (``held_out``).
+
+    ``cmvn``: per-utterance cepstral normalisation (bayes_talk.audio; "mean" by default);
+    ``fmax``: mel filterbank edge (default ``features.mfcc.FMAX_HZ``; None: sr/2, as before).
+    The bundle records the audio front end (sample rate, MFCC settings, ``cmvn``, feature
+    statistics) and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
+    last (bayes_talk.bundle).
     """
+    from bayes_talk.audio import AudioSettings, feature_statistics
+    from bayes_talk.bundle import begin_bundle, write_bundle_manifest
     from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.features import mfcc as _mf
 
     out = Path(out_dir)
     if kind not in MODEL_KINDS:
         raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
-    corpus = load_corpus(corpus_dir)
+    fmax = _mf.FMAX_HZ if fmax is _DEFAULT else fmax
+    corpus = load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax)
     train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
     corpus.sequences = train_seqs
     model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers)
     out.mkdir(parents=True, exist_ok=True)
+    begin_bundle(out, DESCRIPTOR)
+    audio = AudioSettings(sample_rate=int(corpus.sample_rate), fps=float(corpus.fps), n_mfcc=_mf.N_MFCC,
+                          window_s=_mf.WINDOW_S, n_mels=_mf.N_MELS, cmvn=cmvn, fmax=fmax).to_dict()
+    audio["feature_statistics"] = feature_statistics([s.mfcc for s in corpus.sequences])
     if kind == "sgplvm":
         model.save(out / "sgpdm")
     else:
@@ -112,7 +143,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
         "held_out": held_out,
+        "audio": audio, "bundle_manifest": True,
     })
+    write_bundle_manifest(out)
     return out
 
 
@@ -171,10 +204,13 @@ class TrainedModel:
     aam: object | None
     offset: np.ndarray
     fps: float
+    audio: object = None  # bayes_talk.audio.AudioSettings
 
 
 def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     """Load a directory written by :func:`train`; errors name the file and the problem."""
+    from bayes_talk.audio import AudioSettings
+    from bayes_talk.bundle import BUNDLE_MANIFEST, verify_bundle
     from bayes_talk.features.aam import AAM
     from bayes_talk.models.sgplvm import SGPLVM
     from bayes_talk.models.switching import SwitchingSGPDM
@@ -182,7 +218,9 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     d = Path(model_dir)
     p = d / DESCRIPTOR
     if not p.exists():
-        raise FileNotFoundError(f"{d} is not a bayes_talk model directory (no {DESCRIPTOR})")
+        extra = (" -- its save was interrupted; train it again" if (d / "arrays.npz").exists()
+                 or (d / "sgpdm").exists() else "")
+        raise FileNotFoundError(f"{d} is not a bayes_talk model directory (no {DESCRIPTOR}){extra}")
     try:
         desc = json.loads(p.read_text())
     except json.JSONDecodeError as exc:
@@ -190,18 +228,32 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     if desc.get("format") != DESCRIPTOR_FORMAT or desc.get("version") != DESCRIPTOR_VERSION:
         raise ValueError(f"{p}: format {desc.get('format')!r} version {desc.get('version')!r}; this "
                          f"bayes_talk reads {DESCRIPTOR_FORMAT!r} version {DESCRIPTOR_VERSION}")
+    if desc.get("bundle_manifest") or (d / BUNDLE_MANIFEST).exists():
+        verify_bundle(d)
+    else:
+        log.warning("%s has no %s (saved before bundles were hashed): its files cannot be checked "
+                    "to belong together", d, BUNDLE_MANIFEST)
     kind = desc["kind"]
     model = SGPLVM.load(d / "sgpdm") if kind == "sgplvm" else SwitchingSGPDM.load(d)
     aam = AAM.load(d / "aam.npz") if desc.get("has_aam") else None
-    return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)))
+    if aam is not None and aam.n_params != len(desc["aam_offset"]):
+        from bayes_talk.bundle import BundleError
+
+        raise BundleError(f"{d / 'aam.npz'}: an AAM with {aam.n_params} parameters, but the model in {d} "
+                          f"was trained on {len(desc['aam_offset'])}: the AAM does not belong to this model")
+    return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)),
+                        AudioSettings.from_dict(desc.get("audio"), where=str(d)))
 
 
 POSTERIORS = ("map", "laplace", "nuts", "emcee")
+#: every file name synth can write (docs/outputs.md)
+SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
+                      "bands.npz", "diagnostics.json")
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
           force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
-          seed: int = 0) -> dict[str, Path]:
+          seed: int = 0, tier: str | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -212,7 +264,16 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
     (``algorithm`` 1 or 2, deena2010) with the GP variance, the only choice (and the
     default) for an sgplvm model.
+    default) for an sgplvm model. A posterior whose diagnostics fail the convergence checks
+    (bayes_talk.synthesis.posterior) is logged as a WARNING and marked ``"converged": false``
+    in ``diagnostics.json``.
+
+    The audio is resampled to the model's training rate and normalised as in training
+    (bayes_talk.audio); ``tier`` names the TextGrid tier with the phones. With ``force``
+    the files of an earlier run in ``out_dir`` that this run does not write are removed
+    (only files recorded by that run; bayes_talk.bundle.OutputSet).
     """
+    from bayes_talk.bundle import OutputSet
     from bayes_talk.video import write_video
 
     tm = load_trained(model_dir)
@@ -223,13 +284,15 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
-    utt = read_utterance(wav, labels, tm.fps)
+    utt = read_utterance(wav, labels, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
+                         tier=tier, fmax=tm.audio.fmax)
     out = Path(out_dir)
+    outputs = OutputSet(out, SYNTH_OUTPUT_NAMES)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
     if posterior != "map":
         names.update(bands="bands.npz", diagnostics="diagnostics.json")
-    existing = [n for n in names.values() if (out / n).exists()]
+    existing = sorted({n for n in list(names.values()) + outputs.previous() if (out / n).exists()})
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
@@ -246,15 +309,21 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             from bayes_talk.synthesis.posterior import sample_synthesis
 
             res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
-                                   seed=seed)
+                                   seed=seed, log_warnings=False)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if posterior != "map":
         q = res.quantiles((0.5, 0.9))
         write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
                                          "lower90": q[0.9][0], "upper90": q[0.9][1]})
+        problems = list(res.warnings)
+        if problems:
+            log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
+                        "unreliable; raise --draws%s", posterior, "; ".join(problems),
+                        "" if posterior == "laplace" else " or use --posterior laplace")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
-                                                "diagnostics": res.diagnostics, "warnings": res.warnings})
+                                                "converged": not problems, "problems": problems,
+                                                "diagnostics": res.diagnostics})
         written.update(bands=out / names["bands"], diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)
@@ -269,4 +338,5 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         if video:
             write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
             written["video"] = out / names["video"]
+    outputs.commit(list(written.values()))
     return written

@@ -43,7 +43,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 25.0,
         frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2)))
     H, W = frames.shape[1:]
     kw = {"fps": fps, "codec": "libx264", "pix_fmt_in": "gray", "pix_fmt_out": "yuv420p",
-          "macro_block_size": 1, "quality": None, "output_params": ["-crf", "18"]}
+          "macro_block_size": 1, "quality": None, "output_params": ["-crf", "18"],
+          "ffmpeg_log_level": "error"}  # no "Guessed Channel Layout" notices on stderr
     if audio_path is not None:
         kw.update(audio_path=str(audio_path), audio_codec="aac", output_params=["-crf", "18", "-shortest"])
 

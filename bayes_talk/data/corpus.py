@@ -57,8 +57,8 @@ import numpy as np
 from bayes_talk.data.labels import frame_labels, read_labels, write_lab
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.features.mfcc import frame_count, load_wav, mfcc, samples_per_frame
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.features.mfcc import FMAX_HZ, frame_count, load_wav, mfcc, samples_per_frame
+from bayes_talk.files import sha256_file, write_json, write_npz
 
 __all__ = [
     "FORMAT_NAME",
@@ -127,12 +127,7 @@ def _write_json(path: Path, obj: dict) -> None:
     write_json(path, obj, sort_keys=True)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+_sha256 = sha256_file
 
 
 # ---------------------------------------------------------------------------------------
@@ -235,10 +230,12 @@ class _Workers:
         return head, arrays
 
     def map(self, op: str, tasks: list[dict]) -> list[tuple[dict, dict[str, np.ndarray]]]:
+        from bayes_talk.progress import bar
+
         ex = ThreadPoolExecutor(max_workers=max(1, len(self._procs)))
         try:
             futures = [ex.submit(self._call, op, a) for a in tasks]
-            return [f.result() for f in futures]
+            return [f.result() for f in bar(futures, len(futures), _PROGRESS.get(op, op), "utt")]
         finally:  # on an error, do not start the remaining tasks
             ex.shutdown(wait=True, cancel_futures=True)
 
@@ -273,16 +270,28 @@ def _n_workers(n_workers: int | None, n_tasks: int) -> int:
 
 def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict],
                n_workers: int) -> list[tuple[dict, dict[str, np.ndarray]]]:
-    """``[fn(t) for t in tasks]``, in ``n_workers`` worker processes when > 1."""
+    """``[fn(t) for t in tasks]``, in ``n_workers`` worker processes when > 1 (with a
+    progress bar on a terminal, bayes_talk.progress)."""
+    from bayes_talk.progress import bar
+
     if n_workers > 1 and len(tasks) > 1:
         with _Workers(min(n_workers, len(tasks))) as w:
             return w.map(op, tasks)
     with _single_thread_blas():
-        return [fn(t) for t in tasks]
+        return [fn(t) for t in bar(tasks, len(tasks), _PROGRESS.get(op, op), "utt")]
+
+
+_PROGRESS = {"utterance": "building utterances", "features": "featurising"}
 
 
 def _worker_main() -> None:
-    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`)."""
+    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`).
+
+    Ctrl-C is the parent's to handle (it closes our stdin): ignored here, so a worker
+    never prints a KeyboardInterrupt traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)            # stray prints from libraries go to stderr, not the protocol
     sys.stdout = sys.stderr
@@ -354,7 +363,7 @@ def _features_task(a: dict) -> tuple[dict, dict]:
                landmarks=None if a["landmarks"] is None else Path(a["landmarks"]),
                features=None if a["features"] is None else Path(a["features"]))
     y, sr = load_wav(it.wav)
-    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav))
+    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ))
     frames, lm, feats = _load_visual(it)
     if feats is not None:
         vis = feats
@@ -423,7 +432,7 @@ def _check_out_dir(out_dir: Path, force: bool) -> set[str]:
     if not force:
         raise FileExistsError(
             f"{out_dir}: directory is not empty; refusing to build a corpus into it "
-            "(pass force=True / --force to overwrite the corpus files there)"
+            "(pass --force to overwrite the corpus files there)"
         )
     old = out_dir / _MANIFEST
     try:
@@ -482,17 +491,62 @@ def build_corpus(
     process, face, frames, files -- so one renders while the other waits for speech. The
     output does not depend on ``n_workers``.
     """
-    from bayes_talk.data.speech import jittered_requests
-    from bayes_talk.features.aam import AAM
+    from bayes_talk.data.text_check import check_pronounceable, check_voice
 
     out_dir = Path(out_dir)
     if int(n_utterances) < 1:
         raise ValueError(f"n_utterances: expected >= 1, found {n_utterances}")
+    if int(seed) < 0:
+        raise ValueError(f"seed: expected an integer >= 0, found {seed}")
+    check_voice(voice)
     workers = _n_workers(n_workers, int(n_utterances))
     if int(image_size) < 32:
         raise ValueError(f"image_size: expected >= 32 pixels, found {image_size}")
     texts = load_sentences(sentences, int(n_utterances))
+    check_pronounceable(texts, voice, str(sentences) if isinstance(sentences, (str, Path)) else "sentences")
     previous = _check_out_dir(out_dir, force)
+    created = _CreatedFiles(out_dir)
+    try:
+        return _build(out_dir, texts, seed, voice, image_size, previous, workers, aam_frames_per_phone,
+                      int(n_utterances))
+    except BaseException:
+        created.remove()
+        raise
+
+
+class _CreatedFiles:
+    """Files and directories under ``out_dir`` that did not exist when created; :meth:`remove`
+    deletes them again (a build that failed before writing its manifest is unusable)."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = out_dir
+        self.existed = out_dir.exists()
+        self.before = {p for p in out_dir.rglob("*")} if self.existed else set()
+
+    def remove(self) -> None:
+        import shutil
+
+        if not self.out_dir.exists() or (self.out_dir / _MANIFEST).exists():
+            return
+        if not self.existed:
+            shutil.rmtree(self.out_dir, ignore_errors=True)
+            return
+        new = sorted((p for p in self.out_dir.rglob("*") if p not in self.before),
+                     key=lambda p: len(p.parts), reverse=True)
+        for p in new:
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            elif p.exists():
+                p.unlink()
+        log.info("%s: removed the %d files of the failed build", self.out_dir, len(new))
+
+
+def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: int, previous: set[str],
+           workers: int, aam_frames_per_phone: int, n_utterances: int) -> Path:
+    """The body of :func:`build_corpus` after its checks."""
+    from bayes_talk.data.speech import jittered_requests
+    from bayes_talk.features.aam import AAM
+
     udir = out_dir / "utterances"
     udir.mkdir(parents=True, exist_ok=True)
     old_manifest = out_dir / _MANIFEST
@@ -798,6 +852,9 @@ def _load_visual(item: _Item) -> tuple[np.ndarray | None, np.ndarray | None, np.
             raise ValueError(f"{item.landmarks}: cannot read ({exc})") from exc
     if lm.ndim != 3 or lm.shape[2] != 2:
         raise ValueError(f"{item.landmarks}: expected (T, P, 2) landmarks, found shape {lm.shape}")
+    if not np.all(np.isfinite(lm)):
+        t = int(np.argwhere(~np.isfinite(lm))[0][0])
+        raise ValueError(f"{item.landmarks}: landmarks contain NaN or inf (first at frame {t})")
     if lm.shape[0] != frames.shape[0]:
         raise ValueError(f"{item.landmarks}: {lm.shape[0]} landmark frames but {item.visual} "
                          f"has {frames.shape[0]} image frames")
@@ -827,9 +884,15 @@ def _read_cache(path: Path, key: str, names: list[str]) -> dict | None:
     if "key" not in z or str(z["key"]) != key:
         return None
     try:
-        return {n: (z[f"mfcc/{n}"], z[f"visual/{n}"], z[f"labels/{n}"]) for n in names}
+        out = {n: (z[f"mfcc/{n}"], z[f"visual/{n}"], z[f"labels/{n}"]) for n in names}
     except KeyError:
         return None
+    bad = [n for n, (mf, vis, _) in out.items() if not (np.all(np.isfinite(mf)) and np.all(np.isfinite(vis)))]
+    if bad:
+        log.warning("%s: cached features of %s contain NaN or inf; recomputing them and rewriting "
+                    "the cache (delete the file to force this)", path, bad[0])
+        return None
+    return out
 
 
 def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed: int):
@@ -865,7 +928,8 @@ def _check_projectable(root: Path, kind: str, manifest: dict, items: list[_Item]
 
 def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = True,
                 seed: int = 0, n_workers: int | None = None,
-                aam: str | Path | None = None) -> Corpus:
+                aam: str | Path | None = None, cmvn: str = "mean",
+                fmax: float | None = FMAX_HZ) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Sequence` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -887,7 +951,17 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     in the training corpus's parameter space (``evaluate --test-corpus``). The frames'
     image size and landmark count must match that AAM (ValueError naming both); the
     features are cached in ``<path>/features-<aam hash>.npz``, beside the corpus's own.
+
+    ``cmvn``: per-utterance cepstral normalisation of the MFCCs (:func:`bayes_talk.audio.cmvn`:
+    "mean" by default, "mean+var" or "off"), applied after the cache (which holds the raw
+    MFCCs), so every consumer -- ``train``, ``evaluate``, the benchmarks -- sees the features
+    ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
+    ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
+    7.6 kHz; None: sr/2, the features before issue 12); part of the cache key.
     """
+    from bayes_talk.audio import cmvn as _cmvn
+
+    _cmvn(np.zeros((1, 1)), cmvn)  # validate the mode before any work
     root = Path(path)
     foreign_aam = aam
     if not root.is_dir():
@@ -943,6 +1017,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     cpath = root / _CACHE_NAME
     if aam_files and aam_files[0].parent.resolve() != root.resolve():  # a foreign AAM
         cpath = root / f"features-{_sha256(aam_files[0])[:12]}.npz"
+    if fmax is not None:  # the issue-12 front end: its own key (None keeps the older caches valid)
+        key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
@@ -951,7 +1027,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "visual": None if it.visual is None else str(it.visual),
                   "landmarks": None if it.landmarks is None else str(it.landmarks),
                   "features": None if it.features is None else str(it.features),
-                  "aam": None if aam is None else str(aam_path)} for it in items]
+                  "aam": None if aam is None else str(aam_path), "fmax": fmax} for it in items]
         if aam is not None:
             _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
         results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)))
@@ -967,7 +1043,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                     old = {}
                 if "key" not in old:
                     raise ValueError(f"{cpath}: exists and is not a bayes_talk feature cache; "
-                                     "refusing to overwrite it (pass cache=False)")
+                                     "refusing to overwrite it (move or delete that file)")
             arrays = {"key": np.array(key)}
             for n, (mf, vis, lab) in cached.items():
                 arrays[f"mfcc/{n}"], arrays[f"visual/{n}"], arrays[f"labels/{n}"] = mf, vis, lab
@@ -988,8 +1064,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
             lm = (load_npz(it.landmarks, ("landmarks",))["landmarks"] if it.landmarks.suffix == ".npz"
                   else np.load(it.landmarks, allow_pickle=False))[: it.n_frames].astype(np.float64)
         meta = dict(it.meta, intervals=list(it.intervals), aam_mean=mean,
-                    label_path=str(it.labels), mean_removed=bool(mean_removal), **gen)
-        seqs.append(Sequence(name=it.name, mfcc=mf, aam=vis - mean,
+                    label_path=str(it.labels), mean_removed=bool(mean_removal), cmvn=cmvn, **gen)
+        seqs.append(Sequence(name=it.name, mfcc=_cmvn(mf, cmvn), aam=vis - mean,
                              labels=[PHONES[i] for i in lab], landmarks=lm, audio_path=it.wav,
                              meta=meta))
     summary = manifest if kind == "built" else {"kind": "user", "audio_rate": rate, "fps": FPS,

@@ -107,6 +107,6 @@ def espeak_to_arpabet(code: str, where: str = "") -> tuple[str, ...]:
     except KeyError:
         loc = f" in {where}" if where else ""
         raise ValueError(
-            f"unknown espeak phoneme mnemonic {code!r}{loc}; no ARPAbet mapping in "
-            "bayes_talk/data/espeak_phones.py (add it to ESPEAK_TO_ARPABET)"
+            f"espeak-ng produced phoneme {code!r}{loc}, which has no equivalent in bayes_talk's "
+            "English phone set (ARPAbet 39); rephrase or drop that sentence, and use an English voice"
         ) from None

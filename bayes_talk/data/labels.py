@@ -33,6 +33,7 @@ from bayes_talk.files import write_text
 
 __all__ = [
     "Interval",
+    "choose_tier",
     "frame_labels",
     "normalize_phone",
     "read_lab",
@@ -192,6 +193,16 @@ def read_textgrid_tiers(path: str | Path) -> dict[str, list]:
         pos += 1
         return v
 
+    def count(what: str) -> int:
+        v = take("n", what)
+        try:
+            n = int(v)
+        except ValueError:
+            raise ValueError(f"{path}: malformed TextGrid, {what} must be a whole number, found {v!r}") from None
+        if n < 0:
+            raise ValueError(f"{path}: malformed TextGrid, {what} must be >= 0, found {n}")
+        return n
+
     if take("s", "'ooTextFile'") != "ooTextFile" or take("s", "'TextGrid'") != "TextGrid":
         raise ValueError(f"{path}: not a Praat TextGrid text file (expected File type "
                          "'ooTextFile', Object class 'TextGrid')")
@@ -199,14 +210,14 @@ def read_textgrid_tiers(path: str | Path) -> dict[str, list]:
     take("n", "xmax")
     if take("f", "<exists>") != "<exists>":
         return {}
-    n_tiers = int(take("n", "tier count"))
+    n_tiers = count("tier count")
     tiers: dict[str, list] = {}
     for _ in range(n_tiers):
         cls = take("s", "tier class")
         name = take("s", "tier name")
         take("n", "tier xmin")
         take("n", "tier xmax")
-        n = int(take("n", "item count"))
+        n = count("item count")
         items: list = []
         for _ in range(n):
             if cls == "IntervalTier":
@@ -223,21 +234,56 @@ def read_textgrid_tiers(path: str | Path) -> dict[str, list]:
     return tiers
 
 
-def read_textgrid(path: str | Path, tier: str | None = None) -> list[Interval]:
-    """Intervals of one IntervalTier: ``tier`` by name, else ``phones``/``phone`` if
-    present, else the first IntervalTier. Labels are returned as is (``""`` included)."""
-    path = Path(path)
+_PHONE_TIER_NAMES = ("phones", "phone", "Phones", "phonemes")
+
+
+def _interval_tiers(path: Path) -> dict[str, list]:
     tiers = {k: v for k, v in read_textgrid_tiers(path).items()
              if not (v and v[0][0] == "point")}
     if not tiers:
         raise ValueError(f"{path}: TextGrid has no IntervalTier")
-    if tier is None:
-        tier = next((t for t in ("phones", "phone", "Phones", "phonemes") if t in tiers),
-                    next(iter(tiers)))
-    if tier not in tiers:
-        raise ValueError(f"{path}: no IntervalTier named {tier!r}; found {sorted(tiers)}")
-    out = [(float(s), float(e), str(t)) for s, e, t in tiers[tier]]
-    validate_intervals(out, str(path), phones=False, tol=1e-9)
+    return tiers
+
+
+def _all_phones(items: list) -> bool:
+    from bayes_talk.data.phones import PHONES
+
+    return bool(items) and all(normalize_phone(str(t)) in PHONES for _, _, t in items)
+
+
+def choose_tier(path: str | Path, tiers: dict[str, list], tier: str | None = None,
+                phones: bool = False) -> str:
+    """The name of the tier to read: ``tier`` if given; else one named ``phones``/``phone``/
+    ``Phones``/``phonemes``; else (``phones=True``) the first IntervalTier whose labels are
+    all known phones; else the first IntervalTier."""
+    if tier is not None:
+        if tier not in tiers:
+            raise ValueError(f"{path}: no IntervalTier named {tier!r}; found {sorted(tiers)}")
+        return tier
+    named = next((t for t in _PHONE_TIER_NAMES if t in tiers), None)
+    if named is not None:
+        return named
+    if phones:
+        ok = [t for t, items in tiers.items() if _all_phones(items)]
+        if ok:
+            return ok[0]
+    return next(iter(tiers))
+
+
+def read_textgrid(path: str | Path, tier: str | None = None) -> list[Interval]:
+    """Intervals of one IntervalTier (see :func:`choose_tier`). Labels are returned as is
+    (``""`` included); a tier without intervals is an error naming it."""
+    path = Path(path)
+    tiers = _interval_tiers(path)
+    name = choose_tier(path, tiers, tier)
+    return _tier_intervals(path, tiers, name)
+
+
+def _tier_intervals(path: Path, tiers: dict[str, list], name: str) -> list[Interval]:
+    if not tiers[name]:
+        raise ValueError(f"{path}: tier {name!r} has no intervals (tiers: {sorted(tiers)})")
+    out = [(float(s), float(e), str(t)) for s, e, t in tiers[name]]
+    validate_intervals(out, f"{path} (tier {name!r})", phones=False, tol=1e-9)
     return out
 
 
@@ -265,19 +311,30 @@ def write_textgrid(path: str | Path, intervals: list[Interval], tier: str = "pho
     write_text(path, "\n".join(lines) + "\n")
 
 
-def read_labels(path: str | Path) -> list[Interval]:
+def read_labels(path: str | Path, tier: str | None = None) -> list[Interval]:
     """Read ``.lab`` or ``.TextGrid`` by extension, normalise with :func:`normalize_phone`,
-    and validate every phone (errors name the file)."""
+    and validate every phone (errors name the file, and for a TextGrid the tier read).
+
+    ``tier``: the TextGrid tier holding the phones (default: see :func:`choose_tier`,
+    which skips a leading ``words`` tier by picking the first tier of known phones).
+    An empty label file or tier is an error.
+    """
     path = Path(path)
     ext = path.suffix.lower()
+    where = str(path)
     if ext == ".lab":
+        if tier is not None:
+            raise ValueError(f"{path}: --tier applies to TextGrid files; an HTK .lab file has one tier")
         raw = read_lab(path)
     elif ext == ".textgrid":
-        raw = read_textgrid(path)
+        tiers = _interval_tiers(path)
+        name = choose_tier(path, tiers, tier, phones=True)
+        raw = _tier_intervals(path, tiers, name)
+        where = f"{path} (tier {name!r} of {sorted(tiers)}; choose another with --tier NAME)"
     else:
         raise ValueError(f"{path}: unknown label format {path.suffix!r}; expected .lab or .TextGrid")
     out = [(s, e, normalize_phone(lab)) for s, e, lab in raw]
-    validate_intervals(out, str(path), phones=True, tol=1e-9)
+    validate_intervals(out, where, phones=True, tol=1e-9)
     return out
 
 

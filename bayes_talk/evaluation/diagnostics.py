@@ -77,4 +77,28 @@ def summarise_segments(per_segment: list[dict]) -> dict:
     return out
 
 
-__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "summarise_segments"]
+#: thresholds of :func:`convergence_problems` (Vehtari et al. 2021): rank R-hat at most
+#: this, bulk and tail ESS at least ESS_MIN, no divergent transition
+RHAT_MAX = 1.01
+ESS_MIN = 400.0
+
+
+def convergence_problems(diag: dict) -> list[str]:
+    """The failed checks of a sampler run's diagnostics, in words: R-hat above
+    :data:`RHAT_MAX`, bulk or tail ESS below :data:`ESS_MIN`, any divergent transition.
+    Only the keys present are checked ([] for a run without chains, e.g. Laplace)."""
+    out = []
+    r = diag.get("rhat_max")
+    if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
+        out.append(f"R-hat {r:.3g} > {RHAT_MAX}")
+    for key, what in (("ess_bulk_min", "bulk"), ("ess_tail_min", "tail")):
+        e = diag.get(key)
+        if e is not None and (not np.isfinite(e) or e < ESS_MIN):
+            out.append(f"{what} ESS {e:.3g} < {ESS_MIN:g}")
+    dv = diag.get("divergences")
+    if dv:
+        out.append(f"{int(dv)} divergent transitions")
+    return out
+
+
+__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "convergence_problems", "summarise_segments"]

@@ -207,6 +207,29 @@ def get_protocol(name: str, quick: bool = False, seed: int | None = None, **syst
     return p
 
 
+def scale_protocol(protocol: Protocol, n_items: int, min_utterances: int) -> tuple[Protocol, str | None]:
+    """``protocol`` for a corpus of ``n_items`` utterances: unchanged (note None) if it has
+    enough; else, if ``n_items >= min_utterances``, its split scaled down in proportion
+    (repeats/holdout: train and test shares kept, at least 1 test and 2 training
+    utterances; k-fold: ``n_use`` = all, folds capped at ``n_items``) and a note saying so
+    for the report; else ValueError naming both numbers."""
+    p = protocol
+    if n_items >= p.n_needed:
+        return p, None
+    if n_items < max(int(min_utterances), 3):
+        raise ValueError(f"protocol {p.name} needs {p.n_needed} utterances; the corpus has {n_items}, "
+                         f"fewer than --min-utterances {min_utterances} (and at least 3 are needed)")
+    if p.scheme == "kfold":
+        q = replace(p, n_use=None, n_folds=min(p.n_folds, n_items))
+    else:
+        n_test = min(max(1, round(n_items * p.n_test / p.n_needed)), n_items - 2)
+        q = replace(p, n_train=n_items - n_test, n_test=n_test)
+    note = (f"SMALL CORPUS: {p.name} needs {p.n_needed} utterances, the corpus has {n_items}; the split was "
+            f"scaled to it (--min-utterances {min_utterances}): {q.describe()}. Not the paper's protocol; "
+            "numbers from so few utterances are noisy and not comparable with the full protocol's")
+    return q, note
+
+
 @dataclass(frozen=True)
 class Split:
     """Indices into the utterance list: ``train`` and ``test`` (disjoint)."""
@@ -489,11 +512,17 @@ def evaluate(
     figures: bool = True,
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
+    min_utterances: int | None = None,
+    cmvn: str = "mean",
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
 
     lowpass_hz: apply deena2010's zero-phase low-pass to every method's predicted mean
     (recorded in the JSON under ``settings``); None: off, the protocols' default.
+    min_utterances: let a corpus smaller than the protocol needs (but with at least this
+    many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
+    JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
+    normalisation of both corpora's MFCCs (``load_corpus(cmvn=...)``; "mean" as ``train``).
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -509,16 +538,19 @@ def evaluate(
     names = resolve_methods(methods, proto.default_methods)
     out = check_writable(json_path)
     t0 = time.perf_counter()
-    train_c = load_corpus(corpus)
+    train_c = load_corpus(corpus, cmvn=cmvn)
     test_c = None
     if test_corpus is not None:
         # score the test frames in the training corpus's AAM space: project them through it
         try:
-            test_c = load_corpus(test_corpus, aam=train_c.aam_path)
+            test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn)
         except ValueError as exc:
             raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
                              f"{corpus}: {exc}") from exc
     load_s = time.perf_counter() - t0
+    small_note = None
+    if min_utterances is not None and test_c is None:
+        proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
 
     def phone_set(c):
         return list(c.manifest.get("phone_set", PHONES))
@@ -532,6 +564,10 @@ def evaluate(
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
                                if train_c.aam_path is not None else "the test corpus's precomputed features")
     result["load_seconds"] = load_s
+    result["cmvn"] = cmvn
+    if small_note:
+        result["warnings"] = [*(result.get("warnings") or []), small_note]
+        result["scaled_for_small_corpus"] = True
     md_path = out.with_suffix(".md")
     png_path = out.with_name(out.stem + "_trajectories.png")
     result["outputs"] = {"json": out.name, "markdown": md_path.name, "figure": png_path.name if figures else None}

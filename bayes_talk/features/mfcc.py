@@ -25,11 +25,17 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
+__all__ = ["FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
 
 N_MFCC = 20
 WINDOW_S = 0.060
 N_MELS = 40
+#: upper edge of the mel filterbank (Hz): 7.6 kHz, inside the pass band of a 16 kHz
+#: recording (soxr keeps ~0.95 of its 8 kHz Nyquist), so that a model's features do not
+#: change with the recording's rate (issue 12; before, sr/2 -- and 8 kHz still moved the
+#: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
+#: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
+FMAX_HZ = 7600.0
 
 
 def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
@@ -52,19 +58,21 @@ def frame_count(n_samples: int, sample_rate: int, fps: float = 25.0) -> int:
 
 def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: float = 25.0,
          n_mfcc: int = N_MFCC, window_s: float = WINDOW_S, n_mels: int = N_MELS,
-         where: str = "audio") -> np.ndarray:
+         where: str = "audio", fmax: float | None = FMAX_HZ) -> np.ndarray:
     """MFCCs aligned to video frames; returns ``(n_frames, n_mfcc)`` float64.
 
     ``y``: mono waveform (float in [-1, 1], or int16 scaled by 1/32768; a 2-D (n, channels)
-    array is averaged over channels). ``n_frames``: default :func:`frame_count`; a smaller
-    value truncates, a larger one is an error. ``where`` names the source in errors.
+    array is downmixed by :func:`bayes_talk.audio.downmix`). ``n_frames``: default
+    :func:`frame_count`; a smaller value truncates, a larger one is an error. ``where`` names the source in errors.
     """
     y = np.asarray(y)
     if y.dtype == np.int16:
         y = y.astype(np.float64) / 32768.0
     y = np.asarray(y, dtype=np.float64)
     if y.ndim == 2:
-        y = y.mean(axis=1)
+        from bayes_talk.audio import downmix
+
+        y = downmix(y, where)
     if y.ndim != 1:
         raise ValueError(f"{where}: expected a 1-D waveform (or (n, channels)), found shape {y.shape}")
     if y.size == 0:
@@ -92,31 +100,24 @@ def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: f
     right = max(0, need - pad - y.size)
     yp = np.concatenate([np.zeros(pad), y, np.zeros(right)])
     m = librosa.feature.mfcc(y=yp, sr=sample_rate, n_mfcc=n_mfcc, n_fft=win, win_length=win,
-                             hop_length=hop, window="hann", center=False, n_mels=n_mels)
+                             hop_length=hop, window="hann", center=False, n_mels=n_mels,
+                             fmax=None if fmax is None else min(float(fmax), sample_rate / 2))
     out = np.ascontiguousarray(m.T[:n_frames], dtype=np.float64)
     if out.shape[0] != n_frames:  # pragma: no cover - guarded by the padding above
         raise RuntimeError(f"{where}: librosa returned {out.shape[0]} frames, expected {n_frames}")
     return out
 
 
-def load_wav(path: str | Path) -> tuple[np.ndarray, int]:
+def load_wav(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarray, int]:
     """Read a WAV (any soundfile-readable file) as float64 mono in [-1, 1] and its rate.
 
+    Several channels are downmixed by :func:`bayes_talk.audio.downmix` (average when
+    correlated, else the loudest channel); ``target_sr``: resample to it (one log line).
     Errors name the file: unreadable, empty, or non-finite audio raise ValueError.
     """
-    import soundfile as sf
+    from bayes_talk.audio import load_audio
 
-    path = Path(path)
-    try:
-        y, sr = sf.read(str(path), dtype="float64", always_2d=True)
-    except Exception as exc:  # soundfile raises LibsndfileError / RuntimeError / OSError
-        raise ValueError(f"{path}: cannot read audio ({exc})") from exc
-    y = y.mean(axis=1)
-    if y.size == 0:
-        raise ValueError(f"{path}: empty audio (0 samples)")
-    if not np.all(np.isfinite(y)):
-        raise ValueError(f"{path}: audio contains NaN or inf")
-    return y, int(sr)
+    return load_audio(path, target_sr)
 
 
 def mfcc_from_wav(path: str | Path, n_frames: int | None = None, fps: float = 25.0) -> np.ndarray:

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from bayes_talk.evaluation.diagnostics import chain_diagnostics
+from bayes_talk.evaluation.diagnostics import chain_diagnostics, convergence_problems
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
@@ -55,8 +55,6 @@ MAP_MAX_ITER = 100
 MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
-#: convergence thresholds of the samplers (Vehtari et al. 2021)
-RHAT_MAX, ESS_MIN = 1.01, 400
 
 
 @dataclass
@@ -228,6 +226,7 @@ def sample_synthesis(
     map_iter: int = MAP_MAX_ITER,
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
+    log_warnings: bool = True,
 ) -> PosteriorSynthesis:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
@@ -237,6 +236,7 @@ def sample_synthesis(
     map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
     sampler_kw: extra keywords for the sampler (``target_accept``, ``max_tree_depth``,
         ``n_walkers``, ...).
+    log_warnings: log every failed convergence check (also kept in ``.warnings``).
     """
     if method not in POSTERIOR_METHODS:
         raise ValueError(f"method must be one of {POSTERIOR_METHODS}, got {method!r}")
@@ -251,8 +251,9 @@ def sample_synthesis(
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
                       emcee_thin, dict(sampler_kw or {}))
     res.seconds = time.perf_counter() - t0
-    for w in res.warnings:
-        log.warning("%s", w)
+    if log_warnings:
+        for w in res.warnings:
+            log.warning("%s", w)
     return res
 
 
@@ -368,15 +369,9 @@ def _sampler_diagnostics(draws: Draws) -> dict:
 
 
 def _convergence_warnings(method: str, diag: dict) -> list[str]:
-    """Failed thresholds (R-hat ≤ 1.01, bulk and tail ESS ≥ 400, no divergences), in words."""
-    fails = []
-    if not diag.get("rhat_max", np.inf) <= RHAT_MAX:
-        fails.append(f"R-hat {diag.get('rhat_max', float('nan')):.3g} > {RHAT_MAX}")
-    for k in ("ess_bulk_min", "ess_tail_min"):
-        if not diag.get(k, 0.0) >= ESS_MIN:
-            fails.append(f"{k.replace('_min', '').replace('_', ' ')} ESS {diag.get(k, float('nan')):.3g} < {ESS_MIN}")
-    if diag.get("divergences", 0) > 0:
-        fails.append(f"{diag['divergences']} divergent transitions")
+    """The failed sampler checks (:func:`~bayes_talk.evaluation.diagnostics.convergence_problems`)
+    as one warning."""
+    fails = convergence_problems(diag)
     if not fails:
         return []
     return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; "

@@ -1,0 +1,161 @@
+"""Audio from real recordings: downmix, resampling and cepstral normalisation.
+
+Everything that makes the MFCC features of :mod:`bayes_talk.features.mfcc` independent of
+how a recording was made, applied identically when a model is trained (``load_corpus``)
+and when it synthesises (``pipeline.read_utterance``):
+
+* **Downmix** (:func:`downmix`). A multi-channel recording becomes one channel by this
+  rule: if every channel is strongly positively correlated with the loudest one (Pearson
+  r >= ``CORRELATED_R`` = 0.5) the channels carry the same source and are *averaged*
+  (noise averages out, level kept); otherwise the *loudest channel* (largest mean square)
+  is kept. So a recording with one silent (or uncorrelated, or phase-inverted) channel is
+  not halved or cancelled, and dual-mono stays what it is.
+* **Resampling** (:func:`resample`). The sample rate a model was trained at is recorded
+  in its bundle; audio at another rate is resampled to it with ``soxr`` (VHQ), with one
+  INFO/WARNING log line. Without it the mel filterbank (0..sr/2) would cover other
+  frequencies and the features would move as much as with silence.
+* **Cepstral mean (and variance) normalisation** (:func:`cmvn`), per utterance: subtract
+  each coefficient's mean over the utterance (``"mean"``), and also divide by its standard
+  deviation (``"mean+var"``). A gain change g scales every mel-band power by g², i.e. adds
+  20 log10 g dB to every log band energy; the orthonormal DCT-II maps a constant to c0 only,
+  so gain is exactly a shift of c0 -- which the mean removal takes out. The option is a
+  model setting recorded in the bundle (``"mean"`` by default for new models; models
+  trained before it was recorded read as ``"off"``).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bayes_talk.features.mfcc import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+
+__all__ = ["CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings", "cmvn", "downmix",
+           "feature_statistics", "load_audio", "resample"]
+
+log = logging.getLogger(__name__)
+
+CMVN_MODES = ("off", "mean", "mean+var")
+DEFAULT_CMVN = "mean"
+CORRELATED_R = 0.5
+_VAR_FLOOR = 1e-8
+
+
+def downmix(y: np.ndarray, where: str = "audio") -> np.ndarray:
+    """One channel from ``(n,)`` or ``(n, channels)`` audio by the rule in the module docstring."""
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim == 1:
+        return y
+    if y.ndim != 2:
+        raise ValueError(f"{where}: expected (n,) or (n, channels) audio, found shape {y.shape}")
+    if y.shape[1] == 1:
+        return y[:, 0]
+    power = np.mean(y ** 2, axis=0)
+    loud = int(np.argmax(power))
+    if power[loud] == 0.0:
+        return y[:, loud]
+    ref = y[:, loud] - y[:, loud].mean()
+    for c in range(y.shape[1]):
+        if c == loud:
+            continue
+        x = y[:, c] - y[:, c].mean()
+        denom = np.sqrt(np.sum(x ** 2) * np.sum(ref ** 2))
+        if denom == 0.0 or np.sum(x * ref) / denom < CORRELATED_R:
+            log.info("%s: channels differ (not correlated); using channel %d, the loudest", where, loud)
+            return y[:, loud]
+    return y.mean(axis=1)
+
+
+def resample(y: np.ndarray, sr: int, target_sr: int) -> np.ndarray:
+    """``y`` at ``sr`` Hz resampled to ``target_sr`` Hz (soxr, very high quality)."""
+    if int(sr) == int(target_sr):
+        return np.asarray(y, dtype=np.float64)
+    import soxr
+
+    return np.asarray(soxr.resample(np.asarray(y, dtype=np.float64), int(sr), int(target_sr),
+                                    quality="VHQ"), dtype=np.float64)
+
+
+def load_audio(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarray, int]:
+    """Read an audio file as float64 mono (see :func:`downmix`); if ``target_sr`` is given
+    and differs from the file's rate, resample to it and say so on one log line.
+
+    Errors (ValueError) name the file: unreadable, empty, or non-finite audio.
+    """
+    import soundfile as sf
+
+    path = Path(path)
+    try:
+        y, sr = sf.read(str(path), dtype="float64", always_2d=True)
+    except Exception as exc:  # soundfile raises LibsndfileError / RuntimeError / OSError
+        raise ValueError(f"{path}: cannot read audio ({exc})") from exc
+    if y.size == 0:
+        raise ValueError(f"{path}: empty audio (0 samples)")
+    if not np.all(np.isfinite(y)):
+        raise ValueError(f"{path}: audio contains NaN or inf")
+    y = downmix(y, str(path))
+    sr = int(sr)
+    if target_sr is not None and sr != int(target_sr):
+        log.warning("%s: %d Hz audio resampled to %d Hz, the model's training rate", path, sr, int(target_sr))
+        y, sr = resample(y, sr, int(target_sr)), int(target_sr)
+    return y, sr
+
+
+def cmvn(features: np.ndarray, mode: str = DEFAULT_CMVN) -> np.ndarray:
+    """Per-utterance cepstral normalisation of ``(T, D)`` features.
+
+    ``"off"``: unchanged; ``"mean"``: ``y_t - mean_t(y)``; ``"mean+var"``: that divided by
+    the per-coefficient standard deviation over the utterance (floored at 1e-4).
+    """
+    if mode not in CMVN_MODES:
+        raise ValueError(f"cmvn: expected one of {CMVN_MODES}, found {mode!r}")
+    f = np.asarray(features, dtype=np.float64)
+    if mode == "off":
+        return f
+    out = f - f.mean(axis=0, keepdims=True)
+    if mode == "mean+var":
+        out = out / np.sqrt(np.maximum(f.var(axis=0, keepdims=True), _VAR_FLOOR))
+    return out
+
+
+def feature_statistics(features: list[np.ndarray]) -> dict[str, list[float]]:
+    """Per-dimension mean and standard deviation over all frames of ``features`` (what a
+    model saw in training; recorded in its bundle to diagnose mismatched inputs)."""
+    allf = np.vstack([np.asarray(f, dtype=np.float64) for f in features])
+    return {"mean": allf.mean(axis=0).tolist(), "std": allf.std(axis=0).tolist(),
+            "n_frames": int(allf.shape[0])}
+
+
+@dataclass(frozen=True)
+class AudioSettings:
+    """The audio front end a model was trained with (recorded in its bundle)."""
+
+    sample_rate: int
+    fps: float = 25.0
+    n_mfcc: int = N_MFCC
+    window_s: float = WINDOW_S
+    n_mels: int = N_MELS
+    cmvn: str = DEFAULT_CMVN
+    #: mel filterbank upper edge (Hz); None: sr/2, the front end before issue 12
+    fmax: float | None = FMAX_HZ
+
+    def __post_init__(self) -> None:
+        if self.cmvn not in CMVN_MODES:
+            raise ValueError(f"cmvn: expected one of {CMVN_MODES}, found {self.cmvn!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict | None, fallback_rate: int = 22050, where: str = "model") -> AudioSettings:
+        """Settings from a bundle; a model that predates recorded settings reads as the
+        built-in corpus's front end (22050 Hz, no normalisation), with a warning."""
+        if not d:
+            log.warning("%s records no audio settings (trained before they were recorded); assuming "
+                        "%d Hz, mel bands up to sr/2, no cepstral normalisation", where, fallback_rate)
+            return cls(sample_rate=int(fallback_rate), cmvn="off", fmax=None)
+        known = {k: d[k] for k in ("sample_rate", "fps", "n_mfcc", "window_s", "n_mels", "cmvn", "fmax")
+                 if k in d}
+        return cls(**known)

@@ -1,0 +1,117 @@
+"""File sets that belong together: a model bundle's hash manifest and an output set's record.
+
+Model bundle (``bayes-talk train``). After every other file of the model directory is
+written, :func:`write_bundle_manifest` writes ``bundle_manifest.json``: the SHA-256 of
+every file in the directory, written *last* and atomically. :func:`verify_bundle` refuses
+(:class:`BundleError`, a ValueError naming the file) a directory
+
+* without the manifest although its descriptor says it should have one -- a save that
+  was interrupted (``train --force`` removes the old manifest and descriptor *first*, so an
+  interrupted overwrite never looks complete), or
+* with a listed file missing or whose bytes differ -- e.g. ``arrays.npz`` or ``aam.npz``
+  copied from another model.
+
+Output set (``bayes-talk synth``). :class:`OutputSet` records in ``.bayes_talk_outputs.json``
+the files one run wrote into its output directory; the next run with ``--force`` removes
+the files of the earlier run that it does not write itself (only files listed there,
+never anything else), so the directory always holds one run's complete output.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from bayes_talk.files import sha256_file, write_json
+
+__all__ = ["BUNDLE_MANIFEST", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "sha256_file",
+           "verify_bundle", "write_bundle_manifest"]
+
+log = logging.getLogger(__name__)
+
+BUNDLE_MANIFEST = "bundle_manifest.json"
+OUTPUT_RECORD = ".bayes_talk_outputs.json"
+_FORMAT = "bayes_talk.bundle_manifest"
+
+
+class BundleError(ValueError):
+    """A model directory whose files do not belong together or whose save is incomplete."""
+
+
+def _bundle_files(directory: Path) -> list[Path]:
+    return sorted(p for p in directory.rglob("*")
+                  if p.is_file() and p.name != BUNDLE_MANIFEST and not p.name.startswith("."))
+
+
+def begin_bundle(directory: str | Path, descriptor: str) -> None:
+    """Before (over)writing a bundle: remove its manifest, then its descriptor, so that a
+    save interrupted from here on leaves a directory that refuses to load."""
+    d = Path(directory)
+    for name in (BUNDLE_MANIFEST, descriptor):
+        p = d / name
+        if p.is_file():
+            p.unlink()
+
+
+def write_bundle_manifest(directory: str | Path) -> Path:
+    """Hash every file of ``directory`` (sub-directories included) into ``bundle_manifest.json``."""
+    d = Path(directory)
+    files = {p.relative_to(d).as_posix(): sha256_file(p) for p in _bundle_files(d)}
+    return write_json(d / BUNDLE_MANIFEST, {"format": _FORMAT, "version": 1, "sha256": files})
+
+
+def verify_bundle(directory: str | Path) -> dict[str, str]:
+    """Check every file listed in the manifest against its hash; BundleError naming the
+    first file that is missing or differs (or the missing manifest itself)."""
+    d = Path(directory)
+    mp = d / BUNDLE_MANIFEST
+    if not mp.is_file():
+        raise BundleError(f"{mp} is missing: the model's save was interrupted (or the directory was "
+                          "assembled by hand); train the model again")
+    try:
+        m = json.loads(mp.read_text(encoding="utf-8"))
+        files = dict(m["sha256"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BundleError(f"{mp}: unreadable bundle manifest ({exc}); train the model again") from None
+    for rel, digest in sorted(files.items()):
+        p = d / rel
+        if ".." in Path(rel).parts or not p.is_file():
+            raise BundleError(f"{p}: listed in {mp.name} but missing; the model directory is incomplete")
+        if sha256_file(p) != digest:
+            raise BundleError(f"{p}: does not belong to this model (its SHA-256 differs from the one "
+                              f"recorded in {mp.name} when the model was saved -- copied from another "
+                              "model, or changed since); train the model again or restore the file")
+    return files
+
+
+class OutputSet:
+    """The files one run writes into ``directory``; see the module docstring."""
+
+    def __init__(self, directory: str | Path, known: tuple[str, ...] = ()) -> None:
+        self.directory = Path(directory)
+        self.record = self.directory / OUTPUT_RECORD
+        self.known = tuple(known)
+
+    def previous(self) -> list[str]:
+        """Files the previous run recorded (relative names); without a record (a run from
+        before records were kept), those of the tool's fixed output names (``known``) present."""
+        try:
+            files = json.loads(self.record.read_text(encoding="utf-8"))["files"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return [n for n in self.known if (self.directory / n).is_file()]
+        return [f for f in files if isinstance(f, str) and ".." not in Path(f).parts and "/" not in f]
+
+    def commit(self, written: list[str | Path]) -> list[str]:
+        """After a run wrote ``written``: remove the earlier run's files it did not rewrite,
+        then record the new set. Returns the names removed."""
+        names = sorted({Path(w).name for w in written})
+        removed = []
+        for old in self.previous():
+            p = self.directory / old
+            if old not in names and p.is_file():
+                p.unlink()
+                removed.append(old)
+        if removed:
+            log.info("%s: removed %s of the earlier run", self.directory, ", ".join(removed))
+        write_json(self.record, {"files": names})
+        return removed
