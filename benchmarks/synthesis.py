@@ -57,15 +57,15 @@ def main() -> None:
         perm = np.random.default_rng(args.seed).permutation(len(seqs))
         test = [seqs[i] for i in perm[:args.n_test]]
         train = [seqs[i] for i in perm[args.n_test:args.n_test + args.n_train]]
-        cfg, source = {}, str(args.corpus)
+        cfg, source, vp_kw = {}, str(args.corpus), {}
     else:
         from toydata import make_utterances
 
         train, test = make_utterances(24, seed=0), make_utterances(args.n_test, seed=1, mean_len=40)
-        cfg, source = SMALL, "tests/toydata.py"
+        cfg, source, vp_kw = SMALL, "tests/toydata.py", {"n_states": 6}  # 26 states overfit the toy
     with torch_threads(1):
         model = SwitchingSGPDM(states="vlmm", seed=args.seed, **cfg).fit(train)
-        vp = REGISTRY["voice-puppetry"](random_state=args.seed).fit(train)
+        vp = REGISTRY["voice-puppetry"](random_state=args.seed, **vp_kw).fit(train)
     systems = {
         "algorithm1": lambda s: model.synthesize(s.mfcc, s.labels),
         "joint_map": lambda s: sample_synthesis(model, s.mfcc, s.labels, method="map", seed=args.seed),
