@@ -143,6 +143,8 @@ def _user_corpus(root, data, annotate):
 def test_track_corpus_then_load_corpus(data, tmp_path):
     _frames, lm, _ = data
     root = _user_corpus(tmp_path / "c", data, "sparse")
+    with pytest.raises(ValueError, match="corpus track"):
+        load_corpus(root, cache=False)
     s = track_corpus(root, per_phone=1)
     assert s.n_annotated == 28 and not any(s.lost.values()) and not s.not_written
     for k, seq_i in enumerate((N_SEQ - 2, N_SEQ - 1)):

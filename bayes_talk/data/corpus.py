@@ -735,7 +735,9 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
         elif (root / name).is_dir() or vids:
             item.visual = root / name if (root / name).is_dir() else vids[0]
             if not lmk.exists():
-                raise ValueError(f"{item.visual}: frames need per-frame landmarks in {lmk}")
+                raise ValueError(f"{item.visual}: frames need per-frame landmarks in {lmk} "
+                                 "(with only some frames annotated, run `bayes-talk corpus track`; "
+                                 "docs/data.md)")
             item.landmarks = lmk
         else:
             raise ValueError(
@@ -782,6 +784,11 @@ def _load_visual(item: _Item) -> tuple[np.ndarray | None, np.ndarray | None, np.
             raise ValueError(f"{item.landmarks}: cannot read ({exc})") from exc
     if lm.ndim != 3 or lm.shape[2] != 2:
         raise ValueError(f"{item.landmarks}: expected (T, P, 2) landmarks, found shape {lm.shape}")
+    if not np.all(np.isfinite(lm)):
+        bad = np.flatnonzero(~np.isfinite(lm).reshape(lm.shape[0], -1).all(axis=1))
+        raise ValueError(f"{item.landmarks}: frames {bad[:10].tolist()} have no finite landmarks; "
+                         "for sparse annotations use NAME.annotations.npy and `bayes-talk corpus track` "
+                         "(docs/data.md)")
     if lm.shape[0] != frames.shape[0]:
         raise ValueError(f"{item.landmarks}: {lm.shape[0]} landmark frames but {item.visual} "
                          f"has {frames.shape[0]} image frames")

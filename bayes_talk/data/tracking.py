@@ -493,7 +493,7 @@ def sparse_copy_of_built(built: str | Path, out: str | Path,
     benchmark and the docs): ``NAME.wav``, ``NAME.lab``, ``NAME/FRAME.png`` and
     ``NAME.annotations.npy`` holding the true landmarks of the frames in ``annotate``
     (``{name: [frames]}``; default: the built AAM's prototype frames, 4 per phone) and
-    NaN elsewhere. ``out`` must not exist or be empty. Returns ``out``."""
+    NaN elsewhere (no file for a video without annotated frames; ``annotate={}``: none). ``out`` must not exist or be empty. Returns ``out``."""
     import shutil
 
     import imageio.v3 as iio
@@ -518,8 +518,9 @@ def sparse_copy_of_built(built: str | Path, out: str | Path,
         (out / name).mkdir()
         for t, img in enumerate(frames):
             write_bytes(out / name / f"{t:04d}.png", iio.imwrite("<bytes>", img, extension=".png"))
-        sparse = np.full_like(lm, np.nan)
-        for t in annotate.get(name, []):
-            sparse[t] = lm[t]
-        write_npy(out / f"{name}.annotations.npy", sparse)
+        if annotate.get(name):                   # no annotation file for a video without
+            sparse = np.full_like(lm, np.nan)
+            for t in annotate[name]:
+                sparse[t] = lm[t]
+            write_npy(out / f"{name}.annotations.npy", sparse)
     return out
