@@ -703,6 +703,16 @@ def _read_video(path: Path) -> np.ndarray:
     return np.stack(frames)
 
 
+def _label_file(root: Path, wav: Path) -> Path:
+    """The label file beside a user corpus's ``NAME.wav``: ``NAME.lab`` or ``NAME.TextGrid``."""
+    name = wav.stem
+    labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
+                        root / f"{name}.textgrid") if p.exists()]
+    if not labs:
+        raise ValueError(f"{wav}: no label file {name}.lab or {name}.TextGrid beside it")
+    return labs[0]
+
+
 def _user_items(root: Path) -> tuple[list[_Item], int]:
     wavs = sorted(root.glob("*.wav"))
     if not wavs:
@@ -712,11 +722,7 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
     rate = None
     for wav in wavs:
         name = wav.stem
-        labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
-                            root / f"{name}.textgrid") if p.exists()]
-        if not labs:
-            raise ValueError(f"{wav}: no label file {name}.lab or {name}.TextGrid beside it")
-        lab = labs[0]
+        lab = _label_file(root, wav)
         y, sr = load_wav(wav)
         samples_per_frame(sr, FPS)
         if rate is None:

@@ -51,6 +51,7 @@ from bayes_talk.data.corpus import (
     AAM_VARIANCE,
     FPS,
     _check_audio_vs_labels,
+    _label_file,
     _prototype_frames,
     _read_images,
     _read_video,
@@ -118,13 +119,10 @@ def _scan(root: Path) -> list[_Video]:
     out = []
     for wav in wavs:
         name = wav.stem
-        labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
-                            root / f"{name}.textgrid") if p.exists()]
-        if not labs:
-            raise ValueError(f"{wav}: no label file {name}.lab or {name}.TextGrid beside it")
+        lab = _label_file(root, wav)
         y, sr = load_wav(wav)
-        intervals = read_labels(labs[0])
-        _check_audio_vs_labels(wav, labs[0], y.size, sr, intervals)
+        intervals = read_labels(lab)
+        _check_audio_vs_labels(wav, lab, y.size, sr, intervals)
         T = frame_count(y.size, sr, FPS)
         vids = [root / f"{name}{e}" for e in _VIDEO_EXT if (root / f"{name}{e}").exists()]
         if (root / name).is_dir():
@@ -139,7 +137,7 @@ def _scan(root: Path) -> list[_Video]:
         if len(ann) > 1:
             raise ValueError(f"{root}: both {ann[0].name}/ and {ann[1].name} exist for {name}; "
                              "use one annotation layout per video")
-        out.append(_Video(name, wav, labs[0], T, frame_labels(intervals, T, FPS), visual,
+        out.append(_Video(name, wav, lab, T, frame_labels(intervals, T, FPS), visual,
                           ann[0] if ann else None))
     return out
 
