@@ -4,6 +4,8 @@ Sub-commands::
 
     bayes-talk corpus build OUT_DIR [--n-utterances N] [--seed S] [--sentences FILE]
                                     [--voice NAME] [--image-size PX] [--force]
+    bayes-talk corpus track DIR [--prototypes 4] [--search-unannotated] [--allow-lost]
+    bayes-talk corpus propose-prototypes DIR [--prototypes 4] [--per-video K] [--out DIR]
     bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,sgplvm} --out MODEL_DIR
     bayes-talk synth MODEL_DIR --audio X.wav --labels X.lab --out OUT_DIR
                      [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
@@ -38,6 +40,61 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
     )
     print(f"corpus written to {args.out_dir}")
     return 0
+
+
+# --- corpus track / propose-prototypes (issue #16) -----------------------------------------
+def _cmd_corpus_track(args: argparse.Namespace) -> int:
+    from bayes_talk.data.tracking import track_corpus
+
+    s = track_corpus(Path(args.dir), args.prototypes, search_unannotated=args.search_unannotated,
+                     allow_lost=args.allow_lost, lost_threshold=args.lost_threshold,
+                     seed=args.seed, force=args.force)
+    n = sum(len(v) for v in s.scores.values())
+    print(f"tracked {n} frames of {len(s.scores)} videos from {s.n_annotated} annotated frames")
+    for name, idx in s.lost.items():
+        if idx:
+            print(f"{name}: {len(idx)} lost frames: {idx}")
+    if s.not_written:
+        print("landmarks NOT written (lost frames; annotate them or pass --allow-lost): "
+              + ", ".join(s.not_written))
+        return 1
+    return 0
+
+
+def _cmd_corpus_propose(args: argparse.Namespace) -> int:
+    from bayes_talk.data.tracking import propose_prototypes
+
+    p = propose_prototypes(Path(args.dir), args.prototypes, args.out, per_video=args.per_video,
+                           seed=args.seed, force=args.force)
+    print(f"frames to annotate listed in {p}")
+    return 0
+
+
+def _add_track_parsers(csub) -> None:
+    from bayes_talk.features.aam_fit import LOST_THRESHOLD
+
+    t = csub.add_parser("track", help="AAM-track a user corpus from a few annotated frames")
+    t.add_argument("dir", help="user corpus directory (docs/data.md)")
+    t.add_argument("--prototypes", type=int, default=4,
+                   help="frames per phone to annotate (proposed if none is annotated; fewer warn)")
+    t.add_argument("--search-unannotated", action="store_true",
+                   help="search videos without an annotated frame from the mean pose")
+    t.add_argument("--allow-lost", action="store_true",
+                   help="interpolate lost frames (flagged) instead of not writing the video's landmarks")
+    t.add_argument("--lost-threshold", type=float, default=LOST_THRESHOLD,
+                   help="texture residual RMS above which a frame is lost")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--force", action="store_true", help="overwrite files track did not write")
+    t.set_defaults(func=_cmd_corpus_track)
+    q = csub.add_parser("propose-prototypes", help="write the frames to annotate as PNG images")
+    q.add_argument("dir", help="user corpus directory (docs/data.md)")
+    q.add_argument("--prototypes", type=int, default=4, help="frames per phone (deena2010: 4)")
+    q.add_argument("--per-video", type=int, default=0,
+                   help="extra random frames for each video without one")
+    q.add_argument("--out", default=None, help="output folder (default DIR/prototypes)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--force", action="store_true", help="write into a non-empty --out")
+    q.set_defaults(func=_cmd_corpus_propose)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -184,6 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--image-size", type=_positive_int, default=128, help="frame width and height, pixels")
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
     b.set_defaults(func=_cmd_corpus_build)
+    _add_track_parsers(csub)
 
     # --- train / synth -------------------------------------------------------------------
     from bayes_talk.pipeline import MODEL_KINDS

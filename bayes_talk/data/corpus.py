@@ -773,6 +773,16 @@ def _read_video(path: Path) -> np.ndarray:
     return np.stack(frames)
 
 
+def _label_file(root: Path, wav: Path) -> Path:
+    """The label file beside a user corpus's ``NAME.wav``: ``NAME.lab`` or ``NAME.TextGrid``."""
+    name = wav.stem
+    labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
+                        root / f"{name}.textgrid") if p.exists()]
+    if not labs:
+        raise ValueError(f"{wav}: no label file {name}.lab or {name}.TextGrid beside it")
+    return labs[0]
+
+
 def _user_items(root: Path) -> tuple[list[_Item], int]:
     wavs = sorted(root.glob("*.wav"))
     if not wavs:
@@ -782,11 +792,7 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
     rate = None
     for wav in wavs:
         name = wav.stem
-        labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
-                            root / f"{name}.textgrid") if p.exists()]
-        if not labs:
-            raise ValueError(f"{wav}: no label file {name}.lab or {name}.TextGrid beside it")
-        lab = labs[0]
+        lab = _label_file(root, wav)
         y, sr = load_wav(wav)
         samples_per_frame(sr, FPS)
         if rate is None:
@@ -805,7 +811,9 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
         elif (root / name).is_dir() or vids:
             item.visual = root / name if (root / name).is_dir() else vids[0]
             if not lmk.exists():
-                raise ValueError(f"{item.visual}: frames need per-frame landmarks in {lmk}")
+                raise ValueError(f"{item.visual}: frames need per-frame landmarks in {lmk} "
+                                 "(with only some frames annotated, run `bayes-talk corpus track`; "
+                                 "docs/data.md)")
             item.landmarks = lmk
         else:
             raise ValueError(
@@ -853,8 +861,10 @@ def _load_visual(item: _Item) -> tuple[np.ndarray | None, np.ndarray | None, np.
     if lm.ndim != 3 or lm.shape[2] != 2:
         raise ValueError(f"{item.landmarks}: expected (T, P, 2) landmarks, found shape {lm.shape}")
     if not np.all(np.isfinite(lm)):
-        t = int(np.argwhere(~np.isfinite(lm))[0][0])
-        raise ValueError(f"{item.landmarks}: landmarks contain NaN or inf (first at frame {t})")
+        bad = np.flatnonzero(~np.isfinite(lm).reshape(lm.shape[0], -1).all(axis=1))
+        raise ValueError(f"{item.landmarks}: landmarks contain NaN or inf (first at frame {bad[0]}); frames "
+                         f"{bad[:10].tolist()} have no finite landmarks; for sparse annotations use "
+                         "NAME.annotations.npy and `bayes-talk corpus track` (docs/data.md)")
     if lm.shape[0] != frames.shape[0]:
         raise ValueError(f"{item.landmarks}: {lm.shape[0]} landmark frames but {item.visual} "
                          f"has {frames.shape[0]} image frames")
