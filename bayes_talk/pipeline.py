@@ -80,8 +80,11 @@ def fit_model(model, train: list[Sequence], workers: int = 2):
 
 
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
-          force: bool = False, **overrides) -> Path:
-    """Train a model of ``kind`` on every utterance of a corpus and save it to ``out_dir``."""
+          force: bool = False, alignment: bool = True, **overrides) -> Path:
+    """Train a model of ``kind`` on every utterance of a corpus and save it to ``out_dir``.
+
+    ``alignment``: also fit the aligner / phone recogniser (docs/alignment.md) into the
+    same directory, so that ``synth`` runs from a transcript or from audio alone."""
     from bayes_talk.data.corpus import load_corpus
 
     out = Path(out_dir)
@@ -104,6 +107,10 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
     })
+    if alignment:  # issue 13: labels for test audio without hand-made phone labels
+        from bayes_talk.alignment.commands import fit_alignment
+
+        fit_alignment(corpus.sequences).save(out)
     return out
 
 
@@ -153,7 +160,8 @@ POSTERIORS = ("map", "laplace", "nuts", "emcee")
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
           force: bool = False, video: bool = True, posterior: str = "map", n_draws: int = 64,
-          seed: int = 0) -> dict[str, Path]:
+          seed: int = 0, text: str | None = None, transcript: str | os.PathLike | None = None,
+          align_method: str | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -162,6 +170,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     then the trajectory and variance are the posterior mixture's mean and variance, and
     ``bands.npz`` (central 50 % and 90 % bands: lower50, upper50, lower90, upper90) and
     ``diagnostics.json`` (R-hat, ESS, divergences per segment) are written too.
+
+    Without ``labels`` (issue 13): the phone labels come from aligning ``text`` (or the
+    ``transcript`` file) to the audio, or, with neither, from the phone recogniser (a
+    warning says so); they are written to ``labels.lab`` in ``out_dir``.
     """
     from bayes_talk.video import write_video
 
@@ -171,10 +183,17 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
-    utt = read_utterance(wav, labels, tm.fps)
+    derived = None
+    if labels is None:
+        derived = _derived_labels(model_dir, wav, text, transcript, align_method)
+    elif text is not None or transcript is not None:
+        raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
+    utt = read_utterance(wav, labels, tm.fps) if derived is None else _utterance_from_intervals(wav, derived, tm.fps)
     out = Path(out_dir)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
+    if derived is not None:
+        names["labels"] = "labels.lab"
     if posterior != "map":
         names.update(bands="bands.npz", diagnostics="diagnostics.json")
     existing = [n for n in names.values() if (out / n).exists()]
@@ -197,6 +216,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                    seed=seed, algorithm=algorithm)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
+    if derived is not None:
+        from bayes_talk.data.labels import write_lab
+
+        write_lab(out / names["labels"], derived)
+        written["labels"] = out / names["labels"]
     if posterior != "map":
         q = res.quantiles((0.5, 0.9))
         write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
@@ -218,3 +242,23 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
             written["video"] = out / names["video"]
     return written
+
+
+def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:
+    """Phone intervals from the alignment models of ``model_dir`` (aligner or recogniser)."""
+    from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
+
+    return label_audio(model_dir, wav, text=text, transcript=transcript,
+                       method=align_method or DEFAULT_ALIGN_METHOD).intervals
+
+
+def _utterance_from_intervals(wav, intervals, fps: float = 25.0) -> Sequence:
+    """MFCCs and frame labels of a WAV whose phone intervals were derived from its audio."""
+    from bayes_talk.data.labels import frame_labels
+    from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
+
+    wav = Path(wav)
+    y, sr = load_wav(wav)
+    T = frame_count(y.size, sr, fps)
+    return Sequence(wav.stem, mfcc(y, sr, T, fps=fps, where=str(wav)), None,
+                    frame_labels(intervals, T, fps), audio_path=wav)

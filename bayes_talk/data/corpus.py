@@ -454,6 +454,8 @@ def build_corpus(
     *,
     n_workers: int | None = None,
     aam_frames_per_phone: int = AAM_FRAMES_PER_PHONE,
+    rate: int | None = None,
+    pitch: int | None = None,
 ) -> Path:
     """Synthesise speech, faces and frames into ``out_dir`` and learn an AAM; return the path.
 
@@ -466,8 +468,11 @@ def build_corpus(
     else 1 = in this process) each take whole utterances: speech in a fresh espeak-ng
     process, face, frames, files -- so one renders while the other waits for speech. The
     output does not depend on ``n_workers``.
+
+    ``rate`` (words/min) and ``pitch`` (0-100): the centre of the per-utterance jitter
+    (None: espeak's defaults, 175 and 50) -- e.g. a held-out voice outside the training range.
     """
-    from bayes_talk.data.speech import jittered_requests
+    from bayes_talk.data.speech import DEFAULT_PITCH, DEFAULT_RATE, jittered_requests
     from bayes_talk.features.aam import AAM
 
     out_dir = Path(out_dir)
@@ -484,7 +489,9 @@ def build_corpus(
     if old_manifest.exists():  # an incomplete rebuild must not look complete
         old_manifest.unlink()
 
-    requests = jittered_requests(texts, seed, voice=voice, fps=FPS)
+    requests = jittered_requests(texts, seed, voice=voice, fps=FPS,
+                                 rate=DEFAULT_RATE if rate is None else int(rate),
+                                 pitch=DEFAULT_PITCH if pitch is None else int(pitch))
     tasks = [{"out_dir": str(out_dir), "index": i, "seed": int(seed), "image_size": int(image_size),
               "request": {"text": r.text, "voice": r.voice, "rate": int(r.rate),
                           "pitch": int(r.pitch), "lead_silence": r.lead_silence,

@@ -78,6 +78,7 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
              f"{result.get('description', '')}.\n", intro, markdown_table(result)]
     for w in result.get("warnings", []) or []:
         parts.append(f"> Warning: {w}\n")
+    parts.extend(result.get("markdown_sections", []) or [])
     fig = (result.get("outputs") or {}).get("figure")
     if fig:
         parts.append(f"![first AAM parameter, synthesis vs ground truth]({fig})\n")
