@@ -20,27 +20,35 @@ __all__ = ["edit_alignment", "score_segmentation", "summarise_scores"]
 
 
 def edit_alignment(ref: list[str], hyp: list[str]) -> tuple[int, list[tuple[int, int]]]:
-    """(edit distance, [(i_ref, i_hyp) of hits]) by dynamic programming with backtrace."""
+    """(edit distance, [(i_ref, i_hyp) of hits]) by dynamic programming with backtrace.
+
+    Among the alignments with the fewest edits, one with the most hits is chosen (cost
+    ``edits * L - hits`` with ``L = len(ref) + len(hyp) + 1``, so hits only break ties).
+    """
     n, m = len(ref), len(hyp)
+    L = n + m + 1
     D = np.zeros((n + 1, m + 1), dtype=np.int64)
-    D[:, 0] = np.arange(n + 1)
-    D[0, :] = np.arange(m + 1)
+    D[:, 0] = np.arange(n + 1) * L
+    D[0, :] = np.arange(m + 1) * L
     for i in range(1, n + 1):
         for j in range(1, m + 1):
-            D[i, j] = min(D[i - 1, j] + 1, D[i, j - 1] + 1, D[i - 1, j - 1] + (ref[i - 1] != hyp[j - 1]))
-    hits = []
+            diag = D[i - 1, j - 1] + (L if ref[i - 1] != hyp[j - 1] else -1)
+            D[i, j] = min(D[i - 1, j] + L, D[i, j - 1] + L, diag)
+    hits, edits = [], 0
     i, j = n, m
-    while i > 0 and j > 0:
-        if D[i, j] == D[i - 1, j - 1] + (ref[i - 1] != hyp[j - 1]):
+    while i > 0 or j > 0:
+        if i > 0 and j > 0 and D[i, j] == D[i - 1, j - 1] + (L if ref[i - 1] != hyp[j - 1] else -1):
             if ref[i - 1] == hyp[j - 1]:
                 hits.append((i - 1, j - 1))
+            else:
+                edits += 1
             i, j = i - 1, j - 1
-        elif D[i, j] == D[i - 1, j] + 1:
-            i -= 1
+        elif i > 0 and D[i, j] == D[i - 1, j] + L:
+            i, edits = i - 1, edits + 1
         else:
-            j -= 1
+            j, edits = j - 1, edits + 1
     hits.reverse()
-    return int(D[n, m]), hits
+    return edits, hits
 
 
 def score_segmentation(ref: list[tuple[float, float, str]], hyp: list[tuple[float, float, str]],
