@@ -49,7 +49,7 @@ def test_viterbi_chain_matches_brute_force_and_is_a_valid_path():
     assert score == pytest.approx(_chain_brute(logb, stay, move))
     assert path[0] == 0 and path[-1] == S - 1 and set(np.diff(path)) <= {0, 1}
     rescored = logb[0, 0] + sum((move if b > a else stay)[a] + logb[t + 1, b]
-                                for t, (a, b) in enumerate(zip(path[:-1], path[1:])))
+                                for t, (a, b) in enumerate(itertools.pairwise(path)))
     assert rescored == pytest.approx(score)
     assert viterbi_chain(logb[:3], stay, move)[1] == -np.inf        # fewer frames than states
 
@@ -85,7 +85,7 @@ def test_viterbi_phone_loop_matches_brute_force():
         if ok:
             best = max(best, sc)
     assert score == pytest.approx(best)
-    assert segs[0][1] == 0 and segs[-1][2] == T and all(a[2] == b[1] for a, b in zip(segs, segs[1:]))
+    assert segs[0][1] == 0 and segs[-1][2] == T and all(a[2] == b[1] for a, b in itertools.pairwise(segs))
 
 
 def test_edit_alignment_counts_edits_and_hits():

@@ -19,7 +19,12 @@ from bayes_talk.alignment.errors import (
     TranscriptTooLongError,
     UnpronounceableWordError,
 )
-from bayes_talk.alignment.model import ALIGN_METHODS, AlignmentModel, AlignmentResult, load_alignment_model
+from bayes_talk.alignment.model import (
+    ALIGN_METHODS,
+    AlignmentModel,
+    AlignmentResult,
+    load_alignment_model,
+)
 
 __all__ = ["ALIGN_METHODS", "AlignmentError", "AlignmentModel", "AlignmentResult",
            "EmptyTranscriptError", "MissingAlignmentModelError", "TranscriptTooLongError",

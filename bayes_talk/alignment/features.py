@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FeatureConfig", "alignment_features", "frame_times", "label_frames", "load_audio"]
+__all__ = ["FeatureConfig", "alignment_features", "features_from_power", "frame_times", "label_frames",
+           "load_audio", "power_spectrum"]
 
 N_MFCC = 13
 
@@ -29,7 +30,7 @@ class FeatureConfig:
     def __init__(self, sample_rate: int = 22050, hop_s: float = 0.01, n_fft_s: float = 0.023,
                  n_mfcc: int = N_MFCC, n_mels: int = 40) -> None:
         self.sample_rate = int(sample_rate)
-        self.hop = int(round(hop_s * sample_rate))
+        self.hop = round(hop_s * sample_rate)
         self.n_fft = int(2 ** np.ceil(np.log2(n_fft_s * sample_rate)))
         self.n_mfcc = int(n_mfcc)
         self.n_mels = int(n_mels)
@@ -43,7 +44,7 @@ class FeatureConfig:
                 "n_mfcc": self.n_mfcc, "n_mels": self.n_mels}
 
     @classmethod
-    def from_json(cls, d: dict) -> "FeatureConfig":
+    def from_json(cls, d: dict) -> FeatureConfig:
         c = cls(d["sample_rate"])
         c.hop, c.n_fft, c.n_mfcc, c.n_mels = int(d["hop"]), int(d["n_fft"]), int(d["n_mfcc"]), int(d["n_mels"])
         return c
@@ -61,19 +62,35 @@ def load_audio(path: str | Path, sample_rate: int) -> np.ndarray:
     return y
 
 
-def alignment_features(y: np.ndarray, cfg: FeatureConfig, where: str = "audio") -> np.ndarray:
-    """(T, 3 * n_mfcc) float64 CMVN-normalised MFCC + delta + delta-delta, T = 1 + n // hop."""
+def alignment_features(y: np.ndarray, cfg: FeatureConfig, where: str = "audio", warp: float = 1.0) -> np.ndarray:
+    """(T, 3 * n_mfcc) float64 CMVN-normalised MFCC + delta + delta-delta, T = 1 + n // hop.
+
+    ``warp``: vocal-tract-length normalisation factor: the mel filters are laid out as for
+    a sample rate ``warp * sr``, so the filter of centre frequency f reads the audio at
+    ``f / warp``: ``warp < 1`` reads a voice whose formants are ``1 / warp`` times higher
+    (a shorter vocal tract) as if it were the training voice.
+    """
+    return features_from_power(power_spectrum(y, cfg, where), cfg, where, warp)
+
+
+def power_spectrum(y: np.ndarray, cfg: FeatureConfig, where: str = "audio") -> np.ndarray:
+    """(1 + n_fft / 2, T) power spectrogram (``librosa.stft``, Hann, centred frames)."""
     import librosa
 
     y = np.asarray(y, dtype=np.float64)
-    if y.dtype == np.int16:  # pragma: no cover - callers pass floats
-        y = y / 32768.0
     if y.ndim != 1 or y.size < cfg.hop:
         raise ValueError(f"{where}: expected a mono waveform of at least {cfg.hop} samples, found shape {y.shape}")
+    return np.abs(librosa.stft(y, n_fft=cfg.n_fft, hop_length=cfg.hop, center=True)) ** 2
+
+
+def features_from_power(spec: np.ndarray, cfg: FeatureConfig, where: str = "audio",
+                        warp: float = 1.0) -> np.ndarray:
+    """:func:`alignment_features` from a :func:`power_spectrum` (shared across warps)."""
+    import librosa
+
     # = librosa.feature.mfcc(y=y, sr=..., n_fft=..., hop_length=..., n_mels=...), with the
     # mel projection as one matrix product (librosa's einsum took 60 ms of the 80 ms)
-    spec = np.abs(librosa.stft(y, n_fft=cfg.n_fft, hop_length=cfg.hop, center=True)) ** 2
-    mel = _mel_basis(cfg.sample_rate, cfg.n_fft, cfg.n_mels) @ spec
+    mel = _mel_basis(cfg.sample_rate, cfg.n_fft, cfg.n_mels, float(warp)) @ spec
     m = librosa.feature.mfcc(S=librosa.power_to_db(mel), n_mfcc=cfg.n_mfcc)
     n = m.shape[1]
     width = min(9, n if n % 2 else n - 1)  # librosa.feature.delta: odd width <= n frames
@@ -87,10 +104,14 @@ def alignment_features(y: np.ndarray, cfg: FeatureConfig, where: str = "audio") 
 
 
 @functools.lru_cache(maxsize=8)
-def _mel_basis(sr: int, n_fft: int, n_mels: int) -> np.ndarray:
+def _mel_basis(sr: int, n_fft: int, n_mels: int, warp: float = 1.0) -> np.ndarray:
     import librosa
 
-    return librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=n_mels).astype(np.float64)
+    if warp == 1.0:
+        return librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=n_mels).astype(np.float64)
+    # filters of a (warp * sr) grid on this FFT's bins: centre f lands on bin f n_fft / (warp sr);
+    # with warp > 1 the top filters reach beyond Nyquist and are cut there
+    return librosa.filters.mel(sr=sr * warp, n_fft=n_fft, n_mels=n_mels).astype(np.float64)
 
 
 def frame_times(n_frames: int, cfg: FeatureConfig) -> np.ndarray:

@@ -53,7 +53,7 @@ class PhoneHMMs:
         self.phones = tuple(phones)
 
     # ------------------------------------------------------------------ fitting
-    def fit(self, segments: dict[str, list[np.ndarray]]) -> "PhoneHMMs":
+    def fit(self, segments: dict[str, list[np.ndarray]]) -> PhoneHMMs:
         """Fit every phone's HMM on its list of (n_i, D) feature segments.
 
         A phone without segments gets the pooled mean/variance of all frames (and a
@@ -140,7 +140,7 @@ class PhoneHMMs:
                 "hmm_log_move": self.log_move_, "hmm_counts": self.counts_}
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], phones: tuple[str, ...]) -> "PhoneHMMs":
+    def from_arrays(cls, arrays: dict[str, np.ndarray], phones: tuple[str, ...]) -> PhoneHMMs:
         self = cls(phones=tuple(phones))
         self.means_ = np.asarray(arrays["hmm_means"], dtype=np.float64)
         self.vars_ = np.asarray(arrays["hmm_vars"], dtype=np.float64)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bayes_talk.alignment.errors import EmptyTranscriptError, UnpronounceableWordError
 
-__all__ = ["check_transcript", "read_transcript", "transcript_phones", "synthesise_transcript"]
+__all__ = ["check_transcript", "read_transcript", "synthesise_transcript", "transcript_phones"]
 
 _WORD = re.compile(r"\S+")
 
