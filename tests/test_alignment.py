@@ -201,3 +201,11 @@ def test_label_sources_relabel_the_test_utterances_only(small):
         assert np.array_equal(a.mfcc, b.mfcc) and np.array_equal(a.aam, b.aam) and len(b.labels) == a.n_frames
         assert b.meta["true_intervals"] == [tuple(iv) for iv in a.meta["intervals"]]
     assert json.dumps(seg)                                          # JSON-ready
+
+
+def test_corpus_build_centres_rate_and_pitch_jitter_where_asked(tmp_path):
+    out = tmp_path / "f3"
+    assert main(["corpus", "build", str(out), "--n-utterances", "2", "--seed", "1", "--voice", "en+f3",
+                 "--rate", "215", "--pitch", "70"]) == 0
+    seqs = json.loads((out / "manifest.json").read_text())["sequences"]
+    assert all(200 <= s["rate"] <= 230 and 62 <= s["pitch"] <= 78 and s["voice"] == "en+f3" for s in seqs)
