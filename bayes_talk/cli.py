@@ -11,6 +11,9 @@ Sub-commands::
                      [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR ...
     bayes-talk demo [--out DIR]
+    bayes-talk align WAV --model MODEL_DIR (--text "..." | --transcript FILE) --out X.lab|X.TextGrid
+    bayes-talk recognise WAV --model MODEL_DIR --out X.lab|X.TextGrid
+    bayes-talk align-train CORPUS_DIR --model-dir MODEL_DIR
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR
                         [--test-corpus DIR] [--methods a,b,...] [--quick] [--seed S]
                         [--no-figures] --json OUT.json
@@ -37,6 +40,8 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         voice=args.voice,
         image_size=args.image_size,
         force=args.force,
+        rate=args.rate,
+        pitch=args.pitch,
     )
     print(f"corpus written to {args.out_dir}")
     return 0
@@ -73,7 +78,7 @@ def _cmd_corpus_propose(args: argparse.Namespace) -> int:
 def _add_track_parsers(csub) -> None:
     from bayes_talk.features.aam_fit import LOST_THRESHOLD
 
-    t = csub.add_parser("track", help="AAM-track a user corpus from a few annotated frames")
+    t = csub.add_parser("track", help="AAM-track a user corpus from a few annotated frames", **_SUB_KW)
     t.add_argument("dir", help="user corpus directory (docs/data.md)")
     t.add_argument("--prototypes", type=int, default=4,
                    help="frames per phone to annotate (proposed if none is annotated; fewer warn)")
@@ -86,7 +91,7 @@ def _add_track_parsers(csub) -> None:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--force", action="store_true", help="overwrite files track did not write")
     t.set_defaults(func=_cmd_corpus_track)
-    q = csub.add_parser("propose-prototypes", help="write the frames to annotate as PNG images")
+    q = csub.add_parser("propose-prototypes", help="write the frames to annotate as PNG images", **_SUB_KW)
     q.add_argument("dir", help="user corpus directory (docs/data.md)")
     q.add_argument("--prototypes", type=int, default=4, help="frames per phone (deena2010: 4)")
     q.add_argument("--per-video", type=int, default=0,
@@ -111,7 +116,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
-                    n_draws=args.draws, seed=args.seed, tier=args.tier)
+                    n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
+                    transcript=args.transcript, align_method=args.align_method)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -131,7 +137,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
-                      min_utterances=args.min_utterances, cmvn=args.cmvn)
+                      min_utterances=args.min_utterances, cmvn=args.cmvn,
+                      labels=args.labels)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -159,6 +166,9 @@ def _add_evaluate_parser(sub) -> None:
                         "deena2010's post-filter (default: off)")
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
+    e.add_argument("--labels", default="true",
+                   help="test labels: comma-separated sources among true, aligned, recognised "
+                        "(docs/alignment.md; models trained once, every method scored under each)")
     e.add_argument("--json", required=True, help="output JSON; OUT.md and OUT_trajectories.png go beside it")
     e.add_argument("--min-utterances", type=_non_negative_int, default=None,
                    help="evaluate a corpus smaller than the protocol needs (but at least this many "
@@ -221,6 +231,60 @@ def _positive_int(text: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, found {v}")
     return v
+# --- align / recognise / align-train (issue #13) --------------------------------------------
+def _cmd_align(args: argparse.Namespace) -> int:
+    from bayes_talk.alignment.commands import check_label_output, label_audio, write_segmentation
+
+    if args.text is None and args.transcript is None:
+        raise ValueError("align needs the transcript: --text \"...\" or --transcript FILE "
+                         "(for audio alone use `bayes-talk recognise`)")
+    out = check_label_output(args.out, args.force)
+    res = label_audio(args.model, args.wav, text=args.text, transcript=args.transcript, method=args.method)
+    write_segmentation(out, res.intervals)
+    print(f"{len(res.intervals)} phones aligned ({res.method}, cost {res.cost:.2f}) -> {out}")
+    return 0
+
+
+def _cmd_recognise(args: argparse.Namespace) -> int:
+    from bayes_talk.alignment.commands import check_label_output, write_segmentation
+    from bayes_talk.alignment.model import AlignmentModel
+
+    out = check_label_output(args.out, args.force)
+    res = AlignmentModel.load(args.model).recognise(args.wav)
+    write_segmentation(out, res.intervals)
+    print(f"{len(res.intervals)} phones recognised -> {out}")
+    return 0
+
+
+def _cmd_align_train(args: argparse.Namespace) -> int:
+    from bayes_talk.alignment.commands import align_train
+
+    print(f"alignment models written to {align_train(args.corpus_dir, args.model_dir, args.force)}")
+    return 0
+
+
+def _add_alignment_parsers(sub) -> None:
+    a = sub.add_parser("align", help="align a transcript to a WAV: phone labels (.lab / .TextGrid)", **_SUB_KW)
+    a.add_argument("wav")
+    a.add_argument("--model", required=True, help="trained model directory (holds alignment.json)")
+    a.add_argument("--text", default=None, help="the transcript")
+    a.add_argument("--transcript", default=None, help="UTF-8 file holding the transcript")
+    a.add_argument("--method", choices=("hmm", "dtw"), default="dtw", help="aligner (default dtw)")
+    a.add_argument("--out", required=True, help="X.lab or X.TextGrid")
+    a.add_argument("--force", action="store_true", help="overwrite --out")
+    a.set_defaults(func=_cmd_align)
+    r = sub.add_parser("recognise", help="phone labels of a WAV from the audio alone", **_SUB_KW)
+    r.add_argument("wav")
+    r.add_argument("--model", required=True, help="trained model directory (holds alignment.json)")
+    r.add_argument("--out", required=True, help="X.lab or X.TextGrid")
+    r.add_argument("--force", action="store_true", help="overwrite --out")
+    r.set_defaults(func=_cmd_recognise)
+    t = sub.add_parser("align-train", help="fit the aligner/recogniser of an existing model directory",
+                       **_SUB_KW)
+    t.add_argument("corpus_dir")
+    t.add_argument("--model-dir", required=True)
+    t.add_argument("--force", action="store_true", help="replace existing alignment models")
+    t.set_defaults(func=_cmd_align_train)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -240,6 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--voice", default="en", help="English espeak-ng voice (en, en-us, en-gb, ...)")
     b.add_argument("--image-size", type=_positive_int, default=128, help="frame width and height, pixels")
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
+    b.add_argument("--rate", type=int, default=None,
+                   help="speaking rate (words/min) the per-utterance jitter is centred on (default 175)")
+    b.add_argument("--pitch", type=int, default=None,
+                   help="espeak pitch (0-100) the per-utterance jitter is centred on (default 50)")
     b.set_defaults(func=_cmd_corpus_build)
     _add_track_parsers(csub)
 
@@ -267,10 +335,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model_dir", help="directory written by train")
     s.add_argument("--audio", required=True,
                    help="WAV file (any rate: resampled to the model's; stereo downmixed)")
-    s.add_argument("--labels", required=True, help="HTK .lab or Praat .TextGrid")
+    s.add_argument("--labels", default=None,
+                   help="HTK .lab or Praat .TextGrid (without it: --text/--transcript, else the recogniser)")
     s.add_argument("--tier", default=None,
                    help="TextGrid tier with the phones (default: 'phones'/'phone' if present, else "
                         "the first tier of known phones)")
+    s.add_argument("--text", default=None, help="transcript of the audio (aligned to it; docs/alignment.md)")
+    s.add_argument("--transcript", default=None, help="UTF-8 file holding the transcript")
+    s.add_argument("--align-method", choices=("hmm", "dtw"), default=None,
+                   help="aligner for --text/--transcript (default: dtw)")
     s.add_argument("--out", required=True, help="output directory")
     s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise",
                    help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
@@ -295,6 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     # --- evaluate -----------------------------------------------------------------------
     _add_evaluate_parser(sub)
+    _add_alignment_parsers(sub)
     return p
 
 

@@ -98,7 +98,7 @@ def fit_model(model, train: list[Sequence], workers: int = 2):
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
-          **overrides) -> Path:
+          alignment: bool = True, **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
@@ -110,6 +110,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     The bundle records the audio front end (sample rate, MFCC settings, ``cmvn``, feature
     statistics) and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
     last (bayes_talk.bundle).
+
+    ``alignment``: also fit the aligner / phone recogniser (docs/alignment.md) into the
+    same directory, so that ``synth`` runs from a transcript or from audio alone.
     """
     from bayes_talk.audio import AudioSettings, feature_statistics
     from bayes_talk.bundle import begin_bundle, write_bundle_manifest
@@ -145,6 +148,10 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "held_out": held_out,
         "audio": audio, "bundle_manifest": True,
     })
+    if alignment:  # issue 13: labels for test audio without hand-made phone labels
+        from bayes_talk.alignment.commands import fit_alignment
+
+        fit_alignment(corpus.sequences).save(out)
     write_bundle_manifest(out)
     return out
 
@@ -248,12 +255,13 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
 POSTERIORS = ("map", "laplace", "nuts", "emcee")
 #: every file name synth can write (docs/outputs.md)
 SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
-                      "bands.npz", "diagnostics.json")
+                      "bands.npz", "diagnostics.json", "labels.lab")
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
           force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
-          seed: int = 0, tier: str | None = None) -> dict[str, Path]:
+          seed: int = 0, tier: str | None = None, text: str | None = None,
+          transcript: str | os.PathLike | None = None, align_method: str | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -263,7 +271,6 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     bands: lower50, upper50, lower90, upper90) and ``diagnostics.json`` (MAP convergence,
     R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
     (``algorithm`` 1 or 2, deena2010) with the GP variance, the only choice (and the
-    default) for an sgplvm model.
     default) for an sgplvm model. A posterior whose diagnostics fail the convergence checks
     (bayes_talk.synthesis.posterior) is logged as a WARNING and marked ``"converged": false``
     in ``diagnostics.json``.
@@ -272,6 +279,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     (bayes_talk.audio); ``tier`` names the TextGrid tier with the phones. With ``force``
     the files of an earlier run in ``out_dir`` that this run does not write are removed
     (only files recorded by that run; bayes_talk.bundle.OutputSet).
+
+    Without ``labels`` (issue 13): the phone labels come from aligning ``text`` (or the
+    ``transcript`` file) to the audio, or, with neither, from the phone recogniser (a
+    warning says so); they are written to ``labels.lab`` in ``out_dir``.
     """
     from bayes_talk.bundle import OutputSet
     from bayes_talk.video import write_video
@@ -284,12 +295,20 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
-    utt = read_utterance(wav, labels, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
-                         tier=tier, fmax=tm.audio.fmax)
+    derived = None
+    if labels is None:
+        derived = _derived_labels(model_dir, wav, text, transcript, align_method)
+    elif text is not None or transcript is not None:
+        raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
+    front = {"sample_rate": tm.audio.sample_rate, "cmvn": tm.audio.cmvn, "fmax": tm.audio.fmax}
+    utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
+           else _utterance_from_intervals(wav, derived, tm.fps, **front))
     out = Path(out_dir)
     outputs = OutputSet(out, SYNTH_OUTPUT_NAMES)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
+    if derived is not None:
+        names["labels"] = "labels.lab"
     if posterior != "map":
         names.update(bands="bands.npz", diagnostics="diagnostics.json")
     existing = sorted({n for n in list(names.values()) + outputs.previous() if (out / n).exists()})
@@ -312,6 +331,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                    seed=seed, log_warnings=False)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
+    if derived is not None:
+        from bayes_talk.data.labels import write_lab
+
+        write_lab(out / names["labels"], derived)
+        written["labels"] = out / names["labels"]
     if posterior != "map":
         q = res.quantiles((0.5, 0.9))
         write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
@@ -340,3 +364,26 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             written["video"] = out / names["video"]
     outputs.commit(list(written.values()))
     return written
+
+
+def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:
+    """Phone intervals from the alignment models of ``model_dir`` (aligner or recogniser)."""
+    from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
+
+    return label_audio(model_dir, wav, text=text, transcript=transcript,
+                       method=align_method or DEFAULT_ALIGN_METHOD).intervals
+
+
+def _utterance_from_intervals(wav, intervals, fps: float = 25.0, *, sample_rate: int | None = None,
+                              cmvn: str = "off", fmax: float | None = None) -> Sequence:
+    """MFCCs (the model's front end, as :func:`read_utterance`) and frame labels of a WAV
+    whose phone intervals were derived from its audio."""
+    from bayes_talk.audio import cmvn as _cmvn
+    from bayes_talk.data.labels import frame_labels
+    from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
+
+    wav = Path(wav)
+    y, sr = load_wav(wav, sample_rate)
+    T = frame_count(y.size, sr, fps)
+    return Sequence(wav.stem, _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn), None,
+                    frame_labels(intervals, T, fps), audio_path=wav)

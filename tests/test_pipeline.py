@@ -148,3 +148,27 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
         pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m3", workers=1, holdout_list=lst)
     with pytest.raises(ValueError, match=r"holdout: expected an integer in \[0, 9\]"):
         pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m4", workers=1, holdout=10)
+
+
+# --- issue 13: synth from a transcript, or from audio alone ---------------------------------
+def test_synth_without_labels_aligns_the_text_or_uses_the_recogniser(model_dir, corpus_dir, tmp_path, caplog):
+    import logging
+
+    from bayes_talk.data.labels import read_labels
+
+    wav, lab = _first_utterance(corpus_dir)
+    manifest = json.loads((corpus_dir / "manifest.json").read_text())
+    text = next(s["text"] for s in manifest["sequences"] if s["wav"].endswith(wav.name))
+    args = ["synth", str(model_dir), "--audio", str(wav), "--no-video"]
+    assert main(args + ["--text", text, "--out", str(tmp_path / "text")]) == 0
+    aligned = read_labels(tmp_path / "text" / "labels.lab")
+    assert [p for *_, p in aligned] == [p for *_, p in read_labels(lab)]    # espeak's own G2P
+    with caplog.at_level(logging.WARNING):
+        assert main(args + ["--out", str(tmp_path / "rec")]) == 0
+    assert "phone recogniser" in caplog.text
+    traj = np.load(tmp_path / "rec" / "trajectory.npy")
+    assert traj.shape == np.load(tmp_path / "text" / "trajectory.npy").shape and np.all(np.isfinite(traj))
+    assert read_labels(tmp_path / "rec" / "labels.lab")[-1][1] == pytest.approx(read_labels(lab)[-1][1])
+    # labels and a transcript together are refused, nothing written
+    assert main(args + ["--labels", str(lab), "--text", text, "--out", str(tmp_path / "both")]) == 2
+    assert not (tmp_path / "both").exists()

@@ -478,6 +478,8 @@ def build_corpus(
     *,
     n_workers: int | None = None,
     aam_frames_per_phone: int = AAM_FRAMES_PER_PHONE,
+    rate: int | None = None,
+    pitch: int | None = None,
 ) -> Path:
     """Synthesise speech, faces and frames into ``out_dir`` and learn an AAM; return the path.
 
@@ -490,6 +492,9 @@ def build_corpus(
     else 1 = in this process) each take whole utterances: speech in a fresh espeak-ng
     process, face, frames, files -- so one renders while the other waits for speech. The
     output does not depend on ``n_workers``.
+
+    ``rate`` (words/min) and ``pitch`` (0-100): the centre of the per-utterance jitter
+    (None: espeak's defaults, 175 and 50) -- e.g. a held-out voice outside the training range.
     """
     from bayes_talk.data.text_check import check_pronounceable, check_voice
 
@@ -508,7 +513,7 @@ def build_corpus(
     created = _CreatedFiles(out_dir)
     try:
         return _build(out_dir, texts, seed, voice, image_size, previous, workers, aam_frames_per_phone,
-                      int(n_utterances))
+                      int(n_utterances), rate, pitch)
     except BaseException:
         created.remove()
         raise
@@ -542,9 +547,10 @@ class _CreatedFiles:
 
 
 def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: int, previous: set[str],
-           workers: int, aam_frames_per_phone: int, n_utterances: int) -> Path:
+           workers: int, aam_frames_per_phone: int, n_utterances: int, rate: int | None,
+           pitch: int | None) -> Path:
     """The body of :func:`build_corpus` after its checks."""
-    from bayes_talk.data.speech import jittered_requests
+    from bayes_talk.data.speech import DEFAULT_PITCH, DEFAULT_RATE, jittered_requests
     from bayes_talk.features.aam import AAM
 
     udir = out_dir / "utterances"
@@ -553,7 +559,9 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
     if old_manifest.exists():  # an incomplete rebuild must not look complete
         old_manifest.unlink()
 
-    requests = jittered_requests(texts, seed, voice=voice, fps=FPS)
+    requests = jittered_requests(texts, seed, voice=voice, fps=FPS,
+                                 rate=DEFAULT_RATE if rate is None else int(rate),
+                                 pitch=DEFAULT_PITCH if pitch is None else int(pitch))
     tasks = [{"out_dir": str(out_dir), "index": i, "seed": int(seed), "image_size": int(image_size),
               "request": {"text": r.text, "voice": r.voice, "rate": int(r.rate),
                           "pitch": int(r.pitch), "lead_silence": r.lead_silence,

@@ -401,12 +401,15 @@ def run_protocol(
     test_phone_set: Sequence[str] | None = None,
     executor=None,
     progress: Callable[[str], None] | None = None,
+    model_cache: dict | None = None,
 ) -> tuple[dict[str, Any], Trajectory]:
     """Run ``protocol`` on ``sequences`` (or train on them and test on ``test_sequences``).
 
     Returns (result, trajectory): ``result`` is the JSON-ready dict (see the module
     docstring); ``trajectory`` holds the ground truth and every method's prediction for
     the first test utterance of the first split (for :mod:`bayes_talk.evaluation.report`).
+    ``model_cache``: a dict reused across calls with the same training utterances: the
+    fitted model of each (family, split) is taken from it or stored in it (label sources).
     """
     names = resolve_methods(methods, protocol.default_methods)
     seqs = list(sequences)
@@ -438,7 +441,12 @@ def run_protocol(
         for fam, fam_methods in families.items():
             say(f"split {split.index + 1}/{len(splits)}: training {fam} on {len(train)} utterances")
             t0 = time.perf_counter()
-            model = fit_family(fam, train, cfg, executor=executor)
+            if model_cache is not None and (fam, split.index) in model_cache:
+                model = model_cache[(fam, split.index)]
+            else:
+                model = fit_family(fam, train, cfg, executor=executor)
+            if model_cache is not None:
+                model_cache[(fam, split.index)] = model
             train_s[fam] += time.perf_counter() - t0
             for name in fam_methods:
                 rows = []
@@ -514,6 +522,7 @@ def evaluate(
     oracle_draws: int | None = None,
     min_utterances: int | None = None,
     cmvn: str = "mean",
+    labels: str | Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
 
@@ -523,6 +532,8 @@ def evaluate(
     many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
     JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
     normalisation of both corpora's MFCCs (``load_corpus(cmvn=...)``; "mean" as ``train``).
+    labels: test-label sources, e.g. ``"true,aligned,recognised"`` (default ``"true"``;
+    :mod:`bayes_talk.evaluation.label_sources`).
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -536,6 +547,9 @@ def evaluate(
                          **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
                          **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
+    from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
+
+    sources = parse_label_sources(labels)
     out = check_writable(json_path)
     t0 = time.perf_counter()
     train_c = load_corpus(corpus, cmvn=cmvn)
@@ -555,10 +569,17 @@ def evaluate(
     def phone_set(c):
         return list(c.manifest.get("phone_set", PHONES))
 
-    result, traj = run_protocol(
-        proto, train_c.sequences, names,
-        test_sequences=test_c.sequences if test_c is not None else None,
-        train_phone_set=phone_set(train_c), test_phone_set=phone_set(test_c) if test_c is not None else None)
+    if sources != ("true",):  # test labels from the aligner / recogniser (issue 13)
+        result, traj = run_label_sources(
+            run_protocol, proto, train_c.sequences, test_c.sequences if test_c is not None else None, names,
+            sources, train_phone_set=phone_set(train_c),
+            test_phone_set=phone_set(test_c) if test_c is not None else None)
+    else:
+        result, traj = run_protocol(
+            proto, train_c.sequences, names,
+            test_sequences=test_c.sequences if test_c is not None else None,
+            train_phone_set=phone_set(train_c),
+            test_phone_set=phone_set(test_c) if test_c is not None else None)
     result["corpus"] = str(Path(corpus).resolve())
     result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"

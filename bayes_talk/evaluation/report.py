@@ -104,6 +104,7 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
         parts.append(gain_table(result))
     for w in result.get("warnings", []) or []:
         parts.append(f"> Warning: {w}\n")
+    parts.extend(result.get("markdown_sections", []) or [])
     fig = (result.get("outputs") or {}).get("figure")
     if fig:
         parts.append(f"![first AAM parameter, synthesis vs ground truth]({fig})\n")
