@@ -142,7 +142,7 @@ def test_linked_blocks_follow_the_state_dynamics(toy):
                                                              torch.as_tensor(b.entry_cov)).log_prob(X[b.start])
         if b.stop - lo > 1:
             manual += dyn.log_lik(X[lo + 1:b.stop], X[lo:b.stop - 1]).sum()
-    assert float(SwitchingLatents(plan).log_prob(X)) == pytest.approx(float(manual), rel=1e-12)
+    assert float(SwitchingLatents(plan).log_prob(X)) == pytest.approx(float(manual), rel=1e-10)
     sim = SwitchingLatents(plan).sample()
     assert sim.shape == X.shape and torch.all(torch.isfinite(sim))
 

@@ -44,7 +44,6 @@ Every GP predictive goes through Cholesky factors and triangular solves, float64
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 

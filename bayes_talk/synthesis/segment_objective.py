@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 from scipy.linalg.lapack import dtrtrs
 
 from bayes_talk.gp.predictive import GPPredictor
