@@ -328,16 +328,17 @@ class AAMFitter:
         images = np.asarray(images)
         landmarks = np.asarray(landmarks, dtype=np.float64)
         aams = [aam]
-        for lev in range(1, int(n_levels)):
-            f = 2**lev
-            aams.append(AAM.fit(_downscale(images, f), _to_level(landmarks, f),
-                                variance=aam.variance,
-                                texture_inset=float(aam.meta.get("texture_inset", 0.0))))
-        fitter = cls(aams, **kwargs)
-        lv = fitter.levels[0]
-        fitter.prototype_shapes = np.stack([
-            _align_to(lv.mean_shape_c, _as_complex(lv.project_shape(x)[None]))[1][0]
-            for x in landmarks])
+        with threadpool_limits(limits=1):
+            for lev in range(1, int(n_levels)):
+                f = 2**lev
+                aams.append(AAM.fit(_downscale(images, f), _to_level(landmarks, f),
+                                    variance=aam.variance,
+                                    texture_inset=float(aam.meta.get("texture_inset", 0.0))))
+            fitter = cls(aams, **kwargs)
+            lv = fitter.levels[0]
+            fitter.prototype_shapes = np.stack([
+                _align_to(lv.mean_shape_c, _as_complex(lv.project_shape(x)[None]))[1][0]
+                for x in landmarks])
         return fitter
 
     @classmethod
@@ -349,7 +350,8 @@ class AAMFitter:
         if n < 3:
             raise TooFewPrototypesError(f"prototype frames: {n} annotated frames are too few to "
                                         "build an AAM (at least 3; e.g. 4 per phone, deena2010 §3.2)")
-        aam = AAM.fit(images, landmarks, variance=variance, texture_inset=texture_inset)
+        with threadpool_limits(limits=1):   # as the corpus builds its AAM: same model bits
+            aam = AAM.fit(images, landmarks, variance=variance, texture_inset=texture_inset)
         check_prototype_support(aam)
         return cls.from_aam(aam, images, landmarks, n_levels=n_levels, **kwargs)
 
