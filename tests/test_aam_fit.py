@@ -209,3 +209,14 @@ def test_propose_prototypes_refuses_non_empty_out(data, tmp_path):
     assert png.shape == (128, 128) and png.dtype == np.uint8
     with pytest.raises(FileExistsError, match="not empty"):
         propose_prototypes(root, 2, out)
+
+
+def test_cli_propose_then_track_without_annotations(data, tmp_path, capsys):
+    from bayes_talk.cli import main
+
+    root = _user_corpus(tmp_path / "cli", data, None)
+    assert main(["corpus", "propose-prototypes", str(root), "--prototypes", "1"]) == 0
+    assert (root / "prototypes" / "prototypes.json").exists()
+    assert main(["corpus", "track", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert "no annotated frame in any video" in err and "NAME.annotations" in err

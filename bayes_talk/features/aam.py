@@ -43,8 +43,8 @@ back before reconstructing.
 
 Fitting to new frames. In the built-in corpus the landmarks are known, so
 :meth:`AAM.project` needs no AAM search: it aligns the given landmarks, warps the given
-pixels and projects. Real video needs the landmarks from a tracker (or an AAM search,
-which this module does not implement) first.
+pixels and projects. Real video needs the landmarks from a tracker or the AAM search of
+:mod:`bayes_talk.features.aam_fit` (``bayes-talk corpus track``) first.
 
 Files: :meth:`AAM.save` writes ``<base>.npz`` (arrays) and ``<base>.json`` (format
 version, sizes and the SHA-256 of the .npz), each atomically (temporary file +

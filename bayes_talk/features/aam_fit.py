@@ -61,10 +61,12 @@ own standard deviation (the normalised texture has unit variance), so ``rms**2``
 fraction of the frame's shape-free texture that the appearance model does not explain.
 A frame is **lost** when ``rms > lost_threshold``; :data:`LOST_THRESHOLD` (0.6, i.e.
 36 % of the texture unexplained) is the documented default. Measured on the built-in
-corpus (128x128, AAM from 4 frames per phone): tracked frames score 0.02-0.3 (median
+corpus (128x128, AAM from 4 frames per phone): tracked frames score 0.02-0.46 (median
 0.03; the highest are blinks, whose closed eyes few prototypes show: the *true*
 landmarks of such frames score 0.3-0.35 too), the true landmarks shifted by 1, 2 and 3 px
-score 0.42, 0.72 and 0.90, a diverged fit or a frame without a face 1.0-1.3. So 0.6 flags
+score 0.42, 0.72 and 0.90, a diverged fit or a frame without a face 1.0-1.3 (v1
+renderer; on the anti-aliased v2 corpora tracked frames score at most 0.07 on
+heldout40 and 0.37 on 100 training utterances). So 0.6 flags
 fits that are off by more than ~1.5 px, not frames that merely look unusual.
 """
 from __future__ import annotations
@@ -328,16 +330,17 @@ class AAMFitter:
         images = np.asarray(images)
         landmarks = np.asarray(landmarks, dtype=np.float64)
         aams = [aam]
-        for lev in range(1, int(n_levels)):
-            f = 2**lev
-            aams.append(AAM.fit(_downscale(images, f), _to_level(landmarks, f),
-                                variance=aam.variance,
-                                texture_inset=float(aam.meta.get("texture_inset", 0.0))))
-        fitter = cls(aams, **kwargs)
-        lv = fitter.levels[0]
-        fitter.prototype_shapes = np.stack([
-            _align_to(lv.mean_shape_c, _as_complex(lv.project_shape(x)[None]))[1][0]
-            for x in landmarks])
+        with threadpool_limits(limits=1):
+            for lev in range(1, int(n_levels)):
+                f = 2**lev
+                aams.append(AAM.fit(_downscale(images, f), _to_level(landmarks, f),
+                                    variance=aam.variance,
+                                    texture_inset=float(aam.meta.get("texture_inset", 0.0))))
+            fitter = cls(aams, **kwargs)
+            lv = fitter.levels[0]
+            fitter.prototype_shapes = np.stack([
+                _align_to(lv.mean_shape_c, _as_complex(lv.project_shape(x)[None]))[1][0]
+                for x in landmarks])
         return fitter
 
     @classmethod
@@ -349,7 +352,8 @@ class AAMFitter:
         if n < 3:
             raise TooFewPrototypesError(f"prototype frames: {n} annotated frames are too few to "
                                         "build an AAM (at least 3; e.g. 4 per phone, deena2010 §3.2)")
-        aam = AAM.fit(images, landmarks, variance=variance, texture_inset=texture_inset)
+        with threadpool_limits(limits=1):   # as the corpus builds its AAM: same model bits
+            aam = AAM.fit(images, landmarks, variance=variance, texture_inset=texture_inset)
         check_prototype_support(aam)
         return cls.from_aam(aam, images, landmarks, n_levels=n_levels, **kwargs)
 
