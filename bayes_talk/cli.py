@@ -44,7 +44,8 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import train
 
-    out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force)
+    out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
+                alignment=not args.no_alignment)
     print(f"model written to {out}")
     return 0
 
@@ -192,6 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
     t.add_argument("--force", action="store_true", help="allow writing into a non-empty directory")
+    t.add_argument("--no-alignment", action="store_true",
+                   help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels")
