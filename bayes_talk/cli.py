@@ -106,7 +106,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import train
 
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
-                holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn)
+                holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
+                alignment=not args.no_alignment)
     print(f"model written to {out}")
     return 0
 
@@ -328,6 +329,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
                    help="per-utterance cepstral mean (and variance) normalisation of the MFCCs, "
                         "recorded in the model and applied the same way by synth")
+    t.add_argument("--no-alignment", action="store_true",
+                   help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",

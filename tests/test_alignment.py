@@ -209,3 +209,23 @@ def test_corpus_build_centres_rate_and_pitch_jitter_where_asked(tmp_path):
                  "--rate", "215", "--pitch", "70"]) == 0
     seqs = json.loads((out / "manifest.json").read_text())["sequences"]
     assert all(200 <= s["rate"] <= 230 and 62 <= s["pitch"] <= 78 and s["voice"] == "en+f3" for s in seqs)
+
+
+def test_align_train_adds_models_to_a_model_directory_only(small, tmp_path):
+    c, _, _ = small
+    assert main(["align-train", str(c.path), "--model-dir", str(tmp_path)]) == 2    # not a model dir
+    (tmp_path / "bayes_talk_model.json").write_text("{}")
+    assert main(["align-train", str(c.path), "--model-dir", str(tmp_path)]) == 0
+    meta = json.loads((tmp_path / "alignment.json").read_text())
+    assert meta["info"]["n_train"] == len(c.sequences) and (tmp_path / "alignment.npz").exists()
+    assert main(["align-train", str(c.path), "--model-dir", str(tmp_path)]) == 2    # no silent replace
+
+
+def test_label_sources_need_one_training_set(small):
+    from bayes_talk.evaluation.label_sources import run_label_sources
+    from bayes_talk.evaluation.protocols import get_protocol, run_protocol
+
+    c, _, _ = small
+    with pytest.raises(ValueError, match="needs one training set"):
+        run_label_sources(run_protocol, get_protocol("englebienne2008"), c.sequences, None,
+                          ["voice-puppetry"], ("true", "aligned"))
