@@ -148,7 +148,8 @@ class ContextMLP(ContextBaseline):
             z_mean, z_scale = Zf.mean(axis=0), Zf.std(axis=0)
             z_scale[z_scale <= 0] = 1.0
             target = ((Zf - z_mean) / z_scale).astype(np.float32)
-            net = MLPRegressor(hidden_layer_sizes=(self.hidden,), alpha=self.l2, batch_size=self.batch_size,
+            net = MLPRegressor(hidden_layer_sizes=(self.hidden,), alpha=self.l2,
+                               batch_size=min(self.batch_size, Xf.shape[0]),
                                learning_rate_init=self.learning_rate, random_state=self.seed, shuffle=True)
             best = (np.inf, None, None, None, 0)
             history = []
