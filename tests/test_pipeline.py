@@ -66,10 +66,12 @@ def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, co
     assert np.mean((lo90 <= traj) & (traj <= hi90)) > 0.95          # the mean sits inside its own band
     diag = json.loads((out / "diagnostics.json").read_text())
     segs = json.loads((out / "segments.json").read_text())["segments"]
-    assert diag["method"] == "laplace" and diag["n_draws"] == 16 and len(diag["segments"]) == len(segs)
-    # the posterior mean differs from the MAP path; its variance adds the spread of the draws
+    assert diag["method"] == "laplace" and diag["n_draws"] == 16
+    assert diag["diagnostics"]["n_segments"] == len(segs) and "map_converged" in diag["diagnostics"]
+    assert diag["converged"] == (not diag["problems"])
+    # the posterior mean differs from the paper's path; its variance adds the spread of the draws
     ref = tmp_path / "map"
-    assert main(args + ["--out", str(ref)]) == 0
+    assert main(args + ["--out", str(ref), "--posterior", "map"]) == 0
     assert not np.allclose(traj, np.load(ref / "trajectory.npy"))
     assert var.shape == traj.shape and np.all(var > 0)
     assert not (ref / "bands.npz").exists()
