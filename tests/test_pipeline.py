@@ -123,7 +123,7 @@ class _Recorder:
 
 
 def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monkeypatch):
-    import bayes_talk.pipeline as pipeline
+    from bayes_talk import pipeline
 
     seen = []
 

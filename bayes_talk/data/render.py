@@ -32,6 +32,8 @@ from skimage.transform import downscale_local_mean
 from bayes_talk.data import face as _face
 
 __all__ = [
+    "CAMERA_PSF_PX",
+    "RENDER_SUPERSAMPLE",
     "background",
     "bilinear_sample",
     "cavity_triangles",
@@ -39,8 +41,6 @@ __all__ = [
     "face_triangles",
     "rasterise_triangles",
     "render_frames",
-    "CAMERA_PSF_PX",
-    "RENDER_SUPERSAMPLE",
     "warp_piecewise_affine",
 ]
 
