@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from bayes_talk import progress
 from bayes_talk.gp.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,8 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 200, chain
             kernel = NUTS(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=True,
                           full_mass=False, target_accept_prob=target_accept, max_tree_depth=max_tree_depth)
             mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": start},
-                        num_chains=1, disable_progbar=True)
+                        num_chains=1, disable_progbar=not progress.enabled())
+            log.info("NUTS chain %d/%d: %d warm-up + %d draws", c + 1, chains, warmup, n_draws)
             mcmc.run()
             out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
             diag = mcmc.diagnostics()
@@ -142,7 +144,8 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
         f = batch_log_prob(log_prob)
         sampler = emcee.EnsembleSampler(W, n, f, moves=moves, vectorize=True)
         sampler.random_state = np.random.RandomState(seed).get_state()
-        sampler.run_mcmc(p0, warmup + n_draws * thin, progress=False)
+        log.info("emcee: %d walkers, %d steps", W, warmup + n_draws * thin)
+        sampler.run_mcmc(p0, warmup + n_draws * thin, progress=progress.enabled())
     chain = sampler.get_chain(discard=warmup, thin=thin)  # (steps, W, n)
     chain = np.transpose(chain, (1, 0, 2))
     if n_keep is not None and n_keep < W:
