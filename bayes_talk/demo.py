@@ -66,6 +66,11 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
         "amse": amse(truth, [p.mean for p in post]), "acc": acc(truth, [p.mean for p in post]),
         "synth_frames_per_second": sum(s.n_frames for s in test) / (time.time() - t2),
         "map_converged": sum(p.map.converged for p in post)}
+    kept["ssgpdm-vlmm-posterior (default)"] = [p.mean for p in post]
+    post_lp = [lowpass(p.mean, LOWPASS_HZ) for p in post]
+    rows[f"ssgpdm-vlmm-posterior +{LOWPASS_HZ:g}Hz low-pass"] = {"amse": amse(truth, post_lp),
+                                                               "acc": acc(truth, post_lp)}
+    kept[f"ssgpdm-vlmm-posterior +{LOWPASS_HZ:g}Hz low-pass"] = post_lp
     for alg in ("optimise", "predict"):
         t2 = time.time()
         res = [model.synthesize(s.mfcc, s.labels, algorithm=alg) for s in test]
@@ -78,6 +83,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
         smooth = [lowpass(r.mean, LOWPASS_HZ) for r in res]
         rows[f"ssgpdm-vlmm-{alg} +{LOWPASS_HZ:g}Hz low-pass"] = {"amse": amse(truth, smooth),
                                                                  "acc": acc(truth, smooth)}
+        kept[f"ssgpdm-vlmm-{alg} +{LOWPASS_HZ:g}Hz low-pass"] = smooth
     for name in ("voice-puppetry", "hmm-mean", "context-ridge", "context-mlp"):
         ref = REGISTRY[name]().fit(train)
         pred = [ref.predict(s) for s in test]
