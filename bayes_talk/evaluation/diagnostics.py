@@ -59,24 +59,6 @@ def chain_diagnostics(samples: np.ndarray) -> dict:
     }
 
 
-def summarise_segments(per_segment: list[dict]) -> dict:
-    """Worst-case summary over segments: max R-hat, min ESS, total divergences, mean acceptance."""
-    out: dict = {"n_segments": len(per_segment)}
-    r = [d["rhat_max"] for d in per_segment if d.get("rhat_max") is not None]
-    if r:
-        out["rhat_max"] = float(np.nanmax(r))
-        out["ess_bulk_min"] = float(np.nanmin([d["ess_bulk_min"] for d in per_segment if "ess_bulk_min" in d]))
-        out["ess_tail_min"] = float(np.nanmin([d["ess_tail_min"] for d in per_segment if "ess_tail_min" in d]))
-    dv = [d["divergences"] for d in per_segment if "divergences" in d]
-    if dv:
-        out["divergences"] = int(sum(dv))
-    ac = [d["acceptance_fraction"] for d in per_segment if "acceptance_fraction" in d]
-    if ac:
-        out["acceptance_fraction_mean"] = float(np.mean(ac))
-        out["acceptance_fraction_min"] = float(np.min(ac))
-    return out
-
-
 #: thresholds of :func:`convergence_problems` (Vehtari et al. 2021): rank R-hat at most
 #: this, bulk and tail ESS at least ESS_MIN, no divergent transition
 RHAT_MAX = 1.01
@@ -101,4 +83,4 @@ def convergence_problems(diag: dict) -> list[str]:
     return out
 
 
-__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "convergence_problems", "summarise_segments"]
+__all__ = ["DIAGNOSTIC_KEYS", "chain_diagnostics", "convergence_problems"]

@@ -183,17 +183,6 @@ def run_laplace(log_prob: LogProb, x_map, n_draws: int = 200, seed: int = 0) -> 
     return Draws("laplace", s[None], info, time.perf_counter() - t0)
 
 
-def run_sampler(method: str, log_prob: LogProb, x0, n_draws: int, seed: int, **kw) -> Draws:
-    """Dispatch to :func:`run_nuts`, :func:`run_emcee` or :func:`run_laplace`."""
-    if method == "nuts":
-        return run_nuts(log_prob, x0, n_draws=n_draws, seed=seed, **kw)
-    if method == "emcee":
-        return run_emcee(log_prob, x0, n_draws=n_draws, seed=seed, **kw)
-    if method == "laplace":
-        return run_laplace(log_prob, x0, n_draws=n_draws, seed=seed, **kw)
-    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-
-
 __all__ = [
     "METHODS",
     "Draws",
@@ -202,5 +191,4 @@ __all__ = [
     "run_emcee",
     "run_laplace",
     "run_nuts",
-    "run_sampler",
 ]
