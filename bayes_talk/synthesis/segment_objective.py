@@ -50,6 +50,7 @@ class _NumpyGP:
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
         self.w2 = (p.w * p.w).numpy()
         self.mean = p.mean.numpy()
+        self.X2 = (self.X * self.X).sum(1)
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
@@ -61,9 +62,10 @@ class _NumpyGP:
         return x
 
     def kernel(self, Xs: np.ndarray) -> np.ndarray:
-        """k(Xs, X) (T×N)."""
-        diff = Xs[:, None, :] - self.X[None, :, :]
-        return self.alpha * np.exp(-0.5 * self.gamma * (diff * diff).sum(-1))
+        """k(Xs, X) (T×N), with ‖x − X_i‖² = ‖x‖² + ‖X_i‖² − 2xᵀX_i (one matrix product;
+        clipped at 0; its rounding, ~1e-16·‖x‖², is far below what the predictive resolves)."""
+        d2 = (Xs * Xs).sum(1)[:, None] + self.X2[None, :] - 2.0 * (Xs @ self.X.T)
+        return self.alpha * np.exp(-0.5 * self.gamma * np.maximum(d2, 0.0))
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
@@ -77,10 +79,13 @@ class _NumpyGP:
         c = self.kernel(Xs) * (G @ self.A.T)
         return -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)
 
-    def loglik(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None):
-        """ℓ summed over rows, ∂ℓ/∂Xs (T×d), ∂ℓ/∂Y (T×D)."""
-        diff = Xs[:, None, :] - self.X[None, :, :]                 # T×N×d
-        k = self.alpha * np.exp(-0.5 * self.gamma * (diff * diff).sum(-1))  # T×N
+    def loglik(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None,
+               rowwise: bool = False):
+        """ℓ summed over rows (``rowwise``: per row, (T,)), ∂ℓ/∂Xs (T×d), ∂ℓ/∂Y (T×D).
+
+        Rows are independent, so many inputs can share one call (and one pair of
+        triangular solves): :meth:`UtteranceDensity.gradients` stacks them."""
+        k = self.kernel(Xs)                                           # T×N
         mu = k @ self.A + self.mean                                  # T×D
         V = self._solve(k.T)                                          # N×T: L⁻¹k
         Kk = self._solve(V, trans=1).T                                # T×N: K⁻¹k = L⁻ᵀL⁻¹k
@@ -91,7 +96,10 @@ class _NumpyGP:
         if extra_var is not None:
             v = v + extra_var[None, :]
         r = Y - mu
-        ll = -0.5 * (LOG_2PI * r.size + np.log(v).sum() + (r * r / v).sum())
+        if rowwise:
+            ll = -0.5 * (LOG_2PI * r.shape[1] + np.log(v).sum(1) + (r * r / v).sum(1))
+        else:
+            ll = -0.5 * (LOG_2PI * r.size + np.log(v).sum() + (r * r / v).sum())
         g_mu = r / v                                                 # T×D
         g_s = ((r * r / v - 1.0) / (2.0 * v) / self.w2[None, :]).sum(-1)  # T
         g_s = np.where(s_raw > floor, g_s, 0.0)
