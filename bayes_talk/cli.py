@@ -132,7 +132,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 # --- evaluate (issue #5) -------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from bayes_talk.evaluation.protocols import evaluate
+    from bayes_talk.evaluation.harness import evaluate
 
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
