@@ -135,6 +135,87 @@ class Trajectory:
     predictions: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass
+class _SplitJob:
+    """One split's work for :func:`_run_split` (what a worker receives)."""
+
+    split: Split
+    n_splits: int
+    train: list[Utterance]
+    test: list[Utterance]
+    families: dict[str, list[str]]
+    cfg: Any
+    first: bool
+
+
+@dataclass
+class _SplitOutcome:
+    """One split's scores and timings (what a worker sends back)."""
+
+    rows: dict[str, list[dict[str, float]]]
+    per_split: dict[str, dict[str, Any]]
+    train_seconds: dict[str, float]
+    synth_seconds: dict[str, float]
+    synth_frames: dict[str, int]
+    trajectory: Trajectory | None
+
+
+def _say_split(say: Callable[[str], None], job: _SplitJob, out: _SplitOutcome) -> None:
+    for name, row in out.per_split.items():
+        say(f"split {job.split.index + 1}/{job.n_splits}: {name} "
+            + ", ".join(f"{k}={row[k]:.4g}" for k in ("mse", "corr")))
+
+
+def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None = None,
+               model_cache: dict | None = None) -> _SplitOutcome:
+    """Train every family on ``job.train`` and score each method on every test utterance.
+
+    ``executor`` trains the switching models' states (None: in turn); ``model_cache``
+    as in :func:`run_protocol`. A module-level function: executors run it in workers."""
+    split, test, cfg = job.split, job.test, job.cfg
+    variance = np.concatenate([s.aam for s in test]).var(axis=0)
+    traj = Trajectory(test[0].name, test[0].aam.copy()) if job.first else None
+    rows_all: dict[str, list[dict[str, float]]] = {}
+    per_split: dict[str, dict[str, Any]] = {}
+    train_s: dict[str, float] = {}
+    synth_s: dict[str, float] = {}
+    synth_frames: dict[str, int] = {}
+    for fam, fam_methods in job.families.items():
+        if say is not None:
+            say(f"split {split.index + 1}/{job.n_splits}: training {fam} on {len(job.train)} utterances")
+        t0 = time.perf_counter()
+        if model_cache is not None and (fam, split.index) in model_cache:
+            model = model_cache[(fam, split.index)]
+        else:
+            model = fit_family(fam, job.train, cfg, executor=executor)
+        if model_cache is not None:
+            model_cache[(fam, split.index)] = model
+        train_s[fam] = time.perf_counter() - t0
+        for name in fam_methods:
+            rows = []
+            synth_s[name], synth_frames[name] = 0.0, 0
+            for j, seq in enumerate(test):
+                t0 = time.perf_counter()
+                pred = predict(name, model, seq, cfg)
+                synth_s[name] += time.perf_counter() - t0
+                synth_frames[name] += seq.n_frames
+                if pred.mean.shape != seq.aam.shape:
+                    raise RuntimeError(f"{name} predicted shape {pred.mean.shape} for {seq.name}, "
+                                       f"expected {seq.aam.shape}")
+                ll = log_likelihood(name, model, seq, pred)
+                rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
+                if traj is not None and j == 0:
+                    traj.predictions[name] = pred
+            rows_all[name] = rows
+            per_split[name] = {"split": split.index, "n_test": len(rows),
+                               **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
+            if say is not None:
+                say(f"split {split.index + 1}/{job.n_splits}: {name} " + ", ".join(
+                    f"{k}={per_split[name][k]:.4g}" for k in ("mse", "corr")))
+        del model  # one family's model alive at a time
+    return _SplitOutcome(rows_all, per_split, train_s, synth_s, synth_frames, traj)
+
+
 def run_protocol(
     protocol: Protocol,
     sequences: Sequence[Utterance],
@@ -153,6 +234,11 @@ def run_protocol(
     the first test utterance of the first split (for :mod:`bayes_talk.evaluation.report`).
     ``model_cache``: a dict reused across calls with the same training utterances: the
     fitted model of each (family, split) is taken from it or stored in it (label sources).
+
+    ``executor``: a parallel :class:`~bayes_talk.executor.Executor` runs the splits (repeats,
+    folds) as its tasks when there are several (and no ``model_cache``), each training its
+    switching states in turn; with one split it trains the states (as does anything else
+    with a ``map``). The numbers do not depend on it (timings aside).
     """
     names = resolve_methods(methods, protocol.default_methods)
     seqs = list(sequences)
@@ -173,44 +259,31 @@ def run_protocol(
     train_s = {f: 0.0 for f in families}
     synth_s = {n: 0.0 for n in names}
     synth_frames = {n: 0 for n in names}
-    traj: Trajectory | None = None
     t_start = time.perf_counter()
-    for split in splits:
-        train = [pool[i] for i in split.train]
-        test = [pool[i] for i in split.test]
-        variance = np.concatenate([s.aam for s in test]).var(axis=0)
+    jobs = [_SplitJob(split, len(splits), [pool[i] for i in split.train], [pool[i] for i in split.test],
+                      families, cfg, first=k == 0) for k, split in enumerate(splits)]
+    from bayes_talk.executor import Executor
+
+    if isinstance(executor, Executor) and executor.parallel and len(jobs) > 1 and model_cache is None:
+        # the splits in parallel (each trains its states in turn); a split's numbers do not
+        # depend on where it ran: every model is seeded by cfg.seed
+        say(f"{len(jobs)} splits on {executor!r}")
+        outcomes = executor.map(_run_split, jobs, desc="protocol splits", unit="split")
+        for job, out in zip(jobs, outcomes):
+            _say_split(say, job, out)
+    else:
+        outcomes = [_run_split(job, executor, say, model_cache) for job in jobs]
+    traj: Trajectory | None = None
+    for out in outcomes:
         if traj is None:
-            traj = Trajectory(test[0].name, test[0].aam.copy())
-        for fam, fam_methods in families.items():
-            say(f"split {split.index + 1}/{len(splits)}: training {fam} on {len(train)} utterances")
-            t0 = time.perf_counter()
-            if model_cache is not None and (fam, split.index) in model_cache:
-                model = model_cache[(fam, split.index)]
-            else:
-                model = fit_family(fam, train, cfg, executor=executor)
-            if model_cache is not None:
-                model_cache[(fam, split.index)] = model
-            train_s[fam] += time.perf_counter() - t0
-            for name in fam_methods:
-                rows = []
-                for j, seq in enumerate(test):
-                    t0 = time.perf_counter()
-                    pred = predict(name, model, seq, cfg)
-                    synth_s[name] += time.perf_counter() - t0
-                    synth_frames[name] += seq.n_frames
-                    if pred.mean.shape != seq.aam.shape:
-                        raise RuntimeError(f"{name} predicted shape {pred.mean.shape} for {seq.name}, "
-                                           f"expected {seq.aam.shape}")
-                    ll = log_likelihood(name, model, seq, pred)
-                    rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
-                    if split.index == splits[0].index and j == 0:
-                        traj.predictions[name] = pred
-                per_utt[name].extend(rows)
-                keys = rows[0].keys()
-                per_split[name].append({"split": split.index, "n_test": len(rows),
-                                        **{k: float(np.nanmean([r[k] for r in rows])) for k in keys}})
-                say(f"split {split.index + 1}/{len(splits)}: {name} " + ", ".join(
-                    f"{k}={per_split[name][-1][k]:.4g}" for k in ("mse", "corr")))
+            traj = out.trajectory
+        for fam, sec in out.train_seconds.items():
+            train_s[fam] += sec
+        for name in names:
+            per_utt[name].extend(out.rows[name])
+            per_split[name].append(out.per_split[name])
+            synth_s[name] += out.synth_seconds[name]
+            synth_frames[name] += out.synth_frames[name]
     result_methods: dict[str, Any] = {}
     for name in names:
         m = METHODS[name]
@@ -266,6 +339,9 @@ def evaluate(
     min_utterances: int | None = None,
     cmvn: str = "mean",
     labels: str | Sequence[str] | None = None,
+    executor: Any = None,
+    workers: int = 2,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
 
@@ -277,6 +353,10 @@ def evaluate(
     normalisation of both corpora's MFCCs (``load_corpus(cmvn=...)``; "mean" as ``train``).
     labels: test-label sources, e.g. ``"true,aligned,recognised"`` (default ``"true"``;
     :mod:`bayes_talk.evaluation.label_sources`).
+    executor: "local" (default), "processes" (``workers`` processes) or "dask" (a
+    ``LocalCluster`` of ``workers`` processes, or the running scheduler at ``scheduler``), or
+    an :class:`~bayes_talk.executor.Executor` (left open): what runs the splits, or the
+    per-state models of a single split, and the featurisation (docs/scaling.md).
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -294,41 +374,47 @@ def evaluate(
 
     sources = parse_label_sources(labels)
     out = check_writable(json_path)
-    t0 = time.perf_counter()
-    train_c = load_corpus(corpus, cmvn=cmvn)
-    test_c = None
-    if test_corpus is not None:
-        # score the test frames in the training corpus's AAM space: project them through it
-        try:
-            test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn)
-        except ValueError as exc:
-            raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
-                             f"{corpus}: {exc}") from exc
-    load_s = time.perf_counter() - t0
-    small_note = None
-    if min_utterances is not None and test_c is None:
-        proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
+    from bayes_talk.executor import executor_for
 
-    def phone_set(c):
-        return list(c.manifest.get("phone_set", PHONES))
+    kind = executor if executor is not None else ("dask" if scheduler else "local")
+    with executor_for(kind, workers, scheduler) as ex:
+        feat_ex = ex if ex.parallel else None
+        t0 = time.perf_counter()
+        train_c = load_corpus(corpus, cmvn=cmvn, executor=feat_ex)
+        test_c = None
+        if test_corpus is not None:
+            # score the test frames in the training corpus's AAM space: project them through it
+            try:
+                test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn, executor=feat_ex)
+            except ValueError as exc:
+                raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
+                                 f"{corpus}: {exc}") from exc
+        load_s = time.perf_counter() - t0
+        small_note = None
+        if min_utterances is not None and test_c is None:
+            proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
 
-    if sources != ("true",):  # test labels from the aligner / recogniser (issue 13)
-        result, traj = run_label_sources(
-            run_protocol, proto, train_c.sequences, test_c.sequences if test_c is not None else None, names,
-            sources, train_phone_set=phone_set(train_c),
-            test_phone_set=phone_set(test_c) if test_c is not None else None)
-    else:
-        result, traj = run_protocol(
-            proto, train_c.sequences, names,
-            test_sequences=test_c.sequences if test_c is not None else None,
-            train_phone_set=phone_set(train_c),
-            test_phone_set=phone_set(test_c) if test_c is not None else None)
+        def phone_set(c):
+            return list(c.manifest.get("phone_set", PHONES))
+
+        if sources != ("true",):  # test labels from the aligner / recogniser (issue 13)
+            result, traj = run_label_sources(
+                run_protocol, proto, train_c.sequences, test_c.sequences if test_c is not None else None, names,
+                sources, train_phone_set=phone_set(train_c),
+                test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
+        else:
+            result, traj = run_protocol(
+                proto, train_c.sequences, names,
+                test_sequences=test_c.sequences if test_c is not None else None,
+                train_phone_set=phone_set(train_c),
+                test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
     result["corpus"] = str(Path(corpus).resolve())
     result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
                                if train_c.aam_path is not None else "the test corpus's precomputed features")
     result["load_seconds"] = load_s
     result["cmvn"] = cmvn
+    result["executor"] = {"kind": kind, "workers": workers, "scheduler": scheduler}
     if small_note:
         result["warnings"] = [*(result.get("warnings") or []), small_note]
         result["scaled_for_small_corpus"] = True

@@ -25,10 +25,11 @@ from bayes_talk.data.corpus.format import (
 from bayes_talk.data.corpus.workers import (
     _n_workers,
     _run_tasks,
-    _single_thread_blas,
     _utterance_task,
 )
 from bayes_talk.data.phones import PHONES
+from bayes_talk.executor import Executor
+from bayes_talk.executor import single_thread as _single_thread_blas
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +111,8 @@ def build_corpus(
     force: bool = False,
     *,
     n_workers: int | None = None,
+    executor: Executor | str | None = None,
+    scheduler: str | None = None,
     aam_frames_per_phone: int = AAM_FRAMES_PER_PHONE,
     rate: int | None = None,
     pitch: int | None = None,
@@ -124,7 +127,9 @@ def build_corpus(
     ``n_workers`` worker processes (one BLAS thread each; None: 2 from 16 utterances on,
     else 1 = in this process) each take whole utterances: speech in a fresh espeak-ng
     process, face, frames, files -- so one renders while the other waits for speech. The
-    output does not depend on ``n_workers``.
+    output does not depend on ``n_workers``. ``executor``: "local", "processes" or "dask"
+    (or an :class:`~bayes_talk.executor.Executor`, left open), ``scheduler`` a running dask
+    scheduler's address (docs/scaling.md); None: processes when ``n_workers`` > 1.
 
     ``rate`` (words/min) and ``pitch`` (0-100): the centre of the per-utterance jitter
     (None: espeak's defaults, 175 and 50) -- e.g. a held-out voice outside the training range.
@@ -146,7 +151,7 @@ def build_corpus(
     created = _CreatedFiles(out_dir)
     try:
         return _build(out_dir, texts, seed, voice, image_size, previous, workers, aam_frames_per_phone,
-                      int(n_utterances), rate, pitch)
+                      int(n_utterances), rate, pitch, executor, scheduler)
     except BaseException:
         created.remove()
         raise
@@ -181,7 +186,8 @@ class _CreatedFiles:
 
 def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: int, previous: set[str],
            workers: int, aam_frames_per_phone: int, n_utterances: int, rate: int | None,
-           pitch: int | None) -> Path:
+           pitch: int | None, executor: Executor | str | None = None,
+           scheduler: str | None = None) -> Path:
     """The body of :func:`build_corpus` after its checks."""
     from bayes_talk.data.speech import DEFAULT_PITCH, DEFAULT_RATE, jittered_requests
     from bayes_talk.features.aam import AAM
@@ -202,7 +208,7 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
              for i, r in enumerate(requests)]
     # every utterance end to end (fresh espeak process, face, frames, files) in a worker:
     # one worker renders while the other waits for its speech
-    results = _run_tasks(_utterance_task, "utterance", tasks, workers)
+    results = _run_tasks(_utterance_task, "utterance", tasks, workers, executor, scheduler)
     written: list[str] = []
     seqs_meta: list[dict] = []
     all_labels: list[list[str]] = []

@@ -32,11 +32,12 @@ from bayes_talk.data.corpus.workers import (
     _features_task,
     _n_workers,
     _run_tasks,
-    _single_thread_blas,
 )
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.sequence import Sequence
+from bayes_talk.executor import Executor
+from bayes_talk.executor import single_thread as _single_thread_blas
 from bayes_talk.features.mfcc import FMAX_HZ
 
 log = logging.getLogger(__name__)
@@ -152,6 +153,7 @@ def _check_projectable(root: Path, kind: str, manifest: dict, items: list[_Item]
 
 def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = True,
                 seed: int = 0, n_workers: int | None = None,
+                executor: Executor | str | None = None, scheduler: str | None = None,
                 aam: str | Path | None = None, cmvn: str = "mean",
                 fmax: float | None = FMAX_HZ) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
@@ -168,7 +170,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
     offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
-    sequences on, else none); the features do not depend on it.
+    sequences on, else none); the features do not depend on it. ``executor`` / ``scheduler``: as
+    in :func:`~bayes_talk.data.corpus.build_corpus` (bayes_talk.executor).
 
     ``aam``: the ``aam.npz`` of *another* corpus (or model) to project this corpus's
     frames through instead of its own AAM -- how a separately built test corpus is scored
@@ -254,7 +257,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "aam": None if aam is None else str(aam_path), "fmax": fmax} for it in items]
         if aam is not None:
             _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
-        results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)))
+        results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)),
+                             executor, scheduler)
         cached = {}
         for it, labs, (_, arr) in zip(items, labels, results):
             cached[it.name] = (arr["mfcc"], arr["visual"],

@@ -1,17 +1,11 @@
-"""Worker processes of the corpus build (speech + face + frames per utterance) and load
-(MFCC + AAM projection per utterance), and the per-utterance tasks they run."""
+"""The per-utterance tasks of the corpus build (speech + face + frames + files) and load
+(MFCC + AAM projection), and how they are run: through :mod:`bayes_talk.executor`
+("local", "processes" or "dask"), one BLAS thread per task; nothing depends on which
+process did the work."""
 from __future__ import annotations
 
-import contextlib
-import json
-import os
-import queue
-import subprocess
-import sys
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from pathlib import Path
-from typing import Self
 
 import numpy as np
 
@@ -24,133 +18,8 @@ from bayes_talk.data.corpus.format import (
 )
 from bayes_talk.data.corpus.layouts import _Item, _load_visual
 from bayes_talk.data.labels import frame_labels, write_lab
+from bayes_talk.executor import Executor, executor_for
 from bayes_talk.features.mfcc import FMAX_HZ, frame_count, load_wav, mfcc
-
-#
-# Parallel work goes to persistent fresh interpreters started with ``subprocess`` (not
-# ``multiprocessing``: ``spawn`` re-imports the caller's ``__main__``, which breaks
-# scripts without an ``if __name__ == "__main__"`` guard, and ``fork`` copies the
-# caller's threads). Each worker runs with one BLAS/OpenMP thread (environment set
-# before it starts): with two processes on two cores, multi-threaded BLAS only adds
-# contention (measured: a 70x5635 @ 5635x97 product took 0.28 s with 2 OpenBLAS threads
-# under load, 0.002-0.01 s with 1). The parent runs its own numerical work with one BLAS
-# thread too (threadpoolctl), so results do not depend on where a task ran.
-# Protocol: a JSON header line, then the raw bytes of the arrays it lists.
-
-_BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-             "NUMEXPR_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
-_WORKER_PROGRAM = "from bayes_talk.data.corpus.workers import _worker_main; _worker_main()"
-
-
-@contextlib.contextmanager
-def _single_thread_blas() -> Iterator[None]:
-    """One BLAS/OpenMP thread inside the block (no-op without threadpoolctl)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn/librosa
-        yield
-        return
-    with threadpool_limits(limits=1):
-        yield
-
-
-def _send(stream, header: dict, arrays: dict[str, np.ndarray] | None = None) -> None:
-    arrays = {k: np.ascontiguousarray(v) for k, v in (arrays or {}).items()}
-    header = dict(header, arrays=[[k, v.dtype.str, list(v.shape)] for k, v in arrays.items()])
-    stream.write(json.dumps(header).encode("utf-8") + b"\n")
-    for v in arrays.values():
-        stream.write(v.tobytes())
-    stream.flush()
-
-
-def _recv(stream) -> tuple[dict, dict[str, np.ndarray]] | None:
-    line = stream.readline()
-    if not line:
-        return None
-    header = json.loads(line.decode("utf-8"))
-    arrays = {}
-    for name, dt, shape in header.pop("arrays", []):
-        dtype = np.dtype(dt)
-        n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-        buf = stream.read(n)
-        if len(buf) != n:
-            return None
-        arrays[name] = np.frombuffer(buf, dtype=dtype).reshape(shape).copy()
-    return header, arrays
-
-
-_EXC_TYPES = {"ValueError": ValueError, "FileExistsError": FileExistsError,
-              "KeyError": KeyError, "FileNotFoundError": FileNotFoundError}
-
-
-class _Workers:
-    """``n`` persistent worker processes; :meth:`map` runs tasks on them in order."""
-
-    def __init__(self, n: int) -> None:
-        import bayes_talk
-
-        pkg_root = str(Path(bayes_talk.__file__).resolve().parent.parent)
-        env = dict(os.environ, **_BLAS_ENV)
-        env["PYTHONPATH"] = os.pathsep.join([pkg_root] + [p for p in
-                                            env.get("PYTHONPATH", "").split(os.pathsep) if p])
-        self._procs: list[subprocess.Popen] = []
-        self._free: queue.SimpleQueue = queue.SimpleQueue()
-        try:
-            for _ in range(n):
-                p = subprocess.Popen([sys.executable, "-c", _WORKER_PROGRAM], env=env,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-                self._procs.append(p)
-                self._free.put(p)
-        except BaseException:
-            self.close()
-            raise
-
-    def _call(self, op: str, args: dict) -> tuple[dict, dict[str, np.ndarray]]:
-        p = self._free.get()
-        try:
-            _send(p.stdin, {"op": op, "args": args})
-            got = _recv(p.stdout)
-        except (BrokenPipeError, OSError):
-            got = None
-        if got is None:
-            code = p.poll()
-            raise RuntimeError(f"corpus worker process died during {op!r} (exit code {code}); "
-                               "see its messages above")
-        self._free.put(p)
-        head, arrays = got
-        if "error" in head:
-            raise _EXC_TYPES.get(head.get("type"), RuntimeError)(head["error"])
-        return head, arrays
-
-    def map(self, op: str, tasks: list[dict]) -> list[tuple[dict, dict[str, np.ndarray]]]:
-        from bayes_talk.progress import bar
-
-        ex = ThreadPoolExecutor(max_workers=max(1, len(self._procs)))
-        try:
-            futures = [ex.submit(self._call, op, a) for a in tasks]
-            return [f.result() for f in bar(futures, len(futures), _PROGRESS.get(op, op), "utt")]
-        finally:  # on an error, do not start the remaining tasks
-            ex.shutdown(wait=True, cancel_futures=True)
-
-    def close(self) -> None:
-        for p in self._procs:
-            with contextlib.suppress(OSError):
-                p.stdin.close()
-        for p in self._procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:  # pragma: no cover
-                p.kill()
-                p.wait()
-            with contextlib.suppress(OSError):
-                p.stdout.close()
-        self._procs = []
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def _n_workers(n_workers: int | None, n_tasks: int) -> int:
@@ -161,47 +30,19 @@ def _n_workers(n_workers: int | None, n_tasks: int) -> int:
     return int(n_workers)
 
 
-def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict],
-               n_workers: int) -> list[tuple[dict, dict[str, np.ndarray]]]:
-    """``[fn(t) for t in tasks]``, in ``n_workers`` worker processes when > 1 (with a
-    progress bar on a terminal, bayes_talk.progress)."""
-    from bayes_talk.progress import bar
-
-    if n_workers > 1 and len(tasks) > 1:
-        with _Workers(min(n_workers, len(tasks))) as w:
-            return w.map(op, tasks)
-    with _single_thread_blas():
-        return [fn(t) for t in bar(tasks, len(tasks), _PROGRESS.get(op, op), "utt")]
+def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict], n_workers: int,
+               executor: Executor | str | None = None,
+               scheduler: str | None = None) -> list[tuple[dict, dict[str, np.ndarray]]]:
+    """``[fn(t) for t in tasks]`` by ``executor`` (an :class:`~bayes_talk.executor.Executor`,
+    left open; or a kind, None: ``n_workers`` processes when > 1 and there are several
+    tasks, else this process), with a progress bar on a terminal (bayes_talk.progress)."""
+    if executor is None and scheduler is None and len(tasks) <= 1:
+        n_workers = 1
+    with executor_for(executor, min(n_workers, max(1, len(tasks))), scheduler) as ex:
+        return ex.map(fn, tasks, desc=_PROGRESS.get(op, op), unit="utt")
 
 
 _PROGRESS = {"utterance": "building utterances", "features": "featurising"}
-
-
-def _worker_main() -> None:
-    """Serve tasks on stdin/stdout until stdin closes (see :class:`_Workers`).
-
-    Ctrl-C is the parent's to handle (it closes our stdin): ignored here, so a worker
-    never prints a KeyboardInterrupt traceback."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)            # stray prints from libraries go to stderr, not the protocol
-    sys.stdout = sys.stderr
-    inp = sys.stdin.buffer
-    ops = {"utterance": _utterance_task, "features": _features_task}
-    with _single_thread_blas():
-        while True:
-            got = _recv(inp)
-            if got is None:
-                break
-            head, _ = got
-            try:
-                res_head, res_arrays = ops[head["op"]](head["args"])
-            except Exception as exc:  # noqa: BLE001 - re-raised by the parent
-                _send(out, {"error": str(exc), "type": type(exc).__name__})
-                continue
-            _send(out, res_head, res_arrays)
 
 
 def _utterance_task(a: dict) -> tuple[dict, dict]:
