@@ -3,7 +3,7 @@
 Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with sections:
 
 - ``executors``: per-state training of the switching SGPDM (VLMM states, default
-  settings; ``--quick``: 40 iterations, 150-frame caps) on the first ``--n-train``
+  settings; ``--quick``: 30 iterations, 100-frame caps) on the first ``--n-train``
   utterances of ``--corpus``, side by side in one run: the local serial executor, the local
   process pool (``ProcessExecutor``, 2 processes) and dask ``LocalCluster``s of 1 and 2
   worker processes on 127.0.0.1. Wall time of the training only (the cluster's start-up is
@@ -33,22 +33,15 @@ import platform
 import resource
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.files import write_json
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CORPUS = "/work/data/v2/train250"
-
-
-def _atomic_json(path: Path, obj: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(json.dumps(obj, indent=1) + "\n")
-    os.replace(tmp, path)
 
 
 def _load() -> list[float]:
@@ -77,7 +70,7 @@ def executors_section(args: argparse.Namespace) -> dict:
     from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
     from bayes_talk.models.switching import SwitchingSGPDM
 
-    settings = ({"max_iter": 40, "max_frames_per_state": 150, "fallback_frames": 300} if args.quick else {})
+    settings = ({"max_iter": 30, "max_frames_per_state": 100, "fallback_frames": 200} if args.quick else {})
     train = load_corpus(args.corpus).sequences[: args.n_train]
     out: dict = {"corpus": args.corpus, "n_train": len(train), "n_frames": int(sum(s.n_frames for s in train)),
                  "model": "SwitchingSGPDM(states='vlmm')", "settings": settings or "defaults",
@@ -183,7 +176,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small settings; the quick protocols")
     ap.add_argument("--corpus", default=DEFAULT_CORPUS)
     ap.add_argument("--n-train", type=int, default=None, help="utterances for the executors section "
-                    "(default 100; --quick 40)")
+                    "(default 100; --quick 24)")
     ap.add_argument("--sections", default="executors,peak_rss,sparse")
     ap.add_argument("--protocols", default="deena2009")
     ap.add_argument("--executor", default="local", choices=("local", "processes", "dask"),
@@ -196,7 +189,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.rss_child:
         return _rss_child(args)
-    args.n_train = args.n_train or (40 if args.quick else 100)
+    args.n_train = args.n_train or (24 if args.quick else 100)
     out_path = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / (
         "scaling_quick.json" if args.quick else "scaling.json")
     result = json.loads(out_path.read_text()) if out_path.exists() else {}
@@ -209,7 +202,8 @@ def main() -> None:
         t0 = time.perf_counter()
         result[name] = sections[name](args)
         result[name]["section_wall_s"] = round(time.perf_counter() - t0, 1)
-        _atomic_json(out_path, result)  # each section as soon as it is done
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(out_path, result)  # atomically, each section as soon as it is done
     print(json.dumps({k: result[k] for k in args.sections.split(",")}, indent=1))
     print(f"wrote {out_path}")
 

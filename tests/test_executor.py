@@ -16,7 +16,7 @@ from toydata import make_utterances
 from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
 from bayes_talk.models.switching import SwitchingSGPDM
 
-SMALL = dict(latent_dim=3, max_iter=20, min_count=4, max_frames_per_state=80, fallback_frames=100)
+SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 4, "max_frames_per_state": 80, "fallback_frames": 100}
 
 
 @pytest.fixture(scope="module")
