@@ -42,6 +42,9 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         force=args.force,
         rate=args.rate,
         pitch=args.pitch,
+        n_workers=args.workers,
+        executor=args.executor,
+        scheduler=args.scheduler,
     )
     print(f"corpus written to {args.out_dir}")
     return 0
@@ -107,7 +110,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
-                alignment=not args.no_alignment)
+                alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler)
     print(f"model written to {out}")
     return 0
 
@@ -132,14 +135,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 # --- evaluate (issue #5) -------------------------------------------------------------------
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from bayes_talk.evaluation.protocols import evaluate
+    from bayes_talk.evaluation.harness import evaluate
 
     result = evaluate(args.protocol, Path(args.corpus), Path(args.json),
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
                       min_utterances=args.min_utterances, cmvn=args.cmvn,
-                      labels=args.labels)
+                      labels=args.labels, executor=args.executor, workers=args.workers,
+                      scheduler=args.scheduler)
     for name, e in result["methods"].items():
         heads = ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} -" for k, v in e["headline"].items())
         print(f"{name}: {heads}")
@@ -176,6 +180,9 @@ def _add_evaluate_parser(sub) -> None:
                         "utterances) with the protocol's split scaled to it; the report says so")
     e.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
                    help="per-utterance cepstral normalisation of the MFCCs (as train --cmvn)")
+    e.add_argument("--workers", type=_positive_int, default=2,
+                   help="processes for --executor processes/dask (a LocalCluster's size)")
+    _add_executor_args(e, "the protocol's splits (or one split's per-state models) and featurisation")
     e.set_defaults(func=_cmd_evaluate)
 
 
@@ -215,6 +222,19 @@ def _verbosity_parser(suppress: bool) -> argparse.ArgumentParser:
 
 
 _SUB_KW = {"formatter_class": _HelpFormatter, "parents": [_verbosity_parser(True)]}
+
+
+def _add_executor_args(p: argparse.ArgumentParser, what: str) -> None:
+    """--executor and --scheduler (issue 14; docs/scaling.md)."""
+    from bayes_talk.executor import EXECUTORS
+
+    p.add_argument("--executor", choices=EXECUTORS, default=None,
+                   help=f"what runs {what}: local (this process), processes (--workers of them) "
+                        "or dask (a LocalCluster of --workers processes, or --scheduler); the results "
+                        "do not depend on it")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="address of a running dask scheduler, e.g. tcp://10.0.0.5:8786 (implies "
+                        "--executor dask; docs/scaling.md)")
 
 
 def _non_negative_int(text: str) -> int:
@@ -309,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="speaking rate (words/min) the per-utterance jitter is centred on (default 175)")
     b.add_argument("--pitch", type=int, default=None,
                    help="espeak pitch (0-100) the per-utterance jitter is centred on (default 50)")
+    b.add_argument("--workers", type=_positive_int, default=None,
+                   help="processes (default: 2 from 16 utterances on, else 1)")
+    _add_executor_args(b, "the utterances (speech, face, frames) and their featurisation")
     b.set_defaults(func=_cmd_corpus_build)
     _add_track_parsers(csub)
 
@@ -331,6 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "recorded in the model and applied the same way by synth")
     t.add_argument("--no-alignment", action="store_true",
                    help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
+    _add_executor_args(t, "the per-state models and the featurisation")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,28 +76,26 @@ def new_model(kind: str, **overrides):
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
-def fit_model(model, train: list[Sequence], workers: int = 2):
-    """Fit, training the switching model's states in ``workers`` processes (a progress bar
-    of states done / total on a terminal, bayes_talk.progress)."""
+def fit_model(model, train: list[Sequence], workers: int = 2, executor=None, scheduler: str | None = None):
+    """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
+    "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
+    or this process when ``workers`` is 1; ``scheduler``: a running dask scheduler), with a
+    progress bar of states done / total on a terminal (bayes_talk.progress). The model
+    does not depend on the executor."""
+    from bayes_talk.executor import executor_for
     from bayes_talk.models.switching import SwitchingSGPDM
     from bayes_talk.progress import ProgressMapper
 
-    if isinstance(model, SwitchingSGPDM) and workers > 1:
-        import signal
-
-        # Ctrl-C is handled by the parent (bayes-talk: error: interrupted), not printed by each worker
-        with ProcessPoolExecutor(workers, initializer=signal.signal,
-                                 initargs=(signal.SIGINT, signal.SIG_IGN)) as ex:
-            return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
-    if isinstance(model, SwitchingSGPDM):
-        return model.fit(train, executor=ProgressMapper(None, "training states", "state"))
-    return model.fit(train)
+    if not isinstance(model, SwitchingSGPDM):
+        return model.fit(train)
+    with executor_for(executor, workers, scheduler) as ex:
+        return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
 
 
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
-          alignment: bool = True, **overrides) -> Path:
+          alignment: bool = True, executor=None, scheduler: str | None = None, **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
@@ -113,6 +110,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
 
     ``alignment``: also fit the aligner / phone recogniser (docs/alignment.md) into the
     same directory, so that ``synth`` runs from a transcript or from audio alone.
+
+    ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
+    (:func:`fit_model`; docs/scaling.md); the model does not depend on it.
     """
     from bayes_talk.audio import AudioSettings, feature_statistics
     from bayes_talk.bundle import begin_bundle, write_bundle_manifest
@@ -125,10 +125,14 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
     fmax = _mf.FMAX_HZ if fmax is _DEFAULT else fmax
-    corpus = load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax)
-    train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
-    corpus.sequences = train_seqs
-    model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers)
+    from bayes_talk.executor import executor_for
+
+    with executor_for(executor, workers, scheduler) as ex:
+        corpus = load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax,
+                             executor=ex if executor is not None or ex.parallel else None)
+        train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
+        corpus.sequences = train_seqs
+        model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers, executor=ex)
     out.mkdir(parents=True, exist_ok=True)
     begin_bundle(out, DESCRIPTOR)
     audio = AudioSettings(sample_rate=int(corpus.sample_rate), fps=float(corpus.fps), n_mfcc=_mf.N_MFCC,

@@ -62,5 +62,9 @@ class ProgressMapper:
 
     def map(self, fn: Callable, iterable: Iterable) -> Iterator:
         items = list(iterable)
+        from bayes_talk.executor import Executor
+
+        if isinstance(self.executor, Executor):  # draws its own bar as tasks finish
+            return iter(self.executor.map(fn, items, desc=self.desc, unit=self.unit))
         mapper = self.executor.map if self.executor is not None else map
         return bar(mapper(fn, items), total=len(items), desc=self.desc, unit=self.unit)

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data import face, render
-from bayes_talk.data.corpus import (
+from bayes_talk.data.corpus.format import (
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,

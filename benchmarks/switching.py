@@ -3,7 +3,7 @@
 Measured in one run on a built-in corpus (``--corpus DIR`` reuses an existing built corpus,
 else ``build_corpus(tmpdir, n_utterances=278, seed=0)`` is built first, ~90 s; ``--quick``:
 60 utterances). The utterances are split as the deena2010 protocol splits them
-(``evaluation.protocols.make_splits``, seed 0): 250 train / 28 held out (quick: 50 / 10).
+(``evaluation.splits.make_splits``, seed 0): 250 train / 28 held out (quick: 50 / 10).
 
 (a) training: ``fit_model(SwitchingSGPDM(states="vlmm"), train, workers=2)`` (a process
     pool of 2, default settings: ≤ 300 frames per state, 100 L-BFGS iterations, d = 6),
@@ -234,7 +234,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
     from bayes_talk.data.corpus import build_corpus, load_corpus
-    from bayes_talk.evaluation.protocols import PROTOCOLS, make_splits
+    from bayes_talk.evaluation.protocols import PROTOCOLS
+    from bayes_talk.evaluation.splits import make_splits
     from bayes_talk.synthesis.sequential import ALGORITHMS, SMOOTHNESS
 
     sizes = QUICK if args.quick else FULL
@@ -274,7 +275,7 @@ def main(argv=None) -> int:
         split = make_splits(proto, len(seqs))[0]
         train_seqs = [seqs[i] for i in split.train]
         test_seqs = [seqs[i] for i in split.test]
-        res["split"] = {"rule": "evaluation.protocols.make_splits(deena2010, seed)",
+        res["split"] = {"rule": "evaluation.splits.make_splits(deena2010, seed)",
                         "n_train": len(train_seqs), "n_test": len(test_seqs),
                         "train_frames": sum(s.n_frames for s in train_seqs),
                         "test_frames": sum(s.n_frames for s in test_seqs),

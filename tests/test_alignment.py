@@ -222,8 +222,9 @@ def test_align_train_adds_models_to_a_model_directory_only(small, tmp_path):
 
 
 def test_label_sources_need_one_training_set(small):
+    from bayes_talk.evaluation.harness import run_protocol
     from bayes_talk.evaluation.label_sources import run_label_sources
-    from bayes_talk.evaluation.protocols import get_protocol, run_protocol
+    from bayes_talk.evaluation.protocols import get_protocol
 
     c, _, _ = small
     with pytest.raises(ValueError, match="needs one training set"):

@@ -400,7 +400,8 @@ def test_verbosity_anywhere_defaults_in_help_and_ctrl_c(tmp_path, capsys, monkey
 
 
 def test_small_corpus_protocol_is_scaled_with_a_note():
-    from bayes_talk.evaluation.protocols import get_protocol, make_splits, scale_protocol
+    from bayes_talk.evaluation.protocols import get_protocol, scale_protocol
+    from bayes_talk.evaluation.splits import make_splits
 
     p = get_protocol("deena2010")
     with pytest.raises(ValueError, match="needs at least 278 utterances, the corpus has 30"):

@@ -203,7 +203,8 @@ def test_sentence_rules(tmp_path):
 def test_worker_features_equal_in_process_features(big, big_corpus):
     """big_corpus was featurised in worker processes; recompute two sequences here."""
     from bayes_talk.audio import cmvn
-    from bayes_talk.data.corpus import _features_task, _single_thread_blas
+    from bayes_talk.data.corpus.workers import _features_task
+    from bayes_talk.executor import single_thread as _single_thread_blas
 
     m = json.loads((big / "manifest.json").read_text())
     for k in (0, 39):

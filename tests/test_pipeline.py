@@ -127,7 +127,7 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
 
     seen = []
 
-    def fake_fit(model, train, workers=2):
+    def fake_fit(model, train, workers=2, **kw):
         rec = _Recorder()
         rec.names = [s.name for s in train]
         seen.append(rec.names)

@@ -16,8 +16,10 @@ from toydata import PHONES, make_utterances
 from bayes_talk import cli
 from bayes_talk.baselines import REGISTRY
 from bayes_talk.data.corpus import Corpus
+from bayes_talk.evaluation import harness as H
 from bayes_talk.evaluation import metrics as M
 from bayes_talk.evaluation import protocols as P
+from bayes_talk.evaluation import splits as SP
 from bayes_talk.evaluation import systems as S
 
 # ssgpdm_min_frames_per_state > max_frames_per_state: only the fallback SGPDM of each switching
@@ -80,7 +82,7 @@ def test_bad_settings_are_value_errors():
 # ------------------------------------------------------------------------------ splits
 @pytest.mark.parametrize("n_items,k", [(23, 10), (40, 4), (10, 10)])
 def test_kfold_partitions_every_utterance_tested_once(n_items, k):
-    splits = P.make_splits(tiny(n_folds=k), n_items)
+    splits = SP.make_splits(tiny(n_folds=k), n_items)
     assert len(splits) == k
     tested = np.concatenate([s.test for s in splits])
     assert sorted(tested.tolist()) == list(range(n_items))          # each exactly once
@@ -92,7 +94,7 @@ def test_kfold_partitions_every_utterance_tested_once(n_items, k):
 
 def test_quick_kfold_uses_seeded_subset():
     p = P.get_protocol("englebienne2008", quick=True)
-    splits = P.make_splits(p, 120)
+    splits = SP.make_splits(p, 120)
     used = sorted(np.concatenate([s.test for s in splits]).tolist())
     assert len(used) == p.n_use == len(set(used))
     assert all(sorted(s.train + s.test) == used for s in splits)
@@ -100,24 +102,24 @@ def test_quick_kfold_uses_seeded_subset():
 
 def test_repeats_and_holdout_splits():
     p = P.get_protocol("deena2009")
-    splits = P.make_splits(p, 100)
+    splits = SP.make_splits(p, 100)
     assert len(splits) == 10
     for s in splits:
         assert len(s.train) == 50 and len(s.test) == 20 and not set(s.train) & set(s.test)
         assert max(s.train + s.test) < 100
     assert len({s.test for s in splits}) == 10                     # the repeats differ
-    h = P.make_splits(P.get_protocol("deena2010"), 300)
+    h = SP.make_splits(P.get_protocol("deena2010"), 300)
     assert len(h) == 1 and len(h[0].train) == 250 and len(h[0].test) == 28
     with pytest.raises(ValueError, match="needs at least 278"):
-        P.make_splits(P.get_protocol("deena2010"), 277)
+        SP.make_splits(P.get_protocol("deena2010"), 277)
 
 
 @pytest.mark.parametrize("name", ["deena2009", "deena2010", "englebienne2008"])
 def test_same_seed_same_split_other_seed_other_split(name):
     n = 300
-    a = P.make_splits(P.get_protocol(name), n)
-    b = P.make_splits(P.get_protocol(name), n)
-    c = P.make_splits(P.get_protocol(name, seed=7), n)
+    a = SP.make_splits(P.get_protocol(name), n)
+    b = SP.make_splits(P.get_protocol(name), n)
+    c = SP.make_splits(P.get_protocol(name, seed=7), n)
     assert a == b
     assert [s.test for s in a] != [s.test for s in c]
 
@@ -136,18 +138,18 @@ def test_quick_variants_are_labelled_and_smaller():
 def test_mismatched_test_corpus_refused():
     train = make_utterances(3, seed=0)
     with pytest.raises(ValueError, match=r"visual feature dimension.*D_z = 5.*test has 4"):
-        P.check_test_set(train, make_utterances(2, seed=1, Dz=4))
+        SP.check_test_set(train, make_utterances(2, seed=1, Dz=4))
     with pytest.raises(ValueError, match=r"audio feature dimension.*D_y = 8.*test has 6"):
-        P.check_test_set(train, make_utterances(2, seed=1, Dy=6))
+        SP.check_test_set(train, make_utterances(2, seed=1, Dy=6))
     with pytest.raises(ValueError, match=r"phone set.*only in test \['zz'\]"):
-        P.check_test_set(train, make_utterances(2, seed=1), list(PHONES), list(PHONES) + ["zz"])
+        SP.check_test_set(train, make_utterances(2, seed=1), list(PHONES), list(PHONES) + ["zz"])
     odd = make_utterances(1, seed=1)[0]
     odd = dataclasses.replace(odd, labels=["zz"] + odd.labels[1:])
     with pytest.raises(ValueError, match=r"phone set.*\['zz'\]"):
-        P.check_test_set(train, [odd])
-    P.check_test_set(train, make_utterances(2, seed=1), list(PHONES), list(PHONES))   # compatible: fine
+        SP.check_test_set(train, [odd])
+    SP.check_test_set(train, make_utterances(2, seed=1), list(PHONES), list(PHONES))   # compatible: fine
     with pytest.raises(ValueError, match="visual feature dimension"):
-        P.run_protocol(tiny(), train, ["hmm-mean"], test_sequences=make_utterances(2, seed=1, Dz=4))
+        H.run_protocol(tiny(), train, ["hmm-mean"], test_sequences=make_utterances(2, seed=1, Dz=4))
 
 
 # ------------------------------------------------------------------------------ harness
@@ -159,7 +161,7 @@ def _check_summary(s, n):
 def test_harness_baselines_schema_and_values(utts):
     proto = tiny(n_folds=3)
     methods = ["hmm-mean", "dpds", "slds", "voice-puppetry"]
-    res, traj = P.run_protocol(proto, utts, methods)
+    res, traj = H.run_protocol(proto, utts, methods)
     json.dumps(res, allow_nan=False)
     assert res["protocol"] == "tiny" and res["quick"] is False
     assert res["n_splits"] == 3 and res["n_scored"] == 9 and res["n_test"] == 3 and res["n_train"] == 6
@@ -192,8 +194,8 @@ def test_harness_baselines_schema_and_values(utts):
 
 def test_harness_is_deterministic(utts):
     proto = tiny(n_folds=3)
-    a, _ = P.run_protocol(proto, utts, ["hmm-mean", "voice-puppetry"])
-    b, _ = P.run_protocol(proto, utts, ["hmm-mean", "voice-puppetry"])
+    a, _ = H.run_protocol(proto, utts, ["hmm-mean", "voice-puppetry"])
+    b, _ = H.run_protocol(proto, utts, ["hmm-mean", "voice-puppetry"])
     for name in a["methods"]:
         for k in METRIC_KEYS:
             assert a["methods"][name][k] == b["methods"][name][k]
@@ -217,17 +219,17 @@ def test_lowpass_filters_every_methods_mean(utts):
 def gp_run(utts):
     """All six GP methods (three families) on one tiny holdout split, counting trainings."""
     calls = []
-    orig = P.fit_family
+    orig = H.fit_family
 
     def counting(family, train, cfg, executor=None):
         calls.append(family)
         return orig(family, train, cfg, executor=executor)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(P, "fit_family", counting)
+    mp.setattr(H, "fit_family", counting)
     try:
         methods = [m for m in S.METHODS if S.METHODS[m].has_variance and m not in CEILING]
-        res, traj = P.run_protocol(tiny("holdout", n_train=5, n_test=2), utts, methods)
+        res, traj = H.run_protocol(tiny("holdout", n_train=5, n_test=2), utts, methods)
     finally:
         mp.undo()
     return res, traj, calls
@@ -361,7 +363,7 @@ def test_cli_unwritable_json_fails_before_loading(fake_corpora, capsys, monkeypa
     tmp, loaded = fake_corpora
     (tmp / "a-directory.json").mkdir()
     trained = []
-    monkeypatch.setattr(P, "fit_family", lambda *a, **k: trained.append(a) or (_ for _ in ()).throw(AssertionError))
+    monkeypatch.setattr(H, "fit_family", lambda *a, **k: trained.append(a) or (_ for _ in ()).throw(AssertionError))
     rc = cli.main(["evaluate", "--protocol", "englebienne2008", "--corpus", str(tmp / "good"),
                    "--methods", "hmm-mean", "--json", str(tmp / where)])
     assert rc == 2
@@ -371,7 +373,7 @@ def test_cli_unwritable_json_fails_before_loading(fake_corpora, capsys, monkeypa
 
 def test_quick_run_is_labelled_quick_in_the_result():
     proto = P.get_protocol("englebienne2008", quick=True, vp_n_states=4)
-    res, _ = P.run_protocol(proto, make_utterances(proto.n_use + 5, seed=8), ["hmm-mean"])
+    res, _ = H.run_protocol(proto, make_utterances(proto.n_use + 5, seed=8), ["hmm-mean"])
     assert res["quick"] is True and "quick" in res["description"]
     assert res["n_splits"] == proto.n_folds and res["n_scored"] == proto.n_use
     assert res["settings"]["vp_n_states"] == 4

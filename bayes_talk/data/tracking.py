@@ -44,15 +44,17 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.corpus import (
+from bayes_talk.data.corpus.format import (
     _VIDEO_EXT,
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
     FPS,
+    _prototype_frames,
+)
+from bayes_talk.data.corpus.layouts import (
     _check_audio_vs_labels,
     _label_file,
-    _prototype_frames,
     _read_images,
     _read_video,
 )

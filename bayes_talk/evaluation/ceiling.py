@@ -80,7 +80,7 @@ def _generator_context(seq) -> dict:
 
 
 def _cached_aam(path: str):
-    from bayes_talk.data.corpus import _cached_aam as cached
+    from bayes_talk.data.corpus.workers import _cached_aam as cached
 
     return cached(str(path))
 

@@ -89,7 +89,7 @@ def run_label_sources(run_protocol, protocol, train: list[Utterance], tests: lis
     source's segmentation scores and method scores, and a Markdown section.
     """
     from bayes_talk.alignment.commands import fit_alignment
-    from bayes_talk.evaluation.protocols import make_splits
+    from bayes_talk.evaluation.splits import make_splits
 
     if tests is None:
         if protocol.scheme != "holdout":

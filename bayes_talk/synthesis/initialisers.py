@@ -88,8 +88,12 @@ class HMMViterbi:
             M = len(idx)
             dyn = model.dynamics_predictor_
             if dyn is not None:
+                # trans[i, j] = ln p(x_j | x_i): the dynamics predictive at the M states once,
+                # broadcast against every target (M x M x d; the M² (input, output) pairs
+                # took M² x N kernel rows, ~4 GB at M = 300, N = 1500: issue 14)
                 with torch.no_grad():
-                    trans = dyn.log_lik(S.repeat(M, 1), S.repeat_interleave(M, 0)).reshape(M, M).numpy()
+                    mu, var = dyn.mean_var(S)
+                    trans = dyn.log_density(S[None, :, :], mu[:, None, :], var[:, None]).numpy()
                 trans = trans - logsumexp(trans, axis=1, keepdims=True)
             else:
                 trans = np.full((M, M), -np.log(M))

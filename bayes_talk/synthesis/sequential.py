@@ -166,31 +166,24 @@ def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
 __all__ = ["ALGORITHMS", "SEGMENT_MAX_ITER", "SynthesisResult", "lowpass", "synthesize", "synthesize_many"]
 
 
-_WORKER_MODEL: "SwitchingSGPDM | None" = None
+def _synthesize_job(job: tuple) -> SynthesisResult:
+    model, mfcc, labels, kw = job
+    return synthesize(model, mfcc, labels, **kw)
 
 
-def _init_worker(model: "SwitchingSGPDM") -> None:
-    global _WORKER_MODEL
-    _WORKER_MODEL = model
-
-
-def _synthesize_in_worker(job: tuple) -> SynthesisResult:
-    mfcc, labels, kw = job
-    assert _WORKER_MODEL is not None
-    return synthesize(_WORKER_MODEL, mfcc, labels, **kw)
-
-
-def synthesize_many(model: "SwitchingSGPDM", utterances: list, workers: int = 2, **kw) -> list[SynthesisResult]:
-    """:func:`synthesize` for many ``(mfcc, labels)`` pairs, ``workers`` processes at a time.
+def synthesize_many(model: SwitchingSGPDM, utterances: list, workers: int = 2, executor=None,
+                    **kw) -> list[SynthesisResult]:
+    """:func:`synthesize` for many ``(mfcc, labels)`` pairs, through ``executor``
+    (bayes_talk.executor; None: ``workers`` processes, or this process when 1).
 
     Utterances are independent, so on a machine with several cores throughput scales with
-    the processes (each runs torch with one thread). The model is sent to each worker once.
+    the processes (each runs torch with one thread); each task carries the model.
     Results come back in input order and equal the one-process results.
     """
-    jobs = [(np.asarray(m), list(lab), kw) for m, lab in utterances]
-    if workers <= 1 or len(jobs) <= 1:
-        return [synthesize(model, m, lab, **kw) for m, lab, _ in jobs]
-    from concurrent.futures import ProcessPoolExecutor
+    from bayes_talk.executor import executor_for
 
-    with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(model,)) as ex:
-        return list(ex.map(_synthesize_in_worker, jobs))
+    jobs = [(model, np.asarray(m), list(lab), kw) for m, lab in utterances]
+    if executor is None and len(jobs) <= 1:
+        workers = 1
+    with executor_for(executor, workers) as ex:
+        return ex.map(_synthesize_job, jobs)

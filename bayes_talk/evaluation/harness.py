@@ -1,0 +1,430 @@
+"""The evaluation harness: run a protocol (train every method family on each split, predict
+and score every test utterance), and the ``bayes-talk evaluate`` job around it.
+
+Reported per method (over all test utterances of all splits pooled; ``n`` = number of
+test utterances scored): ``mse`` (its mean is AMSE), ``rms``, ``l1``, ``linf``, ``nmse``
+(MSE over the ground-truth variance of the split's test frames), ``corr`` (its mean is
+ACC), ``log_likelihood_per_frame`` where defined, and for methods with a predictive
+variance ``coverage_50``, ``coverage_90`` (fraction of entries inside the central 50 / 90 %
+Gaussian band), ``crps`` and ``nlpd`` (per entry); each as
+:func:`~bayes_talk.evaluation.metrics.summarise` gives it ({"mean", "std", "ci95", "n"}).
+Also ``train_seconds`` (total over splits; methods sharing a family report the shared
+training time and name each other in ``train_shared_with``) and
+``synth_frames_per_second``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.stats
+
+from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.evaluation import metrics as M
+from bayes_talk.evaluation.ceiling import add_gain_fractions
+from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
+from bayes_talk.evaluation.splits import Split, _dims, check_test_set, make_splits
+from bayes_talk.evaluation.systems import (
+    METHODS,
+    fit_family,
+    group_by_family,
+    log_likelihood,
+    predict,
+    resolve_methods,
+)
+
+__all__ = ["Trajectory", "check_writable", "evaluate", "run_protocol"]
+
+log = logging.getLogger(__name__)
+
+_Z50 = float(scipy.stats.norm.ppf(0.75))
+_Z90 = float(scipy.stats.norm.ppf(0.95))
+VAR_FLOOR = 1e-10
+
+
+def check_writable(path: str | Path) -> Path:
+    """Fail fast (ValueError) unless a file can be created at ``path`` (and beside it)."""
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        raise ValueError(f"--json path must end in .json, got {str(p)!r}")
+    if p.is_dir():
+        raise ValueError(f"cannot write {p}: it is a directory")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"cannot write {p}: directory {parent} does not exist")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"cannot write {p}: file is not writable")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=parent)
+    except OSError as exc:
+        raise ValueError(f"cannot write {p}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(tmp)
+    return p
+
+
+# ---------------------------------------------------------------------------- metrics
+def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | None) -> dict[str, float]:
+    mean = pred.mean
+    out = {
+        "mse": float(M.mse([z], [mean])[0]),
+        "rms": float(M.rms([z], [mean])[0]),
+        "l1": float(M.l1([z], [mean])[0]),
+        "linf": float(M.linf([z], [mean])[0]),
+        "nmse": float(M.normalised_mse([z], [mean], variance=variance)[0]),
+        "corr": float(M.correlation([z], [mean])[0]),
+    }
+    if ll is not None:
+        out["log_likelihood_per_frame"] = ll / z.shape[0]
+    if pred.var is not None:
+        sd = np.sqrt(np.maximum(pred.var, VAR_FLOOR))
+        out["coverage_50"] = M.coverage([z], [mean - _Z50 * sd], [mean + _Z50 * sd])
+        out["coverage_90"] = M.coverage([z], [mean - _Z90 * sd], [mean + _Z90 * sd])
+        out["crps"] = M.crps_gaussian([z], [mean], [sd])
+        out["nlpd"] = M.nlpd_gaussian([z], [mean], [sd * sd])
+    if getattr(pred, "mse_bias", None) is not None:  # oracle: remove its finite-sample bias
+        b = np.asarray(pred.mse_bias, np.float64).mean(axis=0)
+        keep = variance > 0
+        out["mse_corrected"] = out["mse"] - float(b.mean())
+        out["nmse_corrected"] = out["nmse"] - float(np.mean(b[keep] / variance[keep]))
+    return out
+
+
+def _summary(values: list[float]) -> dict[str, Any]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        v = np.asarray(values, dtype=np.float64)
+        if not np.isfinite(v).any():
+            return {"mean": None, "std": None, "ci95": [None, None], "n": 0}
+        s = M.summarise(v)
+    return s
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python, tuples -> lists."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    return obj
+
+
+# ---------------------------------------------------------------------------- the harness
+@dataclass
+class Trajectory:
+    """Material of the trajectory figure: one test utterance, first split."""
+
+    utterance: str
+    truth: np.ndarray
+    predictions: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class _SplitJob:
+    """One split's work for :func:`_run_split` (what a worker receives)."""
+
+    split: Split
+    n_splits: int
+    train: list[Utterance]
+    test: list[Utterance]
+    families: dict[str, list[str]]
+    cfg: Any
+    first: bool
+
+
+@dataclass
+class _SplitOutcome:
+    """One split's scores and timings (what a worker sends back)."""
+
+    rows: dict[str, list[dict[str, float]]]
+    per_split: dict[str, dict[str, Any]]
+    train_seconds: dict[str, float]
+    synth_seconds: dict[str, float]
+    synth_frames: dict[str, int]
+    trajectory: Trajectory | None
+
+
+def _say_split(say: Callable[[str], None], job: _SplitJob, out: _SplitOutcome) -> None:
+    for name, row in out.per_split.items():
+        say(f"split {job.split.index + 1}/{job.n_splits}: {name} "
+            + ", ".join(f"{k}={row[k]:.4g}" for k in ("mse", "corr")))
+
+
+def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None = None,
+               model_cache: dict | None = None) -> _SplitOutcome:
+    """Train every family on ``job.train`` and score each method on every test utterance.
+
+    ``executor`` trains the switching models' states (None: in turn); ``model_cache``
+    as in :func:`run_protocol`. A module-level function: executors run it in workers."""
+    split, test, cfg = job.split, job.test, job.cfg
+    variance = np.concatenate([s.aam for s in test]).var(axis=0)
+    traj = Trajectory(test[0].name, test[0].aam.copy()) if job.first else None
+    rows_all: dict[str, list[dict[str, float]]] = {}
+    per_split: dict[str, dict[str, Any]] = {}
+    train_s: dict[str, float] = {}
+    synth_s: dict[str, float] = {}
+    synth_frames: dict[str, int] = {}
+    for fam, fam_methods in job.families.items():
+        if say is not None:
+            say(f"split {split.index + 1}/{job.n_splits}: training {fam} on {len(job.train)} utterances")
+        t0 = time.perf_counter()
+        if model_cache is not None and (fam, split.index) in model_cache:
+            model = model_cache[(fam, split.index)]
+        else:
+            model = fit_family(fam, job.train, cfg, executor=executor)
+        if model_cache is not None:
+            model_cache[(fam, split.index)] = model
+        train_s[fam] = time.perf_counter() - t0
+        for name in fam_methods:
+            rows = []
+            synth_s[name], synth_frames[name] = 0.0, 0
+            for j, seq in enumerate(test):
+                t0 = time.perf_counter()
+                pred = predict(name, model, seq, cfg)
+                synth_s[name] += time.perf_counter() - t0
+                synth_frames[name] += seq.n_frames
+                if pred.mean.shape != seq.aam.shape:
+                    raise RuntimeError(f"{name} predicted shape {pred.mean.shape} for {seq.name}, "
+                                       f"expected {seq.aam.shape}")
+                ll = log_likelihood(name, model, seq, pred)
+                rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
+                if traj is not None and j == 0:
+                    traj.predictions[name] = pred
+            rows_all[name] = rows
+            per_split[name] = {"split": split.index, "n_test": len(rows),
+                               **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
+            if say is not None:
+                say(f"split {split.index + 1}/{job.n_splits}: {name} " + ", ".join(
+                    f"{k}={per_split[name][k]:.4g}" for k in ("mse", "corr")))
+        del model  # one family's model alive at a time
+    return _SplitOutcome(rows_all, per_split, train_s, synth_s, synth_frames, traj)
+
+
+def run_protocol(
+    protocol: Protocol,
+    sequences: Sequence[Utterance],
+    methods: str | Sequence[str] | None = None,
+    test_sequences: Sequence[Utterance] | None = None,
+    train_phone_set: Sequence[str] | None = None,
+    test_phone_set: Sequence[str] | None = None,
+    executor=None,
+    progress: Callable[[str], None] | None = None,
+    model_cache: dict | None = None,
+) -> tuple[dict[str, Any], Trajectory]:
+    """Run ``protocol`` on ``sequences`` (or train on them and test on ``test_sequences``).
+
+    Returns (result, trajectory): ``result`` is the JSON-ready dict (see the module
+    docstring); ``trajectory`` holds the ground truth and every method's prediction for
+    the first test utterance of the first split (for :mod:`bayes_talk.evaluation.report`).
+    ``model_cache``: a dict reused across calls with the same training utterances: the
+    fitted model of each (family, split) is taken from it or stored in it (label sources).
+
+    ``executor``: a parallel :class:`~bayes_talk.executor.Executor` runs the splits (repeats,
+    folds) as its tasks when there are several (and no ``model_cache``), each training its
+    switching states in turn; with one split it trains the states (as does anything else
+    with a ``map``). The numbers do not depend on it (timings aside).
+    """
+    names = resolve_methods(methods, protocol.default_methods)
+    seqs = list(sequences)
+    say = progress or (lambda msg: log.info("%s", msg))
+    if test_sequences is not None:
+        tests = list(test_sequences)
+        check_test_set(seqs, tests, train_phone_set, test_phone_set)
+        pool = seqs + tests
+        splits = [Split(0, tuple(range(len(seqs))), tuple(range(len(seqs), len(pool))))]
+    else:
+        _dims(seqs, "corpus")
+        pool = seqs
+        splits = make_splits(protocol, len(seqs))
+    families = group_by_family(names)
+    cfg = protocol.system
+    per_utt: dict[str, list[dict[str, float]]] = {n: [] for n in names}
+    per_split: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
+    train_s = {f: 0.0 for f in families}
+    synth_s = {n: 0.0 for n in names}
+    synth_frames = {n: 0 for n in names}
+    t_start = time.perf_counter()
+    jobs = [_SplitJob(split, len(splits), [pool[i] for i in split.train], [pool[i] for i in split.test],
+                      families, cfg, first=k == 0) for k, split in enumerate(splits)]
+    from bayes_talk.executor import Executor
+
+    if isinstance(executor, Executor) and executor.parallel and len(jobs) > 1 and model_cache is None:
+        # the splits in parallel (each trains its states in turn); a split's numbers do not
+        # depend on where it ran: every model is seeded by cfg.seed
+        say(f"{len(jobs)} splits on {executor!r}")
+        outcomes = executor.map(_run_split, jobs, desc="protocol splits", unit="split")
+        for job, out in zip(jobs, outcomes):
+            _say_split(say, job, out)
+    else:
+        outcomes = [_run_split(job, executor, say, model_cache) for job in jobs]
+    traj: Trajectory | None = None
+    for out in outcomes:
+        if traj is None:
+            traj = out.trajectory
+        for fam, sec in out.train_seconds.items():
+            train_s[fam] += sec
+        for name in names:
+            per_utt[name].extend(out.rows[name])
+            per_split[name].append(out.per_split[name])
+            synth_s[name] += out.synth_seconds[name]
+            synth_frames[name] += out.synth_frames[name]
+    result_methods: dict[str, Any] = {}
+    for name in names:
+        m = METHODS[name]
+        rows = per_utt[name]
+        entry: dict[str, Any] = {"label": m.label, "family": m.family, "has_variance": m.has_variance}
+        for k in rows[0]:
+            entry[k] = _summary([r[k] for r in rows])
+        entry["headline"] = {lab: (entry[k]["mean"] if k in entry else None) for lab, k in protocol.headline}
+        entry["train_seconds"] = train_s[m.family]
+        entry["train_shared_with"] = [n for n in families[m.family] if n != name]
+        entry["synth_seconds"] = synth_s[name]
+        entry["synth_frames_per_second"] = synth_frames[name] / synth_s[name] if synth_s[name] > 0 else None
+        entry["n_test_frames"] = synth_frames[name]
+        entry["per_split"] = per_split[name]
+        result_methods[name] = entry
+    add_gain_fractions(result_methods)
+    n_train = [len(s.train) for s in splits]
+    n_test = [len(s.test) for s in splits]
+    result = {
+        "protocol": protocol.name,
+        "quick": bool(protocol.quick),
+        "description": protocol.describe() if test_sequences is None else
+        f"{'quick variant of ' if protocol.quick else ''}{protocol.name} settings, trained on all "
+        f"{len(seqs)} utterances of the training corpus, tested on all {len(pool) - len(seqs)} of the test corpus",
+        "paper": protocol.paper,
+        "scheme": "test-corpus" if test_sequences is not None else protocol.scheme,
+        "seed": protocol.seed,
+        "n_train": int(min(n_train)),
+        "n_test": int(min(n_test)),
+        "n_splits": len(splits),
+        "n_scored": int(sum(n_test)),
+        "headline_metrics": [{"label": lab, "key": k} for lab, k in protocol.headline],
+        "settings": asdict(cfg),
+        "splits": [{"index": s.index, "train": [pool[i].name for i in s.train],
+                    "test": [pool[i].name for i in s.test]} for s in splits],
+        "methods": result_methods,
+        "elapsed_seconds": time.perf_counter() - t_start,
+    }
+    return _clean(result), traj
+
+
+def evaluate(
+    protocol: str,
+    corpus: str | Path,
+    json_path: str | Path,
+    test_corpus: str | Path | None = None,
+    methods: str | Sequence[str] | None = None,
+    quick: bool = False,
+    seed: int | None = None,
+    figures: bool = True,
+    lowpass_hz: float | None = None,
+    oracle_draws: int | None = None,
+    min_utterances: int | None = None,
+    cmvn: str = "mean",
+    labels: str | Sequence[str] | None = None,
+    executor: Any = None,
+    workers: int = 2,
+    scheduler: str | None = None,
+) -> dict[str, Any]:
+    """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
+
+    lowpass_hz: apply deena2010's zero-phase low-pass to every method's predicted mean
+    (recorded in the JSON under ``settings``); None: off, the protocols' default.
+    min_utterances: let a corpus smaller than the protocol needs (but with at least this
+    many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
+    JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
+    normalisation of both corpora's MFCCs (``load_corpus(cmvn=...)``; "mean" as ``train``).
+    labels: test-label sources, e.g. ``"true,aligned,recognised"`` (default ``"true"``;
+    :mod:`bayes_talk.evaluation.label_sources`).
+    executor: "local" (default), "processes" (``workers`` processes) or "dask" (a
+    ``LocalCluster`` of ``workers`` processes, or the running scheduler at ``scheduler``), or
+    an :class:`~bayes_talk.executor.Executor` (left open): what runs the splits, or the
+    per-state models of a single split, and the featurisation (docs/scaling.md).
+
+    Checks the protocol, the methods and that ``json_path`` is writable *before* loading
+    or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
+    ``<stem>_trajectories.png`` beside it (each atomically).
+    """
+    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.data.phones import PHONES
+    from bayes_talk.evaluation import report
+
+    proto = get_protocol(protocol, quick=quick, seed=seed,
+                         **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
+                         **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}))
+    names = resolve_methods(methods, proto.default_methods)
+    from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
+
+    sources = parse_label_sources(labels)
+    out = check_writable(json_path)
+    from bayes_talk.executor import executor_for
+
+    kind = executor if executor is not None else ("dask" if scheduler else "local")
+    with executor_for(kind, workers, scheduler) as ex:
+        feat_ex = ex if ex.parallel else None
+        t0 = time.perf_counter()
+        train_c = load_corpus(corpus, cmvn=cmvn, executor=feat_ex)
+        test_c = None
+        if test_corpus is not None:
+            # score the test frames in the training corpus's AAM space: project them through it
+            try:
+                test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn, executor=feat_ex)
+            except ValueError as exc:
+                raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
+                                 f"{corpus}: {exc}") from exc
+        load_s = time.perf_counter() - t0
+        small_note = None
+        if min_utterances is not None and test_c is None:
+            proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
+
+        def phone_set(c):
+            return list(c.manifest.get("phone_set", PHONES))
+
+        if sources != ("true",):  # test labels from the aligner / recogniser (issue 13)
+            result, traj = run_label_sources(
+                run_protocol, proto, train_c.sequences, test_c.sequences if test_c is not None else None, names,
+                sources, train_phone_set=phone_set(train_c),
+                test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
+        else:
+            result, traj = run_protocol(
+                proto, train_c.sequences, names,
+                test_sequences=test_c.sequences if test_c is not None else None,
+                train_phone_set=phone_set(train_c),
+                test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
+    result["corpus"] = str(Path(corpus).resolve())
+    result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
+    result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
+                               if train_c.aam_path is not None else "the test corpus's precomputed features")
+    result["load_seconds"] = load_s
+    result["cmvn"] = cmvn
+    result["executor"] = {"kind": kind, "workers": workers, "scheduler": scheduler}
+    if small_note:
+        result["warnings"] = [*(result.get("warnings") or []), small_note]
+        result["scaled_for_small_corpus"] = True
+    md_path = out.with_suffix(".md")
+    png_path = out.with_name(out.stem + "_trajectories.png")
+    result["outputs"] = {"json": out.name, "markdown": md_path.name, "figure": png_path.name if figures else None}
+    if figures:
+        report.plot_trajectories(traj, png_path, title=f"{result['description']} — first AAM parameter, "
+                                 f"utterance {traj.utterance}")
+    report.write_markdown(result, md_path)
+    report.write_json(result, out)
+    return result
+
