@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.mfcc import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
 __all__ = ["CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings", "cmvn", "downmix",
            "feature_statistics", "load_audio", "resample"]

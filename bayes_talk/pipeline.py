@@ -22,15 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
 from bayes_talk.data.sequence import Sequence
 from bayes_talk.files import write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
 MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "sgplvm")
-DESCRIPTOR = "bayes_talk_model.json"
-DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
-DESCRIPTOR_VERSION = 1
 LABEL_TOLERANCE_S = 0.08
 _DEFAULT = object()
 
