@@ -63,7 +63,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay
 
-from bayes_talk.data.render import bilinear_sample, warp_piecewise_affine
+from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine
 from bayes_talk.files import write_bytes
 
 __all__ = ["AAM", "FORMAT_VERSION", "PCAModel", "procrustes_align", "remove_sequence_mean"]

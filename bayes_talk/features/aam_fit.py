@@ -77,8 +77,8 @@ import numpy as np
 from skimage.transform import downscale_local_mean
 from threadpoolctl import threadpool_limits
 
-from bayes_talk.data.render import bilinear_sample
 from bayes_talk.features.aam import AAM, _align_to, _as_complex, _pose_apply
+from bayes_talk.features.warp import bilinear_sample
 
 __all__ = [
     "LOST_THRESHOLD",
