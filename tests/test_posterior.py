@@ -7,10 +7,10 @@ import pytest
 import torch
 from toydata import make_utterances
 
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.diagnostics import DIAGNOSTIC_KEYS, chain_diagnostics
 from bayes_talk.evaluation.metrics import coverage
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.switching import SwitchingSGPDM
 from bayes_talk.synthesis.joint import SwitchingLatents, UtteranceDensity, make_plan, pyro_log_density
 from bayes_talk.synthesis.posterior import MAP_GTOL, sample_synthesis
 from bayes_talk.synthesis.segment_objective import numpy_gp

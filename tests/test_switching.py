@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.models.switching import FALLBACK, SwitchingSGPDM
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.models.switching import FALLBACK
 from bayes_talk.synthesis.sequential import lowpass
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)

@@ -30,13 +30,11 @@ Example
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
-import zipfile
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +43,8 @@ import pyro.distributions as dist
 import torch
 from pyro import poutine
 
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.errors import not_fitted
+from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.predictive import GPPredictor
@@ -165,17 +164,45 @@ class FitHistory:
     best_step: int | None = None
 
 
-class SGPDM:
-    """Shared GPDM with any number of observed views; scikit-learn-like ``fit``."""
+_DEFAULTS = SGPDMConfig()
 
-    def __init__(self, config: SGPDMConfig | None = None, **kwargs):
-        if config is not None and kwargs:
-            raise ValueError("give either a config or keyword settings, not both")
-        self.config = config if config is not None else SGPDMConfig(**kwargs)
+
+class SGPDM:
+    """Shared GPDM with any number of observed views; scikit-learn-like ``fit``.
+
+    The keyword arguments are the fields of :class:`SGPDMConfig` (their one source of
+    defaults), stored as given; :attr:`config` gathers them. :meth:`from_config` builds
+    a model from a config. Inference for new observations is in
+    :mod:`bayes_talk.synthesis.latents`.
+    """
+
+    def __init__(self, *, latent_dim: int = _DEFAULTS.latent_dim, dynamics: bool = _DEFAULTS.dynamics,
+                 learn_dynamics: bool = _DEFAULTS.learn_dynamics, dyn_alpha: float = _DEFAULTS.dyn_alpha,
+                 dyn_gamma: float = _DEFAULTS.dyn_gamma, dyn_beta: float = _DEFAULTS.dyn_beta,
+                 dyn_linear: float | None = _DEFAULTS.dyn_linear, balanced: bool = _DEFAULTS.balanced,
+                 back_constraint: str | None = _DEFAULTS.back_constraint, bc_hidden: int = _DEFAULTS.bc_hidden,
+                 init: str = _DEFAULTS.init, init_scale: float | None = _DEFAULTS.init_scale,
+                 learn_w: bool = _DEFAULTS.learn_w, max_iter: int = _DEFAULTS.max_iter,
+                 tol: float = _DEFAULTS.tol, seed: int = _DEFAULTS.seed):
+        self.latent_dim, self.dynamics, self.learn_dynamics = latent_dim, dynamics, learn_dynamics
+        self.dyn_alpha, self.dyn_gamma, self.dyn_beta, self.dyn_linear = dyn_alpha, dyn_gamma, dyn_beta, dyn_linear
+        self.balanced, self.back_constraint, self.bc_hidden = balanced, back_constraint, bc_hidden
+        self.init, self.init_scale, self.learn_w = init, init_scale, learn_w
+        self.max_iter, self.tol, self.seed = max_iter, tol, seed
         self.view_names: list[str] = []
         self.history = FitHistory()
         self._fitted = False
         self.var_scale_: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def from_config(cls, config: SGPDMConfig) -> SGPDM:
+        """An unfitted model with the settings of ``config``."""
+        return cls(**asdict(config))
+
+    @property
+    def config(self) -> SGPDMConfig:
+        """The settings, gathered from the constructor arguments."""
+        return SGPDMConfig(**{f.name: getattr(self, f.name) for f in fields(SGPDMConfig)})
 
     # ------------------------------------------------------------------ validation/init
     def _check_views(self, views: Mapping[str, np.ndarray], seq_lengths) -> tuple[dict, list[int]]:
@@ -437,7 +464,7 @@ class SGPDM:
     # ------------------------------------------------------------------ prediction
     def _require_fitted(self) -> None:
         if not self._fitted:
-            raise RuntimeError("this SGPDM is not fitted yet: call fit() or load()")
+            raise not_fitted(self)
 
     def predict_view(self, view: str, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean (T, D) and per-dimension variance σ²(x)/w² (T, D) of a view (eq. 10),
@@ -459,7 +486,7 @@ class SGPDM:
         :meth:`predict_view` from then on (saved with the model). The MAP objective, the
         latents and every synthesis path are unchanged; only reported variances scale."""
         self.var_scale_.pop(view, None)
-        Y = self._check_new(view, Y)
+        Y = self.check_new_observations(view, Y)
         mu, var = self.predict_view(view, X)
         if mu.shape != Y.shape:
             raise ValueError(f"calibrate_variance: {len(X)} latent points but {len(Y)} observations")
@@ -469,46 +496,10 @@ class SGPDM:
                  view, len(Y), c.min(), c.max(), float(np.median(c)))
         return c
 
-    def infer_latents(
-        self,
-        view: str,
-        Y: np.ndarray,
-        X_init: np.ndarray | str = "nn",
-        method: str = "sequence",
-        max_iter: int = 100,
-    ) -> np.ndarray:
-        """Latent points for new observations of one view (deena2009 §4.1, eq. 9).
-
-        method: "sequence" (eq. 9: observation + dynamics terms) or "point" (each frame
-        alone). X_init: an array, or the name of an initialiser ("nn", "back-constraint",
-        "hmm"; see :mod:`bayes_talk.synthesis.initialisers`).
-        """
-        from bayes_talk.synthesis.initialisers import initialise
-        from bayes_talk.synthesis.optimise import optimise_points, optimise_sequence
-
+    def check_new_observations(self, view: str, Y: np.ndarray) -> np.ndarray:
+        """``Y`` as a float64 (T, D) array of new observations of ``view``; ValueError naming
+        the view when its shape is wrong or it holds NaN/inf (the model must be fitted)."""
         self._require_fitted()
-        Y = self._check_new(view, Y)
-        X0 = initialise(X_init, self, view, Y) if isinstance(X_init, str) else np.asarray(X_init, float)
-        if method == "sequence":
-            return optimise_sequence(self.predictors_[view], Y, X0, self.dynamics_predictor_, max_iter=max_iter)
-        if method == "point":
-            return optimise_points(self.predictors_[view], Y, X0, max_iter=max_iter)
-        raise ValueError(f"method must be 'sequence' or 'point', got {method!r}")
-
-    def predict(
-        self,
-        Y: np.ndarray,
-        view_in: str = "audio",
-        view_out: str = "visual",
-        X_init: np.ndarray | str = "nn",
-        method: str = "sequence",
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Visual prediction from audio (eq. 10): returns (mean, variance, latents)."""
-        X = self.infer_latents(view_in, Y, X_init, method)
-        mu, var = self.predict_view(view_out, X)
-        return mu, var, X
-
-    def _check_new(self, view: str, Y: np.ndarray) -> np.ndarray:
         if view not in self.predictors_:
             raise ValueError(f"unknown view {view!r}; this model has {self.view_names}")
         Y = np.asarray(Y, dtype=np.float64)
@@ -548,15 +539,10 @@ class SGPDM:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
-        if meta.get("format") != FORMAT_NAME:
-            raise ValueError(f"not an SGPDM model (format {meta.get('format')!r})")
-        if meta.get("version") != FORMAT_VERSION:
-            raise ValueError(
-                f"SGPDM model format version {meta.get('version')!r}; this bayes_talk reads version "
-                f"{FORMAT_VERSION}"
-            )
+        """A fitted model from :meth:`state`'s metadata and arrays (ValueError if incomplete)."""
+        check_format(meta, FORMAT_NAME, FORMAT_VERSION, "SGPDM model")
         try:
-            obj = cls(SGPDMConfig(**meta["config"]))
+            obj = cls(**meta["config"])
             obj.view_names = list(meta["views"])
             obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
             obj.history = FitHistory(list(meta.get("history", [])), list(meta.get("history_monitor", [])),
@@ -584,30 +570,12 @@ class SGPDM:
         """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""
         path = Path(path)
         meta, arrays = self.state()
-        write_npz(path.with_suffix(".npz"), arrays)
-        write_json(path.with_suffix(".json"), meta)
-        return path.with_suffix(".json")
+        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SGPDM:
+        """Read a model written by :meth:`save`; errors name the damaged file."""
         path = Path(path)
         jpath, npath = path.with_suffix(".json"), path.with_suffix(".npz")
         meta, arrays = read_model_files(jpath, npath)
         return cls.from_state(meta, arrays)
-
-
-def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """Read a JSON + NPZ model pair, turning every kind of damage into a ValueError."""
-    for p in (jpath, npath):
-        if not p.exists():
-            raise FileNotFoundError(f"model file {p} does not exist")
-    try:
-        meta = json.loads(jpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"model file {jpath} is truncated or not JSON ({exc})") from None
-    try:
-        with np.load(npath, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        raise ValueError(f"model file {npath} is truncated or corrupt ({exc})") from None
-    return meta, arrays

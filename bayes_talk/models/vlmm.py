@@ -76,6 +76,9 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+from bayes_talk.errors import not_fitted
+from bayes_talk.files import write_text
+
 __all__ = ["FORMAT_VERSION", "START", "VLMM", "Segment", "State"]
 
 State = tuple[str, ...]
@@ -279,7 +282,7 @@ class VLMM:
     # ------------------------------------------------------------------ accessors
     def _require_fitted(self) -> None:
         if not self._fitted:
-            raise ValueError("this VLMM is not fitted yet; call fit(sequences) first")
+            raise not_fitted(self, "call fit(sequences) first")
 
     @property
     def n_states(self) -> int:
@@ -606,8 +609,8 @@ class VLMM:
         return model
 
     def save(self, path: str | Path) -> None:
-        """Write :meth:`to_dict` as JSON to ``path``."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1), encoding="utf-8")
+        """Write :meth:`to_dict` as JSON to ``path`` (atomically: a crash never leaves half a file)."""
+        write_text(path, json.dumps(self.to_dict(), indent=1))
 
     @classmethod
     def load(cls, path: str | Path) -> VLMM:

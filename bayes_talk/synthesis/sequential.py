@@ -37,7 +37,7 @@ from bayes_talk.synthesis.optimise import optimise_sequence
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 if TYPE_CHECKING:
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.models.switching import SwitchingModel
 
 ALGORITHMS = ("optimise", "predict")
 
@@ -70,7 +70,7 @@ def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) 
     return filtfilt(b, a, Z, axis=0)
 
 
-def _check_inputs(model: SwitchingSGPDM, mfcc: np.ndarray, labels) -> np.ndarray:
+def _check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels) -> np.ndarray:
     mfcc = np.asarray(mfcc, dtype=np.float64)
     Dy = model.dims_[0]
     if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
@@ -83,7 +83,7 @@ def _check_inputs(model: SwitchingSGPDM, mfcc: np.ndarray, labels) -> np.ndarray
 
 
 def synthesize(
-    model: SwitchingSGPDM,
+    model: SwitchingModel,
     mfcc: np.ndarray,
     labels,
     algorithm: str = "optimise",
@@ -166,10 +166,10 @@ def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
 __all__ = ["ALGORITHMS", "SEGMENT_MAX_ITER", "SynthesisResult", "lowpass", "synthesize", "synthesize_many"]
 
 
-_WORKER_MODEL: "SwitchingSGPDM | None" = None
+_WORKER_MODEL: SwitchingModel | None = None
 
 
-def _init_worker(model: "SwitchingSGPDM") -> None:
+def _init_worker(model: SwitchingModel) -> None:
     global _WORKER_MODEL
     _WORKER_MODEL = model
 
@@ -180,7 +180,7 @@ def _synthesize_in_worker(job: tuple) -> SynthesisResult:
     return synthesize(_WORKER_MODEL, mfcc, labels, **kw)
 
 
-def synthesize_many(model: "SwitchingSGPDM", utterances: list, workers: int = 2, **kw) -> list[SynthesisResult]:
+def synthesize_many(model: SwitchingModel, utterances: list, workers: int = 2, **kw) -> list[SynthesisResult]:
     """:func:`synthesize` for many ``(mfcc, labels)`` pairs, ``workers`` processes at a time.
 
     Utterances are independent, so on a machine with several cores throughput scales with
