@@ -146,6 +146,7 @@ class AudioSettings:
             raise ValueError(f"cmvn: expected one of {CMVN_MODES}, found {self.cmvn!r}")
 
     def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded in a model's bundle)."""
         return asdict(self)
 
     @classmethod

@@ -29,7 +29,6 @@ from bayes_talk.files import write_json, write_npy, write_npz
 log = logging.getLogger(__name__)
 
 MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "sgplvm")
-LABEL_TOLERANCE_S = 0.08
 _DEFAULT = object()
 
 
@@ -46,16 +45,14 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     frames.
     """
     from bayes_talk.audio import cmvn as _cmvn
+    from bayes_talk.data.checks import check_audio_vs_labels
     from bayes_talk.data.labels import frame_labels, read_labels
     from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
 
     wav, labels = Path(wav), Path(labels)
     y, sr = load_wav(wav, sample_rate)
     intervals = read_labels(labels, tier=tier)
-    dur, end = y.size / sr, intervals[-1][1]
-    if abs(end - dur) > LABEL_TOLERANCE_S:
-        raise ValueError(f"{labels}: labels end at {end:.3f} s but {wav} lasts {dur:.3f} s "
-                         f"(audio and labels must describe the same utterance)")
+    check_audio_vs_labels(wav, labels, y.size / sr, intervals[-1][1])
     T = frame_count(y.size, sr, fps)
     feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn)
     return Sequence(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
@@ -63,22 +60,17 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
 
 def new_model(kind: str, **overrides):
     """An untrained model of the given kind (see :data:`MODEL_KINDS`)."""
-    from bayes_talk.models.sgplvm import SGPLVM
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.estimators.registry import make_estimator
 
-    if kind == "ssgpdm-vlmm":
-        return SwitchingSGPDM(states="vlmm", **overrides)
-    if kind == "ssgpdm-phone":
-        return SwitchingSGPDM(states="phone", **overrides)
-    if kind == "sgplvm":
-        return SGPLVM(**overrides)
+    if kind in MODEL_KINDS:
+        return make_estimator(kind, **overrides)
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
 def fit_model(model, train: list[Sequence], workers: int = 2):
     """Fit, training the switching model's states in ``workers`` processes (a progress bar
     of states done / total on a terminal, bayes_talk.progress)."""
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.progress import ProgressMapper
 
     if isinstance(model, SwitchingSGPDM) and workers > 1:
@@ -216,9 +208,9 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     """Load a directory written by :func:`train`; errors name the file and the problem."""
     from bayes_talk.audio import AudioSettings
     from bayes_talk.bundle import BUNDLE_MANIFEST, verify_bundle
+    from bayes_talk.estimators.sgplvm import SGPLVM
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.features.aam import AAM
-    from bayes_talk.models.sgplvm import SGPLVM
-    from bayes_talk.models.switching import SwitchingSGPDM
 
     d = Path(model_dir)
     p = d / DESCRIPTOR

@@ -61,6 +61,7 @@ class ProgressMapper:
         self.executor, self.desc, self.unit = executor, desc, unit
 
     def map(self, fn: Callable, iterable: Iterable) -> Iterator:
+        """``executor.map(fn, iterable)`` (or the built-in ``map``), ticking the bar per result."""
         items = list(iterable)
         mapper = self.executor.map if self.executor is not None else map
         return bar(mapper(fn, items), total=len(items), desc=self.desc, unit=self.unit)

@@ -8,18 +8,18 @@ import scipy.stats
 
 from bayes_talk.baselines import DPDS, REGISTRY, SLDS, HMMMean, VoicePuppetry
 from bayes_talk.baselines.base import LabelEncoder
-from bayes_talk.baselines.lds import (
+from bayes_talk.baselines.dpds import (
     dpds_forward,
     dpds_grad_A,
     dpds_loglik,
     dpds_profile,
     dpds_solve_mu_nu,
-    kalman_smoother,
-    make_batch,
-    mean_trajectory,
 )
+from bayes_talk.baselines.lds import make_batch, mean_trajectory
+from bayes_talk.baselines.slds import kalman_smoother
 from bayes_talk.baselines.voice_puppetry import delta_features, delta_matrix, trajectory_solve
 from bayes_talk.data.sequence import Sequence
+from bayes_talk.errors import NotFittedError
 
 PH = ["aa", "m", "sil", "iy"]  # sorted by LabelEncoder to aa, iy, m, sil
 
@@ -375,7 +375,7 @@ def test_registry_and_bad_inputs(slds_fit):
         model.log_likelihood(no_aam)
     with pytest.raises(ValueError, match=r"expected \(T, 2\)"):
         model.log_likelihood(wide)
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         DPDS().predict(no_aam)
 
 

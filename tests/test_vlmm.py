@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from bayes_talk.errors import NotFittedError
 from bayes_talk.models.vlmm import START, VLMM, Segment
 
 ALPHA = ("a", "b", "c")
@@ -378,6 +379,6 @@ def test_state_ids_and_bad_input():
         VLMM(epsilon=-1.0)
     with pytest.raises(ValueError, match="min_count"):
         VLMM(min_count=0)
-    with pytest.raises(ValueError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         VLMM().states(["a"])
     assert m.transition(START, "a") == (("a",), 1.0)

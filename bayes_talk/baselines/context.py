@@ -130,6 +130,7 @@ class ContextFeatures:
 
     @property
     def n_features(self) -> int:
+        """Number of columns of :meth:`transform`'s output."""
         P, Dy = self.encoder.n_classes, self.mfcc_mean.shape[0]
         lab = 0 if self.label_window is None else (2 * self.label_window + 1) * P
         aud = 0 if self.mfcc_window is None else (2 * self.mfcc_window + 1) * Dy
@@ -184,15 +185,18 @@ class ContextFeatures:
 
     # -- persistence
     def to_meta(self) -> dict[str, Any]:
+        """JSON-able description of the fitted windows (saved with the model)."""
         return {"label_window": self.label_window, "mfcc_window": self.mfcc_window,
                 "classes": list(self.encoder.classes_)}
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The fitted arrays (saved with the model)."""
         return {"class_counts": self.encoder.counts_, "mfcc_mean": self.mfcc_mean,
                 "mfcc_scale": self.mfcc_scale}
 
     @classmethod
     def from_saved(cls, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> ContextFeatures:
+        """Features restored from :meth:`to_meta` and :meth:`arrays`."""
         enc = LabelEncoder.from_counts(list(meta["classes"]), arrays["class_counts"])
         lw = window_grid(meta["label_window"], "label_window")[0]
         mw = window_grid(meta["mfcc_window"], "mfcc_window")[0]
@@ -290,7 +294,7 @@ def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[
     """Read a pair written by :func:`write_saved`. A missing file is FileNotFoundError; a
     truncated, modified, foreign, wrong-format or wrong-version file a ValueError naming
     the file and the problem."""
-    from bayes_talk.models.sgpdm import read_model_files
+    from bayes_talk.files import read_model_files
 
     jpath, npath = _paths(path)
     meta, arrays = read_model_files(jpath, npath)
@@ -411,8 +415,8 @@ class ContextRidge(ContextBaseline):
             raise ValueError(f"n_splits must be an integer >= 2, got {n_splits!r}")
         self.label_window = label_window
         self.mfcc_window = mfcc_window
-        self.alphas = tuple(float(a) for a in alphas)
-        self.n_splits = int(n_splits)
+        self.alphas = alphas
+        self.n_splits = n_splits
         self.blas_threads = blas_threads
 
     def fit(self, train: list[Sequence]) -> Self:
@@ -447,7 +451,7 @@ class ContextRidge(ContextBaseline):
         """Write ``<base>.json`` + ``<base>.npz`` (``path`` with or without suffix)."""
         self._check_fitted()
         meta = {"params": {"label_window": listed(self.label_window), "mfcc_window": listed(self.mfcc_window),
-                           "alphas": list(self.alphas), "n_splits": self.n_splits},
+                           "alphas": [float(a) for a in self.alphas], "n_splits": self.n_splits},
                 "features": self.features_.to_meta(), "n_audio": self.n_audio_, "n_visual": self.n_visual_,
                 "cv_table": self.cv_table_, "cv_splits": self.cv_splits_}
         arrays = {**self.features_.arrays(), "coef": self.coef_, "intercept": self.intercept_,

@@ -110,15 +110,15 @@ class ContextMLP(ContextBaseline):
                 raise ValueError(f"{nm} must be a positive number, got {v!r}")
         self.label_window = label_window
         self.mfcc_window = mfcc_window
-        self.hidden = int(hidden)
-        self.l2 = float(l2)
-        self.learning_rate = float(learning_rate)
-        self.batch_size = int(batch_size)
-        self.max_epochs = int(max_epochs)
-        self.patience = int(patience)
-        self.validation_fraction = float(validation_fraction)
-        self.n_splits = int(n_splits)
-        self.seed = int(seed)
+        self.hidden = hidden
+        self.l2 = l2
+        self.learning_rate = learning_rate
+        self.batch_size = batch_size
+        self.max_epochs = max_epochs
+        self.patience = patience
+        self.validation_fraction = validation_fraction
+        self.n_splits = n_splits
+        self.seed = seed
         self.blas_threads = blas_threads
 
     def _features(self, train: list[Sequence]) -> ContextFeatures:

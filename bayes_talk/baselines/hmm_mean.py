@@ -46,9 +46,10 @@ class HMMMean(Baseline):
     def __init__(self, var_floor: float = 1e-3) -> None:
         if not var_floor > 0:
             raise ValueError(f"var_floor must be > 0, got {var_floor}")
-        self.var_floor = float(var_floor)
+        self.var_floor = var_floor
 
     def fit(self, train: list[Sequence]) -> Self:
+        """Per-phone mean and variance of the visual features (global ones for the fallback); returns ``self``."""
         d_y, d_z = check_train(train)
         z = np.concatenate([s.aam for s in train])
         labs: list[str] = []

@@ -54,6 +54,7 @@ from typing import Self
 
 import numpy as np
 
+from bayes_talk.data.checks import LABEL_TOLERANCE_S
 from bayes_talk.data.labels import frame_labels, read_labels, write_lab
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.sequence import Sequence
@@ -95,7 +96,7 @@ FEATURE_VERSION = 1
 _CACHE_NAME = "features.npz"
 _MANIFEST = "manifest.json"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-_LABEL_TOL_S = 1.0 / FPS
+_LABEL_TOL_S = LABEL_TOLERANCE_S  # one tolerance for the corpus and synthesis (bayes_talk.data.checks)
 _VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".webm")
 _IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 

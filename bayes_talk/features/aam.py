@@ -193,9 +193,11 @@ class PCAModel:
         return cls(mean, comps, lam[:k], total)
 
     def project(self, X: np.ndarray) -> np.ndarray:
+        """PCA coefficients of the rows of ``X``."""
         return (X - self.mean) @ self.components.T
 
     def reconstruct(self, b: np.ndarray) -> np.ndarray:
+        """Rows reconstructed from PCA coefficients ``b``."""
         return self.mean + b @ self.components
 
 
@@ -264,18 +266,22 @@ class AAM:
 
     @property
     def n_combined(self) -> int:
+        """Number of combined appearance parameters."""
         return int(self.combined_pca.components.shape[0])
 
     @property
     def n_shape_modes(self) -> int:
+        """Number of shape PCA modes."""
         return int(self.shape_pca.components.shape[0])
 
     @property
     def n_texture_modes(self) -> int:
+        """Number of texture PCA modes."""
         return int(self.texture_pca.components.shape[0])
 
     @property
     def n_landmarks(self) -> int:
+        """Number of landmarks of the shape model."""
         return int(self._a["mean_shape"].shape[0])
 
     @property

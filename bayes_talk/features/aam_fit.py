@@ -315,10 +315,12 @@ class AAMFitter:
 
     @property
     def image_shape(self) -> tuple[int, int]:
+        """(H, W) of the frames the fitter expects."""
         return self.aam.image_shape
 
     @property
     def n_landmarks(self) -> int:
+        """Number of landmarks fitted per frame."""
         return self.aam.n_landmarks
 
     @classmethod
@@ -439,6 +441,7 @@ class AAMFitter:
 
     def track(self, frames: np.ndarray, annotations: dict[int, np.ndarray] | None = None,
               where: str = "video", search_stride: int = 10) -> TrackResult:
+        """Fit the AAM to every frame of a video, each frame starting from the previous fit."""
         with threadpool_limits(limits=1):   # small products: 2 BLAS threads only contend
             return self._track(frames, annotations, where, search_stride)
 
