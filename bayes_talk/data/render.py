@@ -147,7 +147,7 @@ def _texture_cached(image_size: int, fine: int = 1) -> np.ndarray:
 def face_texture(image_size: int = 128) -> np.ndarray:
     """The face texture (image_size, image_size) float64 in [0, 255], painted on
     :func:`~bayes_talk.data.face.reference_shape`. Deterministic, cached; a copy."""
-    _face._check_image_size(image_size)
+    _face.check_image_size(image_size)
     return _texture_cached(int(image_size)).copy()
 
 
@@ -254,7 +254,7 @@ def render_frames(landmarks: np.ndarray, image_size: int = 128,
     texture edges at positions that shift with sub-pixel head motion; that aliasing
     showed up as AAM modes (benchmarks/render_aliasing.py, docs/face.md). Cost grows as s^2.
     """
-    _face._check_image_size(image_size)
+    _face.check_image_size(image_size)
     if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or supersample < 1:
         raise ValueError(f"supersample: expected an int >= 1, found {supersample!r}")
     if not (np.isfinite(psf_px) and psf_px >= 0):
