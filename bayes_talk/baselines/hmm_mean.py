@@ -98,6 +98,13 @@ class HMMMean(Baseline):
         check_test(seq)
         return self._params(seq)[0]
 
+    def predict_var(self, seq: Sequence) -> np.ndarray:
+        """Per-frame variance: the training variance of each frame's phone (global variance
+        for a phone unseen in training)."""
+        self._check_fitted()
+        check_test(seq)
+        return self._params(seq)[1]
+
     def log_likelihood(self, seq: Sequence) -> float:
         """Σ_t log N(z_t; m_{π_t}, diag s²_{π_t}) -- conditioned on the labels only."""
         self._check_fitted()

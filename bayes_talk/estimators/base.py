@@ -9,8 +9,9 @@ with scikit-learn conventions:
 * ``fit(train) -> self`` learns from training utterances (``mfcc``, ``aam``, ``labels``);
   fitted attributes end in ``_``;
 * ``predict(utt) -> (T, D_z)`` mean trajectory, from ``utt.mfcc`` / ``utt.labels`` only;
-* ``predict_dist(utt)``: the predictive distribution (mean and per-dimension variance;
-  the variance is None for a point predictor);
+* ``predict_dist(utt)``: the predictive distribution, a
+  :class:`~bayes_talk.synthesis.result.SynthesisResult` (``.mean``, ``.var``, bands);
+  NotImplementedError for a point predictor (no variance: Voice Puppetry, SLDS, DPDS);
 * ``save(directory)`` / ``load(directory)``: a model bundle, JSON + NPZ, never pickle;
 * anything but ``fit``/``load`` before fitting raises :class:`~bayes_talk.errors.NotFittedError`.
 
@@ -33,23 +34,14 @@ from bayes_talk.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, writ
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.errors import NotFittedError, not_fitted
 from bayes_talk.files import check_format, read_model_files, write_json, write_npz
+from bayes_talk.synthesis.result import SynthesisResult
 
-__all__ = ["ARRAYS_FILE", "ESTIMATOR_FILE", "FORMAT_NAME", "FORMAT_VERSION", "Estimator", "NotFittedError",
-           "PointPrediction"]
+__all__ = ["ARRAYS_FILE", "ESTIMATOR_FILE", "FORMAT_NAME", "FORMAT_VERSION", "Estimator", "NotFittedError"]
 
 FORMAT_NAME = "bayes_talk.estimator"
 FORMAT_VERSION = 1
 ESTIMATOR_FILE = "estimator.json"
 ARRAYS_FILE = "arrays.npz"
-
-
-class PointPrediction:
-    """Mean (T, D_z) and per-dimension variance (T, D_z, or None) of an estimator without
-    latent trajectories (the baselines)."""
-
-    def __init__(self, mean: np.ndarray, var: np.ndarray | None = None) -> None:
-        self.mean = np.asarray(mean, dtype=np.float64)
-        self.var = None if var is None else np.asarray(var, dtype=np.float64)
 
 
 class Estimator(BaseEstimator):
@@ -66,13 +58,15 @@ class Estimator(BaseEstimator):
         """The (T, D_z) mean visual trajectory of ``utt`` (``utt.aam`` is not used)."""
         raise NotImplementedError
 
-    def predict_dist(self, utt: Utterance) -> Any:
-        """The predictive distribution of ``utt``'s visual features: an object with ``mean``
-        and ``var`` (T, D_z); ``var`` is None for a point predictor. The default wraps
-        :meth:`predict` (and ``predict_var`` where the estimator has one)."""
-        mean = self.predict(utt)
-        var = self.predict_var(utt) if hasattr(self, "predict_var") else None
-        return PointPrediction(mean, var)
+    def predict_dist(self, utt: Utterance) -> SynthesisResult:
+        """The predictive distribution of ``utt``'s visual features, the one synthesis result
+        type (:class:`~bayes_talk.synthesis.result.SynthesisResult`). The default: a Gaussian
+        per frame and dimension from :meth:`predict` and ``predict_var``; an estimator without
+        ``predict_var`` is a point predictor and raises NotImplementedError."""
+        if not hasattr(self, "predict_var"):
+            raise NotImplementedError(f"{type(self).__name__} ({self.name}) is a point predictor: it defines "
+                                      "no predictive distribution (use predict)")
+        return SynthesisResult.gaussian(self.predict(utt), self.predict_var(utt), method=self.name)
 
     # ------------------------------------------------------------------ fitted state
     def _is_fitted(self) -> bool:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,15 +33,7 @@ from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
 from bayes_talk.synthesis.latents import infer_latents
-
-
-@dataclass
-class SGPLVMResult:
-    """Visual mean and variance (T, D_z) and the inferred latents (T, d) of one utterance."""
-
-    mean: np.ndarray
-    var: np.ndarray
-    latents: np.ndarray
+from bayes_talk.synthesis.result import SynthesisResult
 
 
 class SGPLVM(Estimator):
@@ -108,20 +99,22 @@ class SGPLVM(Estimator):
     def _is_fitted(self) -> bool:
         return hasattr(self, "model_")
 
-    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SGPLVMResult:
+    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None,
+                   max_iter: int = 100) -> SynthesisResult:
         """Sequence optimisation (eq. 9) of the latents of ``mfcc`` from initialiser ``init``
-        (None: the estimator's), then the visual predictive (eq. 10); ``labels`` unused."""
+        (None: the estimator's), then the visual GP's Gaussian predictive at them (eq. 10), a
+        one-component :class:`~bayes_talk.synthesis.result.SynthesisResult`; ``labels`` unused."""
         self._require_fitted()
         with torch_threads(1):  # small L-BFGS-B problems: extra BLAS threads only contend (gp.threads)
             X = infer_latents(self.model_, "audio", mfcc, init or self.init, "sequence", max_iter=max_iter)
             mu, var = self.model_.predict_view("visual", X)
-        return SGPLVMResult(mu, var, X)
+        return SynthesisResult.gaussian(mu, var, X, method="sgplvm")
 
     def predict(self, seq: Utterance, **kw) -> np.ndarray:
         """Mean visual trajectory of ``seq`` (its mfcc only)."""
         return self.synthesize(seq.mfcc, seq.labels, **kw).mean
 
-    def predict_dist(self, seq: Utterance, **kw) -> SGPLVMResult:
+    def predict_dist(self, seq: Utterance, **kw) -> SynthesisResult:
         """Mean, calibrated variance and latents of ``seq``'s visual trajectory."""
         return self.synthesize(seq.mfcc, seq.labels, **kw)
 

@@ -17,7 +17,8 @@ import numpy as np
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
-from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, SynthesisResult, synthesize
+from bayes_talk.synthesis.result import SynthesisResult
+from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
 
 __all__ = ["SwitchingSGPDM"]
 
