@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bayes_talk.synthesis.initialisers import initialise
-from bayes_talk.synthesis.optimise import optimise_points, optimise_sequence
+from bayes_talk.synthesis.optimise import maximise_points, maximise_sequence
 
 if TYPE_CHECKING:
     from bayes_talk.models.sgpdm import SGPDM
@@ -37,9 +37,9 @@ def infer_latents(model: SGPDM, view: str, Y: np.ndarray, X_init: np.ndarray | s
     Y = model.check_new_observations(view, Y)
     X0 = initialise(X_init, model, view, Y) if isinstance(X_init, str) else np.asarray(X_init, float)
     if method == "sequence":
-        return optimise_sequence(model.predictors_[view], Y, X0, model.dynamics_predictor_, max_iter=max_iter)
+        return maximise_sequence(model.predictors_[view], Y, X0, model.dynamics_predictor_, max_iter=max_iter)
     if method == "point":
-        return optimise_points(model.predictors_[view], Y, X0, max_iter=max_iter)
+        return maximise_points(model.predictors_[view], Y, X0, max_iter=max_iter)
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")
 
 

@@ -33,7 +33,7 @@ from scipy.signal import butter, filtfilt
 
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.initialisers import NearestNeighbour
-from bayes_talk.synthesis.optimise import optimise_sequence
+from bayes_talk.synthesis.optimise import maximise_sequence
 from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
@@ -108,7 +108,7 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         # Algorithm 1 optimises the whole segment; Algorithm 2 (and one-frame segments)
         # optimise its first frame only and roll the dynamics mean forward.
         n_opt = b - a if algorithm == "optimise" else 1
-        Xs = optimise_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
+        Xs = maximise_state_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
                                model.motion_var_)
         if n_opt < b - a:
             Xs = _roll_dynamics(m, Xs[0], b - a)
@@ -119,12 +119,12 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
     return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used)
 
 
-def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
+def maximise_state_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
                       max_iter: int, motion_var: np.ndarray) -> np.ndarray:
     """Latent points of one segment (or of its first frame) under state model ``m``.
 
     The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`
-    (maximised by :func:`~bayes_talk.synthesis.optimise.optimise_sequence`). With
+    (maximised by :func:`~bayes_talk.synthesis.optimise.maximise_sequence`). With
     smoothness "frame" (DESIGN.md §5) x_a itself must explain the last synthesised
     frame, which differs from the current one by the frame-to-frame motion (variance
     ``motion_var``).
@@ -134,7 +134,7 @@ def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothn
     smooth = None
     if z_prev is not None and smoothness == "frame":
         smooth = (m.predictors_["visual"], z_prev, motion_var)
-    return optimise_sequence(m.predictors_["audio"], Y, X0, dyn, first=entry, smooth=smooth, max_iter=max_iter)
+    return maximise_sequence(m.predictors_["audio"], Y, X0, dyn, first=entry, smooth=smooth, max_iter=max_iter)
 
 
 def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
