@@ -9,14 +9,13 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from bayes_talk.baselines.base import Baseline, check_test
+from bayes_talk.baselines.base import check_test
 from bayes_talk.baselines.lds import (
     LOG2PI,
     Batch,
+    LabelSwitchedLDS,
     init_ar,
-    label_batch,
     label_means,
-    mean_trajectory,
     prepare_fit,
 )
 from bayes_talk.data.sequence import Sequence
@@ -144,7 +143,7 @@ def dpds_profile(A: np.ndarray, batch: Batch, mu_default: np.ndarray, nu_default
     return ll, dpds_grad_A(A, nu, mu, R, batch), mu, nu, R
 
 
-class DPDS(Baseline):
+class DPDS(LabelSwitchedLDS):
     """Deterministic Process Dynamical System (englebienne2008 §3, App. A).
 
     The SLDS with zero process noise: the state is a deterministic function of the labels,
@@ -177,11 +176,8 @@ class DPDS(Baseline):
         self.var_floor = var_floor
         self.gtol = gtol
 
-    def _batch(self, seqs: list[Sequence]) -> Batch:
-        return label_batch(self.encoder_, seqs)
-
     def fit(self, train: list[Sequence]) -> Self:
-        """Fit by the method in the class docstring; returns ``self``."""
+        """Maximise the likelihood over A by L-BFGS-B, μ and ν profiled out (class docstring); returns ``self``."""
         d_y, d_z, P, b, data_var = prepare_fit(self, train)
         floor = self.var_floor * data_var
         N = b.n_frames
@@ -214,12 +210,8 @@ class DPDS(Baseline):
         self.n_audio_, self.n_visual_ = d_y, d_z
         return self
 
-    def predict(self, seq: Sequence) -> np.ndarray:
-        """(GEN) deterministic trajectory for ``seq.labels``."""
-        self._check_fitted()
-        check_test(seq)
-        idx = self.encoder_.encode(seq.labels, where=f"sequence {seq.name!r}")
-        return mean_trajectory(self.A_, self.nu_, self.mu_, idx)
+    def _start_means(self) -> np.ndarray:
+        return self.mu_
 
     def log_likelihood(self, seq: Sequence) -> float:
         """Σ_t log N(z_t; x̂_t, R) with x̂ from (GEN) (labels only, no audio)."""

@@ -34,12 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_talk.baselines.base import LabelEncoder, check_train
+from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
 from bayes_talk.data.sequence import Sequence
 
 __all__ = [
     "LOG2PI",
     "Batch",
+    "LabelSwitchedLDS",
     "first_frame_means",
     "init_ar",
     "label_batch",
@@ -160,3 +161,24 @@ def prepare_fit(model, train: list[Sequence]) -> tuple[int, int, int, Batch, np.
     data_var = b.Y[b.M].var(axis=0)
     data_var[data_var <= 0] = 1.0
     return d_y, d_z, model.encoder_.n_classes, b, data_var
+
+
+class LabelSwitchedLDS(Baseline):
+    """What the SLDS and DPDS estimators share: the label encoder fitted by
+    :func:`prepare_fit` and the batching of test sequences with it."""
+
+    encoder_: LabelEncoder
+
+    def _batch(self, seqs: list[Sequence]) -> Batch:
+        return label_batch(self.encoder_, seqs)
+
+    def _start_means(self) -> np.ndarray:
+        """μ_π of the first frame, per label (fitted)."""
+        raise NotImplementedError
+
+    def predict(self, seq: Sequence) -> np.ndarray:
+        """(GEN) the mean trajectory for ``seq.labels`` (module docstring)."""
+        self._check_fitted()
+        check_test(seq)
+        idx = self.encoder_.encode(seq.labels, where=f"sequence {seq.name!r}")
+        return mean_trajectory(self.A_, self.nu_, self._start_means(), idx)

@@ -6,15 +6,14 @@ from typing import ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.baselines.base import Baseline, check_test
+from bayes_talk.baselines.base import check_test
 from bayes_talk.baselines.lds import (
     LOG2PI,
     Batch,
+    LabelSwitchedLDS,
     first_frame_means,
     init_ar,
-    label_batch,
     label_means,
-    mean_trajectory,
     prepare_fit,
 )
 from bayes_talk.data.sequence import Sequence
@@ -78,7 +77,7 @@ def kalman_smoother(batch: Batch, A: np.ndarray, nu: np.ndarray, Q: np.ndarray, 
 
 
 
-class SLDS(Baseline):
+class SLDS(LabelSwitchedLDS):
     """Switching LDS with known labels, trained by EM (englebienne2008 §3).
 
     Model (per visual dimension, all matrices diagonal, B = I):
@@ -120,11 +119,8 @@ class SLDS(Baseline):
         self.var_floor = var_floor
         self.a_init_max = a_init_max
 
-    def _batch(self, seqs: list[Sequence]) -> Batch:
-        return label_batch(self.encoder_, seqs)
-
     def fit(self, train: list[Sequence]) -> Self:
-        """Fit by the method in the class docstring; returns ``self``."""
+        """EM from the deterministic AR(1) start (class docstring); returns ``self``."""
         d_y, d_z, P, b, data_var = prepare_fit(self, train)
         floor = self.var_floor * data_var
         lmean = label_means(b, P)
@@ -173,12 +169,8 @@ class SLDS(Baseline):
         self.n_audio_, self.n_visual_ = d_y, d_z
         return self
 
-    def predict(self, seq: Sequence) -> np.ndarray:
-        """(GEN) mean trajectory for ``seq.labels``."""
-        self._check_fitted()
-        check_test(seq)
-        idx = self.encoder_.encode(seq.labels, where=f"sequence {seq.name!r}")
-        return mean_trajectory(self.A_, self.nu_, self.mu0_, idx)
+    def _start_means(self) -> np.ndarray:
+        return self.mu0_
 
     def log_likelihood(self, seq: Sequence) -> float:
         """log p(z_{1:T} | π_{1:T}) by the Kalman filter (labels only, no audio)."""

@@ -2,15 +2,8 @@
 
 Building (:meth:`AAM.fit`):
 
-1. **Generalised Procrustes alignment** of the landmark shapes under similarity
-   transforms. With shapes as complex vectors ``z`` (x + iy), the least-squares
-   similarity taking a centred shape ``z_c`` onto the mean ``m`` is ``b z_c`` with
-   ``b = <z_c, m> / <z_c, z_c>`` (``b = s e^{i rot}``). Iterate: align all, average,
-   rescale the mean to the average training size (so the model frame is in pixels), rotate
-   it onto the average raw orientation (so rotation 0 = upright), until the mean moves less
-   than 1e-10 px. No tangent-space projection (head rotations are a few degrees).
-2. **Pose**. Landmarks ``L = a x + t`` with ``x`` the aligned shape (centroid 0), ``t`` the
-   centroid of ``L`` and ``a = 1/b``. Stored per frame as ``(tx, ty, log s, rot)``.
+1. **Generalised Procrustes alignment** of the landmark shapes under similarity transforms
+   and 2. **pose** ``(tx, ty, log s, rot)`` per frame: :mod:`bayes_talk.features.procrustes`.
 3. **Texture frame**: the mean shape shifted to a pixel grid with a 1-px margin; its
    Delaunay triangulation (``scipy.spatial.Delaunay``) covers the convex hull, and every
    grid pixel centre inside it is a texture pixel, with a fixed triangle and barycentric
