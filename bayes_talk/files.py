@@ -139,8 +139,8 @@ def check_format(meta: object, name: str, version: int, where: str) -> dict:
     if not isinstance(meta, dict):
         raise ValueError(f"{where}: expected a JSON object, found {type(meta).__name__}")  # noqa: TRY004
     if meta.get("format") != name:
-        raise ValueError(f"{where}: not a {name!r} file (format {meta.get('format')!r})")
+        raise ValueError(f"{where}: format expected {name!r}, found {meta.get('format')!r}")
     if meta.get("version") != version:
-        raise ValueError(f"{where}: {name} format version {meta.get('version')!r}; this bayes_talk reads "
-                         f"version {version}")
+        raise ValueError(f"{where}: version expected {version}, found {meta.get('version')!r} (of format "
+                         f"{name!r}; this bayes_talk reads version {version} only)")
     return meta

@@ -24,7 +24,7 @@ import numpy as np
 
 from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.files import write_json, write_npy, write_npz
+from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
@@ -222,9 +222,7 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
         desc = json.loads(p.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{p} is truncated or not JSON ({exc})") from None
-    if desc.get("format") != DESCRIPTOR_FORMAT or desc.get("version") != DESCRIPTOR_VERSION:
-        raise ValueError(f"{p}: format {desc.get('format')!r} version {desc.get('version')!r}; this "
-                         f"bayes_talk reads {DESCRIPTOR_FORMAT!r} version {DESCRIPTOR_VERSION}")
+    check_format(desc, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION, str(p))
     if desc.get("bundle_manifest") or (d / BUNDLE_MANIFEST).exists():
         verify_bundle(d)
     else:

@@ -125,7 +125,7 @@ def test_bad_input_is_refused_with_a_clear_message(vlmm_model, data, tmp_path):
     vlmm_model.save(tmp_path / "m")
     meta = (tmp_path / "m" / "model.json").read_text().replace('"version": 1', '"version": 99')
     (tmp_path / "m" / "model.json").write_text(meta)
-    with pytest.raises(ValueError, match="version 99"):
+    with pytest.raises(ValueError, match="version expected 1, found 99"):
         SwitchingSGPDM.load(tmp_path / "m")
 
 

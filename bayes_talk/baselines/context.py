@@ -44,7 +44,6 @@ the label encoder, the MFCC standardisation, ``coef_``/``intercept_`` and the va
 """
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass
@@ -60,7 +59,7 @@ from sklearn.model_selection import GroupKFold
 from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
 from bayes_talk.data.phones import SILENCE
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.files import check_format, read_model_files, write_model_files
 
 __all__ = [
     "FORMAT_VERSION",
@@ -282,32 +281,19 @@ def write_saved(path: str | os.PathLike, fmt: str, meta: dict[str, Any], arrays:
         for p in (jpath, npath):
             if p.exists():
                 raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
-    write_npz(npath, arrays)
-    digest = hashlib.sha256(npath.read_bytes()).hexdigest()
-    full = {"format": fmt, "version": FORMAT_VERSION, **meta, "npz_file": npath.name, "npz_sha256": digest,
+    full = {"format": fmt, "version": FORMAT_VERSION, **meta,
             "arrays": {k: list(np.shape(a)) for k, a in arrays.items()}}
-    write_json(jpath, full)
-    return jpath
+    return write_model_files(jpath, npath, full, arrays)
 
 
 def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read a pair written by :func:`write_saved`. A missing file is FileNotFoundError; a
     truncated, modified, foreign, wrong-format or wrong-version file a ValueError naming
     the file and the problem."""
-    from bayes_talk.files import read_model_files
 
     jpath, npath = _paths(path)
     meta, arrays = read_model_files(jpath, npath)
-    if not isinstance(meta, dict):
-        raise ValueError(f"model file {jpath}: expected a JSON object, found {type(meta).__name__}")  # noqa: TRY004
-    if meta.get("format") != fmt:
-        raise ValueError(f"model file {jpath}: format expected {fmt!r}, found {meta.get('format')!r}")
-    if meta.get("version") != FORMAT_VERSION:
-        raise ValueError(f"model file {jpath}: version expected {FORMAT_VERSION}, found {meta.get('version')!r}")
-    digest = hashlib.sha256(npath.read_bytes()).hexdigest()
-    if digest != meta.get("npz_sha256"):
-        raise ValueError(f"model file {npath}: SHA-256 expected {meta.get('npz_sha256')}, found {digest} "
-                         "(modified or from another model)")
+    check_format(meta, fmt, FORMAT_VERSION, f"model file {jpath}")
     for k, shape in (meta.get("arrays") or {}).items():
         if k not in arrays:
             raise ValueError(f"model file {npath}: array {k!r} missing")

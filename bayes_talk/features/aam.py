@@ -68,7 +68,7 @@ from bayes_talk.features.procrustes import (
     procrustes_align,
 )
 from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine
-from bayes_talk.files import write_bytes
+from bayes_talk.files import check_format, write_bytes
 
 __all__ = ["AAM", "FORMAT_VERSION", "remove_sequence_mean"]
 
@@ -416,10 +416,7 @@ class AAM:
             raise ValueError(f"AAM file {json_path}: not found") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"AAM file {json_path}: not valid JSON (truncated?): {exc}") from None
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT_NAME:
-            raise ValueError(f"AAM file {json_path}: format expected {_FORMAT_NAME!r}, found {meta.get('format') if isinstance(meta, dict) else type(meta).__name__!r}")
-        if meta.get("version") != FORMAT_VERSION:
-            raise ValueError(f"AAM file {json_path}: version expected {FORMAT_VERSION}, found {meta.get('version')!r}")
+        check_format(meta, _FORMAT_NAME, FORMAT_VERSION, f"AAM file {json_path}")
         try:
             data = npz_path.read_bytes()
         except FileNotFoundError:

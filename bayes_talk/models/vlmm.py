@@ -77,7 +77,7 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from bayes_talk.errors import not_fitted
-from bayes_talk.files import write_text
+from bayes_talk.files import check_format, write_text
 
 __all__ = ["FORMAT_VERSION", "START", "VLMM", "Segment", "State"]
 
@@ -554,13 +554,7 @@ class VLMM:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> VLMM:
         """Inverse of :meth:`to_dict`; ValueError on a wrong format, version or content."""
-        if not isinstance(d, dict) or d.get("format") != _FORMAT_NAME:
-            raise ValueError(f"not a saved VLMM (expected format {_FORMAT_NAME!r})")
-        if d.get("version") != FORMAT_VERSION:
-            raise ValueError(
-                f"unsupported VLMM format version {d.get('version')!r}; this code reads "
-                f"version {FORMAT_VERSION}"
-            )
+        check_format(d, _FORMAT_NAME, FORMAT_VERSION, "saved VLMM")
         try:
             p = d["params"]
             model = cls(p["max_memory"], p["epsilon"], p["min_count"])
