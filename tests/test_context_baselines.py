@@ -12,12 +12,8 @@ from toydata import make_utterances
 
 import bayes_talk.baselines.context as C
 from bayes_talk.baselines import REGISTRY
-from bayes_talk.baselines.context import (
-    ContextFeatures,
-    ContextRidge,
-    grouped_ridge_cv,
-    stack_context,
-)
+from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
+from bayes_talk.baselines.context_features import ContextFeatures, stack_context
 from bayes_talk.baselines.context_mlp import ContextMLP
 from bayes_talk.data.sequence import Sequence
 from bayes_talk.errors import NotFittedError

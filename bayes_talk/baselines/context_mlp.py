@@ -40,19 +40,16 @@ import numpy as np
 from sklearn.neural_network import MLPRegressor
 
 from bayes_talk.baselines.base import check_train
-from bayes_talk.baselines.context import (
+from bayes_talk.baselines.context import ContextBaseline, read_saved, select_context, write_saved
+from bayes_talk.baselines.context_features import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,
-    ContextBaseline,
     ContextFeatures,
     Window,
     listed,
-    read_saved,
-    select_context,
     stack_context,
     tupled,
     window_grid,
-    write_saved,
 )
 from bayes_talk.data.sequence import Sequence
 
