@@ -68,6 +68,10 @@ score 0.42, 0.72 and 0.90, a diverged fit or a frame without a face 1.0-1.3 (v1
 renderer; on the anti-aliased v2 corpora tracked frames score at most 0.07 on
 heldout40 and 0.37 on 100 training utterances). So 0.6 flags
 fits that are off by more than ~1.5 px, not frames that merely look unusual.
+
+This module stays above ~400 lines because the fitter is one algorithm: the per-level
+appearance models, the inverse-compositional search, the pyramid and the tracker's
+lost-frame rule share the precomputed Jacobians of :class:`_Level`.
 """
 from __future__ import annotations
 

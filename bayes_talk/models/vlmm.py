@@ -64,6 +64,10 @@ is always consumed from the start state (``(l_1,)``, even if ``s(l_1) = 0``). Si
 frame ``t`` never exceeds the number of frames consumed since the last reset, and the
 state is always a suffix of those frames. Labels never seen in training raise a
 ValueError, or (``unknown="sil"``) are replaced by ``"sil"`` first.
+
+This module stays above ~400 lines because a fifth of it is this description and the rest
+is one class: fitting, traversal, segmentation, sampling and persistence all walk the same
+prediction suffix tree.
 """
 from __future__ import annotations
 
