@@ -23,7 +23,7 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.data.phones import PHONE_TO_VISEME, check_phone
+from bayes_talk.data.phones import check_phone, substitute_unseen
 from bayes_talk.data.sequence import Sequence
 from bayes_talk.errors import not_fitted
 from bayes_talk.estimators.base import Estimator
@@ -158,10 +158,10 @@ class LabelEncoder:
 
     ``fit`` validates every label against the package phone set (``check_phone``) and
     keeps the labels that occur, sorted. ``encode`` maps a label sequence to indices; a
-    valid phone never seen in training is replaced (with a ``UserWarning``) by the most
-    frequent training phone of the same MPEG-4 viseme, or, if no phone of that viseme was
-    seen, by the most frequent training phone overall. Labels outside the phone set raise
-    ValueError.
+    valid phone never seen in training is replaced (with a ``UserWarning``) by the
+    package's one unseen-phone policy, :func:`bayes_talk.data.phones.substitute_unseen`
+    (the most frequent training phone of the same MPEG-4 viseme, else the most frequent
+    training phone). Labels outside the phone set raise ValueError.
     """
 
     def fit(self, sequences: list[Sequence]) -> Self:
@@ -199,10 +199,7 @@ class LabelEncoder:
 
     def substitute(self, label: str) -> str:
         """Training phone used in place of an unseen (valid) phone."""
-        vis = PHONE_TO_VISEME[label]
-        mates = [p for p in self.classes_ if PHONE_TO_VISEME[p] == vis]
-        pool = mates if mates else self.classes_
-        return max(pool, key=lambda p: self.counts_[self.index_[p]])
+        return substitute_unseen(label, dict(zip(self.classes_, self.counts_.tolist(), strict=True)))
 
     def encode(self, labels: list[str], where: str = "") -> np.ndarray:
         """Integer indices (int64) of ``labels``; see the class docstring for unseen phones."""

@@ -19,7 +19,9 @@ executor, or a Dask/Ray one with the same ``map``); the default runs them in tur
 Back-off: a state with fewer than ``min_frames_per_state`` training frames gets no model
 of its own; at synthesis it uses the model of its longest suffix that has one, and a
 single phone without a model uses the global fallback SGPDM (trained on a random subset
-of all frames). Phones never seen in training are mapped to ``sil`` with a warning.
+of all frames). A phone never seen in training is replaced, with a warning, by the
+package's one unseen-phone policy (:func:`bayes_talk.data.phones.substitute_unseen`: the
+most frequent training phone of its viseme).
 
 Synthesis is in :mod:`bayes_talk.synthesis.sequential` (Algorithms 1-2) and
 :mod:`bayes_talk.synthesis.posterior`; the estimator is
@@ -28,14 +30,14 @@ Synthesis is in :mod:`bayes_talk.synthesis.sequential` (Algorithms 1-2) and
 from __future__ import annotations
 
 import logging
-import warnings
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
@@ -170,6 +172,8 @@ class SwitchingModel:
         self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
         self.fallback_frames, self.seed = fallback_frames, seed
         self.models_: dict[tuple[str, ...], SGPDM] = {}
+        #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
+        self.phone_counts_: dict[str, int] = {}
         self.entry_: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -239,6 +243,7 @@ class SwitchingModel:
         self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
         self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         self.n_training_frames_ = n_frames
+        self.phone_counts_ = dict(sorted(Counter(lab for s in train for lab in s.labels).items()))
         # per-dimension mean square frame-to-frame motion of the visual features
         self.motion_var_ = np.mean(np.vstack([np.diff(s.aam, axis=0) for s in train if s.n_frames > 1]) ** 2, 0)
         return self
@@ -278,11 +283,8 @@ class SwitchingModel:
 
     def segment(self, labels: Sequence[str]) -> list[Segment]:
         """Non-overlapping state segmentation of a label sequence (§4.2.1)."""
-        known = set(self.states_model_.alphabet_)
-        unseen = sorted({lab for lab in labels if lab not in known})
-        if unseen:
-            warnings.warn(f"phone labels never seen in training mapped to 'sil': {unseen}", stacklevel=2)
-        return self.states_model_.segment(labels, unknown="sil")
+        counts = self.phone_counts_ or {p: 1 for p in self.states_model_.alphabet_}
+        return self.states_model_.segment(replace_unseen(list(labels), counts, stacklevel=3), unknown="error")
 
     # ------------------------------------------------------------------ persistence
     def save(self, directory: str | Path) -> Path:
@@ -290,7 +292,7 @@ class SwitchingModel:
         directory = Path(directory)
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
-                "n_training_frames": self.n_training_frames_, "models": []}
+                "n_training_frames": self.n_training_frames_, "phone_counts": self.phone_counts_, "models": []}
         arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_}
         for j, (st, m) in enumerate(self.models_.items()):
             mmeta, marr = m.state()
@@ -311,6 +313,8 @@ class SwitchingModel:
             obj = cls(**meta["config"])
             obj.dims_ = tuple(meta["dims"])
             obj.n_training_frames_ = meta["n_training_frames"]
+            # models saved before the counts were recorded: every seen phone counts once
+            obj.phone_counts_ = {k: int(v) for k, v in meta.get("phone_counts", {}).items()}
             sm = meta["states_model"]
             obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
             obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
