@@ -16,9 +16,9 @@ import bayes_talk
 KNOWN: dict[str, str] = {
     "bayes_talk.data.corpus.Corpus.names": "data/corpus.py is being split on branch issue14a",
     "bayes_talk.evaluation.protocols.Protocol.describe": "evaluation/protocols.py is being split on branch issue14a",
-    "bayes_talk.synthesis.posterior.PosteriorSynthesis.n_draws": "replaced by the result type of branch issue10a",
-    "bayes_talk.synthesis.posterior.PosteriorSynthesis.map_latents": "replaced by the result type of branch issue10a",
-    "bayes_talk.synthesis.posterior.PosteriorSynthesis.summary": "replaced by the result type of branch issue10a",
+    "bayes_talk.synthesis.result.SynthesisResult.n_chains": "synthesis/result.py is branch issue10a's (in progress)",
+    "bayes_talk.synthesis.result.SynthesisResult.n_frames": "synthesis/result.py is branch issue10a's (in progress)",
+    "bayes_talk.synthesis.result.SynthesisResult.summary": "synthesis/result.py is branch issue10a's (in progress)",
 }
 
 

@@ -104,6 +104,7 @@ def mean_trajectory(A: np.ndarray, nu: np.ndarray, mu: np.ndarray, idx: np.ndarr
 
 
 def label_means(batch: Batch, n_labels: int) -> np.ndarray:
+    """Mean visual vector (n_labels, D) of the frames of each label (0 for a label without frames)."""
     sums = np.zeros((n_labels, batch.Y.shape[2]))
     np.add.at(sums, batch.L[batch.M], batch.Y[batch.M])
     cnt = np.bincount(batch.L[batch.M], minlength=n_labels)
