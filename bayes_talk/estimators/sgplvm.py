@@ -88,12 +88,13 @@ class SGPLVM(Estimator):
                 mu, _ = model.predict_view("visual", X)
                 return float(np.sqrt(np.mean((mu - z_val) ** 2)))
 
-        self.model_ = SGPDM.from_config(cfg).fit({"audio": audio, "visual": visual}, seq_lengths=[b - a for _, a, b in chosen],
-                                     monitor=monitor)
-        if held:  # calibrate at the latents SGPLVM A's sequence optimisation finds for each chunk
-            X_val = np.vstack([infer_latents(self.model_, "audio", y, "back-constraint", "sequence",
-                                                         max_iter=self.calibration_iter) for y in a_val])
-            self.model_.calibrate_variance("visual", X_val, z_val)
+        with torch_threads(1):  # as every other GP entry point (bayes_talk.gp.threads)
+            self.model_ = SGPDM.from_config(cfg).fit({"audio": audio, "visual": visual},
+                                                     seq_lengths=[b - a for _, a, b in chosen], monitor=monitor)
+            if held:  # calibrate at the latents SGPLVM A's sequence optimisation finds for each chunk
+                X_val = np.vstack([infer_latents(self.model_, "audio", y, "back-constraint", "sequence",
+                                                 max_iter=self.calibration_iter) for y in a_val])
+                self.model_.calibrate_variance("visual", X_val, z_val)
         return self
 
     def _is_fitted(self) -> bool:
