@@ -121,15 +121,15 @@ def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarr
         meta = json.loads(jpath.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"model file {jpath} is truncated or not JSON ({exc})") from None
-    want = meta.get("npz_sha256") if isinstance(meta, dict) else None
-    if want is not None and sha256_file(npath) != want:
-        raise ValueError(f"model file {npath}: SHA-256 differs from the one {jpath.name} recorded when the "
-                         "model was saved (copied from another model, truncated, or changed since)")
     try:
         with np.load(npath, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
         raise ValueError(f"model file {npath} is truncated or corrupt ({exc})") from None
+    want = meta.get("npz_sha256") if isinstance(meta, dict) else None
+    if want is not None and sha256_file(npath) != want:
+        raise ValueError(f"model file {npath}: SHA-256 differs from the one {jpath.name} recorded when the "
+                         "model was saved (copied from another model, or changed since)")
     return meta, arrays
 
 

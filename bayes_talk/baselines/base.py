@@ -36,7 +36,7 @@ class Baseline(Estimator, ABC):
     :mod:`bayes_talk.estimators.base`).
 
     Saving: every fitted attribute (name ending in ``_``) that is an array goes to the
-    NPZ, a number / string / list to the JSON, a :class:`LabelEncoder` to both; names in
+    NPZ, a number / string / list / dict of those to the JSON, a :class:`LabelEncoder` to both; names in
     ``_derived`` are not saved but rebuilt by :meth:`_rebuild` after loading.
     """
 
@@ -85,7 +85,7 @@ class Baseline(Estimator, ABC):
                 arrays[k] = v.counts_
             elif isinstance(v, np.generic):
                 meta[k] = v.item()
-            elif v is None or isinstance(v, (bool, int, float, str, list)):
+            elif v is None or isinstance(v, (bool, int, float, str, list, dict)):
                 meta[k] = v
             else:
                 raise TypeError(f"{type(self).__name__}.{k}: cannot save a {type(v).__name__}; "

@@ -321,7 +321,7 @@ class ContextRidge(ContextBaseline):
         try:
             p = meta["params"]
             obj = cls(label_window=tupled(p["label_window"]), mfcc_window=tupled(p["mfcc_window"]),
-                      alphas=p["alphas"], n_splits=p["n_splits"])
+                      alphas=tuple(p["alphas"]), n_splits=p["n_splits"])
             obj.features_ = ContextFeatures.from_saved(meta["features"], arrays)
             obj.n_audio_, obj.n_visual_ = int(meta["n_audio"]), int(meta["n_visual"])
             obj.coef_, obj.intercept_ = arrays["coef"], arrays["intercept"]

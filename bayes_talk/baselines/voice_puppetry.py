@@ -169,6 +169,7 @@ class VoicePuppetry(Baseline):
     """
 
     name: ClassVar[str] = "voice-puppetry"
+    _derived: ClassVar[tuple[str, ...]] = ("audio_hmm_",)
     has_log_likelihood: ClassVar[bool] = False
 
     def __init__(self, n_states: int = 26, visual_covariance: CovType = "diag",

@@ -39,6 +39,7 @@ import numpy as np
 
 from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.errors import not_fitted
 from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
@@ -289,6 +290,8 @@ class SwitchingModel:
     # ------------------------------------------------------------------ persistence
     def save(self, directory: str | Path) -> Path:
         """Write ``model.json`` + ``arrays.npz`` into ``directory`` (atomically)."""
+        if not self.models_:
+            raise not_fitted(self, "call fit(train) or load() first")
         directory = Path(directory)
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
