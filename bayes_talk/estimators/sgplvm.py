@@ -137,7 +137,8 @@ class SGPLVM(Estimator):
         path = Path(path)
         meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))
         est = meta.get("estimator") if isinstance(meta, dict) else None
-        model = SGPDM.from_state(meta, arrays)
+        with torch_threads(1):  # the predictors' Cholesky factors exactly as fit computed them
+            model = SGPDM.from_state(meta, arrays)
         if est is not None:
             obj = cls(**est["params"])
             obj.calibration_iter = int(est.get("calibration_iter", obj.calibration_iter))
