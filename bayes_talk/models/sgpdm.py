@@ -51,7 +51,7 @@ from bayes_talk.files import read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
-from bayes_talk.models.sgpdm_io import sgpdm_from_state, sgpdm_state
+from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
 from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
 
 log = logging.getLogger(__name__)
@@ -68,7 +68,18 @@ class SGPDM:
     defaults), stored as given; :attr:`config` gathers them. :meth:`from_config` builds
     a model from a config. Inference for new observations is in
     :mod:`bayes_talk.synthesis.latents`.
+
+    Subclasses (e.g. a sparse SGPDM) set :attr:`config_class` to a dataclass extending
+    :class:`SGPDMConfig` and take its extra fields as keyword arguments too; they save under
+    their own :attr:`format_name` / :attr:`format_version` and restore extra arrays in
+    :meth:`_restore_extra`.
     """
+
+    #: the settings dataclass whose fields are the constructor arguments
+    config_class: type[SGPDMConfig] = SGPDMConfig
+    #: saved-model format written by :meth:`state`
+    format_name: str = FORMAT_NAME
+    format_version: int = FORMAT_VERSION
 
     def __init__(self, *, latent_dim: int = _DEFAULTS.latent_dim, dynamics: bool = _DEFAULTS.dynamics,
                  learn_dynamics: bool = _DEFAULTS.learn_dynamics, dyn_alpha: float = _DEFAULTS.dyn_alpha,
@@ -96,7 +107,7 @@ class SGPDM:
     @property
     def config(self) -> SGPDMConfig:
         """The settings, gathered from the constructor arguments."""
-        return SGPDMConfig(**{f.name: getattr(self, f.name) for f in fields(SGPDMConfig)})
+        return self.config_class(**{f.name: getattr(self, f.name) for f in fields(self.config_class)})
 
     # ------------------------------------------------------------------ validation/init
     def _check_views(self, views: Mapping[str, np.ndarray], seq_lengths) -> tuple[dict, list[int]]:
@@ -414,6 +425,9 @@ class SGPDM:
     def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
         """A fitted model from :meth:`state`'s metadata and arrays (ValueError if incomplete)."""
         return sgpdm_from_state(cls, meta, arrays)
+
+    def _restore_extra(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Hook for subclasses: restore their own arrays before the predictors are built."""
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""

@@ -28,8 +28,8 @@ def sgpdm_state(model: SGPDM) -> tuple[dict, dict[str, np.ndarray]]:
     """(JSON-able metadata, arrays) that fully describe a fitted :class:`SGPDM`."""
     model._require_fitted()
     meta = {
-        "format": FORMAT_NAME,
-        "version": FORMAT_VERSION,
+        "format": model.format_name,
+        "version": model.format_version,
         "config": asdict(model.config),
         "views": model.view_names,
         "seq_lengths": model.seq_lengths_,
@@ -53,7 +53,7 @@ def sgpdm_state(model: SGPDM) -> tuple[dict, dict[str, np.ndarray]]:
 
 def sgpdm_from_state(cls: type[SGPDM], meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
     """A fitted model from :meth:`state`'s metadata and arrays (ValueError if incomplete)."""
-    check_format(meta, FORMAT_NAME, FORMAT_VERSION, "SGPDM model")
+    check_format(meta, cls.format_name, cls.format_version, f"{cls.__name__} model")
     try:
         obj = cls(**meta["config"])
         obj.view_names = list(meta["views"])
@@ -74,6 +74,7 @@ def sgpdm_from_state(cls: type[SGPDM], meta: dict, arrays: Mapping[str, np.ndarr
     obj._X = torch.as_tensor(obj.X_)
     obj._log = {}
     obj._fixed = hyper
+    obj._restore_extra(arrays)
     obj._finalise()
     obj.var_scale_ = {k[len("varscale/"):]: np.asarray(a, dtype=np.float64)
                       for k, a in arrays.items() if k.startswith("varscale/")}
