@@ -1,2 +1,69 @@
-"""bayes_talk: speech-driven talking faces with switching shared GP dynamical models."""
+"""bayes_talk: speech-driven talking faces with switching shared GP dynamical models.
+
+The public API, imported lazily on first use (``import bayes_talk`` stays fast and
+pulls in neither torch nor pyro)::
+
+    import bayes_talk as bt
+    corpus = bt.load_corpus("corpus_dir")
+    model = bt.make_estimator("ssgpdm-vlmm").fit(corpus.sequences)
+    dist = model.predict_dist(utterance)          # mean and variance (T, D_z)
+
+The layers and what each may import: docs/architecture.md.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
 __version__ = "0.1.0"
+
+#: public name -> module that defines it
+_EXPORTS: dict[str, str] = {
+    # data
+    "Sequence": "bayes_talk.data.sequence",
+    "load_corpus": "bayes_talk.data.corpus",
+    # features
+    "AAM": "bayes_talk.features.aam",
+    # models
+    "SGPDM": "bayes_talk.models.sgpdm",
+    "VLMM": "bayes_talk.models.vlmm",
+    "SwitchingModel": "bayes_talk.models.switching",
+    # synthesis
+    "sample_synthesis": "bayes_talk.synthesis.posterior",
+    # estimators
+    "ESTIMATORS": "bayes_talk.estimators.registry",
+    "make_estimator": "bayes_talk.estimators.registry",
+    "SwitchingSGPDM": "bayes_talk.estimators.switching",
+    "SGPLVM": "bayes_talk.estimators.sgplvm",
+    "VoicePuppetry": "bayes_talk.baselines",
+    "SLDS": "bayes_talk.baselines",
+    "DPDS": "bayes_talk.baselines",
+    "HMMMean": "bayes_talk.baselines",
+    "ContextRidge": "bayes_talk.baselines",
+    "ContextMLP": "bayes_talk.baselines",
+    "NotFittedError": "bayes_talk.errors",
+    # command-line workflow
+    "train": "bayes_talk.pipeline",
+    "synth": "bayes_talk.pipeline",
+    "load_trained": "bayes_talk.pipeline",
+    "read_utterance": "bayes_talk.pipeline",
+}
+
+__all__ = [  # noqa: RUF022 - grouped by layer, as _EXPORTS
+    "__version__", "Sequence", "load_corpus", "AAM", "SGPDM", "VLMM", "SwitchingModel", "sample_synthesis",
+    "ESTIMATORS", "make_estimator", "SwitchingSGPDM", "SGPLVM", "VoicePuppetry", "SLDS", "DPDS", "HMMMean",
+    "ContextRidge", "ContextMLP", "NotFittedError", "train", "synth", "load_trained", "read_utterance",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first access (PEP 562)."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'bayes_talk' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__

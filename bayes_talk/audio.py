@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.mfcc import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
 __all__ = ["CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings", "cmvn", "downmix",
            "feature_statistics", "load_audio", "resample"]
@@ -146,6 +146,7 @@ class AudioSettings:
             raise ValueError(f"cmvn: expected one of {CMVN_MODES}, found {self.cmvn!r}")
 
     def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded in a model's bundle)."""
         return asdict(self)
 
     @classmethod

@@ -24,11 +24,16 @@ from pathlib import Path
 
 from bayes_talk.files import sha256_file, write_json
 
-__all__ = ["BUNDLE_MANIFEST", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "sha256_file",
+__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "sha256_file",
            "verify_bundle", "write_bundle_manifest"]
 
 log = logging.getLogger(__name__)
 
+#: the descriptor of a trained-model directory (what kind of model, its front end), written by
+#: :func:`bayes_talk.pipeline.train` and read by every loader of such a directory
+DESCRIPTOR = "bayes_talk_model.json"
+DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
+DESCRIPTOR_VERSION = 1
 BUNDLE_MANIFEST = "bundle_manifest.json"
 OUTPUT_RECORD = ".bayes_talk_outputs.json"
 _FORMAT = "bayes_talk.bundle_manifest"

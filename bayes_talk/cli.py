@@ -309,6 +309,7 @@ def _add_alignment_parsers(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``bayes-talk`` argument parser with every sub-command."""
     p = argparse.ArgumentParser(prog="bayes-talk", description=__doc__.splitlines()[0],
                                 parents=[_verbosity_parser(False)], formatter_class=_HelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -416,6 +417,7 @@ def _log_to_stderr(level: int, fmt: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the process exit status."""
     args = build_parser().parse_args(argv)
     verbose, quiet = getattr(args, "verbose", False), getattr(args, "quiet", False)
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING

@@ -30,10 +30,11 @@ DEMO_ORACLE_DRAWS = 8
 
 
 def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_HELD_OUT, seed: int = 0) -> int:
+    """Build a small corpus, train, synthesise and score held-out utterances into ``out`` (``make demo``); returns the exit status."""
     from bayes_talk.baselines import REGISTRY
     from bayes_talk.data.corpus import build_corpus, load_corpus
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.evaluation.metrics import acc, amse
-    from bayes_talk.models.switching import SwitchingSGPDM
     from bayes_talk.pipeline import _aam_offset, fit_model
     from bayes_talk.synthesis.posterior import sample_synthesis
     from bayes_talk.synthesis.sequential import lowpass

@@ -51,10 +51,12 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
     return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
 
 
 def write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> Path:
+    """Write ``text`` to ``path`` atomically."""
     def w(tmp: str) -> None:
         with open(tmp, "w", encoding=encoding, newline="\n") as f:
             f.write(text)
@@ -63,10 +65,12 @@ def write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> P
 
 
 def write_json(path: str | os.PathLike, obj, sort_keys: bool = False) -> Path:
+    """Write ``obj`` as JSON to ``path`` atomically."""
     return write_text(path, json.dumps(obj, indent=1, sort_keys=sort_keys) + "\n")
 
 
 def write_npy(path: str | os.PathLike, arr: np.ndarray) -> Path:
+    """Write one array as ``.npy`` to ``path`` atomically."""
     def w(tmp: str) -> None:
         with open(tmp, "wb") as f:
             np.save(f, np.asarray(arr), allow_pickle=False)
@@ -94,3 +98,49 @@ def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compres
                 zf.writestr(info, buf.getvalue())
 
     return atomic_write(path, w)
+
+
+def write_model_files(jpath: str | os.PathLike, npath: str | os.PathLike, meta: dict,
+                      arrays: Mapping[str, np.ndarray]) -> Path:
+    """Write a JSON + NPZ model pair: the NPZ first, then the JSON with the NPZ's name and
+    SHA-256 (``npz_file``, ``npz_sha256``), each atomically; returns the JSON path.
+    :func:`read_model_files` refuses an NPZ whose hash differs."""
+    npath = write_npz(npath, arrays)
+    return write_json(jpath, {**meta, "npz_file": npath.name, "npz_sha256": sha256_file(npath)})
+
+
+def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a JSON + NPZ model pair, turning every kind of damage into a ValueError naming
+    the file: a truncated or non-JSON JSON, a truncated NPZ, or an NPZ that is not the one
+    the JSON was saved with (``npz_sha256``, :func:`write_model_files`)."""
+    jpath, npath = Path(jpath), Path(npath)
+    for p in (jpath, npath):
+        if not p.exists():
+            raise FileNotFoundError(f"model file {p} does not exist")
+    try:
+        meta = json.loads(jpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"model file {jpath} is truncated or not JSON ({exc})") from None
+    try:
+        with np.load(npath, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        raise ValueError(f"model file {npath} is truncated or corrupt ({exc})") from None
+    want = meta.get("npz_sha256") if isinstance(meta, dict) else None
+    if want is not None and sha256_file(npath) != want:
+        raise ValueError(f"model file {npath}: SHA-256 differs from the one {jpath.name} recorded when the "
+                         "model was saved (copied from another model, or changed since)")
+    return meta, arrays
+
+
+def check_format(meta: object, name: str, version: int, where: str) -> dict:
+    """The one check of a saved file's ``format`` and ``version`` fields: ValueError naming
+    ``where`` (the file or what it should hold) and the expected and found values."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"{where}: expected a JSON object, found {type(meta).__name__}")  # noqa: TRY004
+    if meta.get("format") != name:
+        raise ValueError(f"{where}: format expected {name!r}, found {meta.get('format')!r}")
+    if meta.get("version") != version:
+        raise ValueError(f"{where}: version expected {version}, found {meta.get('version')!r} (of format "
+                         f"{name!r}; this bayes_talk reads version {version} only)")
+    return meta

@@ -21,16 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.files import write_json, write_npy, write_npz
+from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
 MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "sgplvm")
-DESCRIPTOR = "bayes_talk_model.json"
-DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
-DESCRIPTOR_VERSION = 1
-LABEL_TOLERANCE_S = 0.08
 _DEFAULT = object()
 
 
@@ -47,16 +44,14 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     frames.
     """
     from bayes_talk.audio import cmvn as _cmvn
+    from bayes_talk.data.checks import check_audio_vs_labels
     from bayes_talk.data.labels import frame_labels, read_labels
     from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
 
     wav, labels = Path(wav), Path(labels)
     y, sr = load_wav(wav, sample_rate)
     intervals = read_labels(labels, tier=tier)
-    dur, end = y.size / sr, intervals[-1][1]
-    if abs(end - dur) > LABEL_TOLERANCE_S:
-        raise ValueError(f"{labels}: labels end at {end:.3f} s but {wav} lasts {dur:.3f} s "
-                         f"(audio and labels must describe the same utterance)")
+    check_audio_vs_labels(wav, labels, y.size / sr, intervals[-1][1])
     T = frame_count(y.size, sr, fps)
     feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn)
     return Sequence(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
@@ -64,15 +59,10 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
 
 def new_model(kind: str, **overrides):
     """An untrained model of the given kind (see :data:`MODEL_KINDS`)."""
-    from bayes_talk.models.sgplvm import SGPLVM
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.estimators.registry import make_estimator
 
-    if kind == "ssgpdm-vlmm":
-        return SwitchingSGPDM(states="vlmm", **overrides)
-    if kind == "ssgpdm-phone":
-        return SwitchingSGPDM(states="phone", **overrides)
-    if kind == "sgplvm":
-        return SGPLVM(**overrides)
+    if kind in MODEL_KINDS:
+        return make_estimator(kind, **overrides)
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
@@ -83,7 +73,7 @@ def fit_model(model, train: list[Sequence], workers: int = 2, executor=None, sch
     progress bar of states done / total on a terminal (bayes_talk.progress). The model
     does not depend on the executor."""
     from bayes_talk.executor import executor_for
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.progress import ProgressMapper
 
     if not isinstance(model, SwitchingSGPDM):
@@ -222,9 +212,9 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     """Load a directory written by :func:`train`; errors name the file and the problem."""
     from bayes_talk.audio import AudioSettings
     from bayes_talk.bundle import BUNDLE_MANIFEST, verify_bundle
+    from bayes_talk.estimators.sgplvm import SGPLVM
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.features.aam import AAM
-    from bayes_talk.models.sgplvm import SGPLVM
-    from bayes_talk.models.switching import SwitchingSGPDM
 
     d = Path(model_dir)
     p = d / DESCRIPTOR
@@ -236,9 +226,7 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
         desc = json.loads(p.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{p} is truncated or not JSON ({exc})") from None
-    if desc.get("format") != DESCRIPTOR_FORMAT or desc.get("version") != DESCRIPTOR_VERSION:
-        raise ValueError(f"{p}: format {desc.get('format')!r} version {desc.get('version')!r}; this "
-                         f"bayes_talk reads {DESCRIPTOR_FORMAT!r} version {DESCRIPTOR_VERSION}")
+    check_format(desc, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION, str(p))
     if desc.get("bundle_manifest") or (d / BUNDLE_MANIFEST).exists():
         verify_bundle(d)
     else:

@@ -61,6 +61,7 @@ class ProgressMapper:
         self.executor, self.desc, self.unit = executor, desc, unit
 
     def map(self, fn: Callable, iterable: Iterable) -> Iterator:
+        """``executor.map(fn, iterable)`` (or the built-in ``map``), ticking the bar per result."""
         items = list(iterable)
         from bayes_talk.executor import Executor
 

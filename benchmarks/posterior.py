@@ -42,6 +42,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.metrics import (
     amse,
     coverage,
@@ -49,7 +50,6 @@ from bayes_talk.evaluation.metrics import (
     crps_gaussian,
     nlpd_gaussian,
 )
-from bayes_talk.models.switching import SwitchingSGPDM
 from bayes_talk.synthesis.posterior import DEFAULT_LEVELS, sample_synthesis
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)

@@ -149,7 +149,7 @@ def train_stats(model) -> dict:
 
 
 def train(kind: str, train_seqs, workers: int):
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.pipeline import fit_model
 
     with Phase() as ph:

@@ -11,7 +11,8 @@ from skimage.transform import PiecewiseAffineTransform, warp
 from bayes_talk.data import face, render
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
-from bayes_talk.features.aam import AAM, procrustes_align, remove_sequence_mean
+from bayes_talk.features.aam import AAM, remove_sequence_mean
+from bayes_talk.features.procrustes import procrustes_align
 
 N_SEQ, N_FRAMES, N_TRAIN = 20, 50, 15
 BILABIAL, OPEN = ("p", "b", "m"), ("aa", "ae", "ah")

@@ -12,14 +12,11 @@ from toydata import make_utterances
 
 import bayes_talk.baselines.context as C
 from bayes_talk.baselines import REGISTRY
-from bayes_talk.baselines.context import (
-    ContextFeatures,
-    ContextRidge,
-    grouped_ridge_cv,
-    stack_context,
-)
+from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
+from bayes_talk.baselines.context_features import ContextFeatures, stack_context
 from bayes_talk.baselines.context_mlp import ContextMLP
 from bayes_talk.data.sequence import Sequence
+from bayes_talk.errors import NotFittedError
 from bayes_talk.evaluation import systems as S
 
 PH = sorted(["sil", "aa", "m", "iy", "s", "uw"])   # LabelEncoder order
@@ -233,7 +230,7 @@ def test_bad_input_errors(linear_world, ridge_fit):
         ContextMLP(validation_fraction=1.0)
     with pytest.raises(ValueError, match="at least 2"):
         ContextRidge().fit(train[:1])
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         ContextRidge().predict(test[0])
     s = test[0]
     with pytest.raises(ValueError, match="mfcc has shape"):

@@ -14,7 +14,7 @@ import pytest
 from toydata import make_utterances
 
 from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
-from bayes_talk.models.switching import SwitchingSGPDM
+from bayes_talk.estimators.switching import SwitchingSGPDM
 
 SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 4, "max_frames_per_state": 80, "fallback_frames": 100}
 

@@ -10,6 +10,7 @@ from skimage.transform import PiecewiseAffineTransform, warp
 from bayes_talk.data import face, render
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
+from bayes_talk.features.warp import warp_piecewise_affine
 
 N_SEQ, N_FRAMES = 30, 50
 
@@ -141,7 +142,7 @@ def test_fast_warp_matches_skimage_on_interior_pixels(corpus):
     src = face.reference_shape(128)
     dst = corpus[0][1][17]
     tri = Delaunay(dst).simplices
-    ours, covered = render.warp_piecewise_affine(image, src, dst, tri, (128, 128))
+    ours, covered = warp_piecewise_affine(image, src, dst, tri, (128, 128))
     tform = PiecewiseAffineTransform.from_estimate(dst, src)   # output -> input coords
     ref = warp(image, tform, output_shape=(128, 128), order=1, preserve_range=True)
     interior = binary_erosion(covered[0], iterations=2)

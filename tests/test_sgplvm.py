@@ -6,8 +6,9 @@ import logging
 import numpy as np
 from toydata import make_utterances
 
+from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.sgplvm import SGPLVM
+from bayes_talk.synthesis.latents import infer_latents
 
 
 def _rms(model, seqs):
@@ -51,7 +52,7 @@ def test_variance_calibrated_on_held_out_chunks_and_saved(tmp_path):
         c = m.model_.var_scale_["visual"]
         assert c.shape == (5,) and np.all(c > 0)
         # on the held-out chunks the calibrated variance matches the squared error on average
-        X = np.vstack([m.model_.infer_latents("audio", train[i].mfcc[a:b], "back-constraint", "sequence", 100)
+        X = np.vstack([infer_latents(m.model_, "audio", train[i].mfcc[a:b], "back-constraint", "sequence", 100)
                        for i, a, b in m.validation_chunks_])
         Z = np.vstack([train[i].aam[a:b] for i, a, b in m.validation_chunks_])
         mu, var = m.model_.predict_view("visual", X)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.models.switching import FALLBACK, SwitchingSGPDM
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.models.switching import FALLBACK
 from bayes_talk.synthesis.sequential import lowpass
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
@@ -124,7 +125,7 @@ def test_bad_input_is_refused_with_a_clear_message(vlmm_model, data, tmp_path):
     vlmm_model.save(tmp_path / "m")
     meta = (tmp_path / "m" / "model.json").read_text().replace('"version": 1', '"version": 99')
     (tmp_path / "m" / "model.json").write_text(meta)
-    with pytest.raises(ValueError, match="version 99"):
+    with pytest.raises(ValueError, match="version expected 1, found 99"):
         SwitchingSGPDM.load(tmp_path / "m")
 
 

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from bayes_talk.errors import NotFittedError
 from bayes_talk.models.vlmm import START, VLMM, Segment
 
 ALPHA = ("a", "b", "c")
@@ -273,9 +274,9 @@ def test_save_load_round_trip(tmp_path, source_model, source_seqs):
 def test_load_rejects_wrong_version_and_truncation(tmp_path, source_model):
     d = source_model.to_dict()
     d["version"] = 99
-    with pytest.raises(ValueError, match="version 99"):
+    with pytest.raises(ValueError, match="version expected 1, found 99"):
         VLMM.from_dict(d)
-    with pytest.raises(ValueError, match="not a saved VLMM"):
+    with pytest.raises(ValueError, match="saved VLMM: format expected"):
         VLMM.from_dict({"format": "something else", "version": 1})
     path = tmp_path / "vlmm.json"
     source_model.save(path)
@@ -378,6 +379,6 @@ def test_state_ids_and_bad_input():
         VLMM(epsilon=-1.0)
     with pytest.raises(ValueError, match="min_count"):
         VLMM(min_count=0)
-    with pytest.raises(ValueError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         VLMM().states(["a"])
     assert m.transition(START, "a") == (("a",), 1.0)

@@ -37,14 +37,17 @@ class FeatureConfig:
 
     @property
     def frame_s(self) -> float:
+        """Analysis hop in seconds."""
         return self.hop / self.sample_rate
 
     def to_json(self) -> dict:
+        """The settings as a JSON-able dict."""
         return {"sample_rate": self.sample_rate, "hop": self.hop, "n_fft": self.n_fft,
                 "n_mfcc": self.n_mfcc, "n_mels": self.n_mels}
 
     @classmethod
     def from_json(cls, d: dict) -> FeatureConfig:
+        """Settings from :meth:`to_json`'s dict."""
         c = cls(d["sample_rate"])
         c.hop, c.n_fft, c.n_mfcc, c.n_mels = int(d["hop"]), int(d["n_fft"]), int(d["n_mfcc"]), int(d["n_mels"])
         return c

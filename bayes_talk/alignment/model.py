@@ -35,6 +35,7 @@ from bayes_talk.alignment.scoring import score_segmentation, summarise_scores
 from bayes_talk.alignment.segments import segments_to_intervals
 from bayes_talk.alignment.viterbi import viterbi_phone_loop
 from bayes_talk.data.phones import PHONES
+from bayes_talk.files import check_format
 
 __all__ = ["ALIGN_METHODS", "AlignmentModel", "AlignmentResult", "load_alignment_model"]
 
@@ -227,9 +228,7 @@ class AlignmentModel:
             meta = json.loads(jp.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise ValueError(f"{jp}: cannot read alignment model ({exc})") from exc
-        if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-            raise ValueError(f"{jp}: format {meta.get('format')!r} version {meta.get('version')!r}, "
-                             f"expected {FORMAT!r} version {VERSION}")
+        check_format(meta, FORMAT, VERSION, str(jp))
         arrays = load_npz(d / NPZ_NAME, ("hmm_means", "hmm_vars", "hmm_log_stay", "hmm_log_move",
                                          "hmm_counts", "log_bigram", "log_start"))
         self = cls(n_iter=meta.get("n_iter", 8), seed=meta.get("seed", 0), voice=meta.get("voice", "en"))

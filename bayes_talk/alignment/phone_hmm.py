@@ -136,11 +136,13 @@ class PhoneHMMs:
 
     # ------------------------------------------------------------------ persistence
     def arrays(self) -> dict[str, np.ndarray]:
+        """The fitted HMM parameters as named arrays (for an NPZ)."""
         return {"hmm_means": self.means_, "hmm_vars": self.vars_, "hmm_log_stay": self.log_stay_,
                 "hmm_log_move": self.log_move_, "hmm_counts": self.counts_}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], phones: tuple[str, ...]) -> PhoneHMMs:
+        """Phone HMMs from :meth:`arrays` and their phone list."""
         self = cls(phones=tuple(phones))
         self.means_ = np.asarray(arrays["hmm_means"], dtype=np.float64)
         self.vars_ = np.asarray(arrays["hmm_vars"], dtype=np.float64)

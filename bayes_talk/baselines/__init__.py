@@ -12,8 +12,9 @@ from __future__ import annotations
 from bayes_talk.baselines.base import Baseline
 from bayes_talk.baselines.context import ContextRidge
 from bayes_talk.baselines.context_mlp import ContextMLP
+from bayes_talk.baselines.dpds import DPDS
 from bayes_talk.baselines.hmm_mean import HMMMean
-from bayes_talk.baselines.lds import DPDS, SLDS
+from bayes_talk.baselines.slds import SLDS
 from bayes_talk.baselines.voice_puppetry import VoicePuppetry
 
 REGISTRY: dict[str, type[Baseline]] = {

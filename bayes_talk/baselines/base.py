@@ -19,18 +19,29 @@ from __future__ import annotations
 import warnings
 from abc import ABC, abstractmethod
 from collections import Counter
-from typing import ClassVar, Self
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.data.phones import PHONE_TO_VISEME, check_phone
+from bayes_talk.data.phones import check_phone, substitute_unseen
 from bayes_talk.data.sequence import Sequence
+from bayes_talk.errors import not_fitted
+from bayes_talk.estimators.base import Estimator
 
 __all__ = ["Baseline", "LabelEncoder", "check_test", "check_train"]
 
 
-class Baseline(ABC):
-    """Abstract audio/labels -> visual-feature generator."""
+class Baseline(Estimator, ABC):
+    """Abstract audio/labels -> visual-feature generator (the estimator protocol of
+    :mod:`bayes_talk.estimators.base`).
+
+    Saving: every fitted attribute (name ending in ``_``) that is an array goes to the
+    NPZ, a number / string / list / dict of those to the JSON, a :class:`LabelEncoder` to both; names in
+    ``_derived`` are not saved but rebuilt by :meth:`_rebuild` after loading.
+    """
+
+    #: fitted attributes rebuilt from the saved ones by :meth:`_rebuild` (not saved)
+    _derived: ClassVar[tuple[str, ...]] = ()
 
     #: registry key ("voice-puppetry", "slds", "dpds", "hmm-mean")
     name: ClassVar[str] = ""
@@ -56,7 +67,44 @@ class Baseline(ABC):
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "n_visual_"):
-            raise RuntimeError(f"{type(self).__name__} is not fitted; call fit(train) first")
+            raise not_fitted(self, "call fit(train) first")
+
+    def _is_fitted(self) -> bool:
+        return hasattr(self, "n_visual_")
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        meta: dict[str, Any] = {}
+        arrays: dict[str, np.ndarray] = {}
+        for k, v in sorted(vars(self).items()):
+            if not k.endswith("_") or k.startswith("_") or k in self._derived:
+                continue
+            if isinstance(v, np.ndarray):
+                arrays[k] = v
+            elif isinstance(v, LabelEncoder):
+                meta[k] = {"label_encoder": v.classes_}
+                arrays[k] = v.counts_
+            elif isinstance(v, np.generic):
+                meta[k] = v.item()
+            elif v is None or isinstance(v, (bool, int, float, str, list, dict)):
+                meta[k] = v
+            else:
+                raise TypeError(f"{type(self).__name__}.{k}: cannot save a {type(v).__name__}; "
+                                "list it in _derived and rebuild it in _rebuild")
+        return meta, arrays
+
+    def _set_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        for k, v in meta.items():
+            if isinstance(v, dict) and "label_encoder" in v:
+                setattr(self, k, LabelEncoder.from_counts(list(v["label_encoder"]), arrays[k]))
+            else:
+                setattr(self, k, v)
+        for k, a in arrays.items():
+            if k not in meta:
+                setattr(self, k, np.asarray(a))
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Recompute the ``_derived`` attributes after loading (nothing by default)."""
 
 
 def check_train(train: list[Sequence], *, min_sequences: int = 1) -> tuple[int, int]:
@@ -110,13 +158,14 @@ class LabelEncoder:
 
     ``fit`` validates every label against the package phone set (``check_phone``) and
     keeps the labels that occur, sorted. ``encode`` maps a label sequence to indices; a
-    valid phone never seen in training is replaced (with a ``UserWarning``) by the most
-    frequent training phone of the same MPEG-4 viseme, or, if no phone of that viseme was
-    seen, by the most frequent training phone overall. Labels outside the phone set raise
-    ValueError.
+    valid phone never seen in training is replaced (with a ``UserWarning``) by the
+    package's one unseen-phone policy, :func:`bayes_talk.data.phones.substitute_unseen`
+    (the most frequent training phone of the same MPEG-4 viseme, else the most frequent
+    training phone). Labels outside the phone set raise ValueError.
     """
 
     def fit(self, sequences: list[Sequence]) -> Self:
+        """Learn the label set and each label's count from ``sequences``; returns ``self``."""
         counts: Counter[str] = Counter()
         for s in sequences:
             for lab in s.labels:
@@ -145,14 +194,12 @@ class LabelEncoder:
 
     @property
     def n_classes(self) -> int:
+        """Number of labels seen in training."""
         return len(self.classes_)
 
     def substitute(self, label: str) -> str:
         """Training phone used in place of an unseen (valid) phone."""
-        vis = PHONE_TO_VISEME[label]
-        mates = [p for p in self.classes_ if PHONE_TO_VISEME[p] == vis]
-        pool = mates if mates else self.classes_
-        return max(pool, key=lambda p: self.counts_[self.index_[p]])
+        return substitute_unseen(label, dict(zip(self.classes_, self.counts_.tolist(), strict=True)))
 
     def encode(self, labels: list[str], where: str = "") -> np.ndarray:
         """Integer indices (int64) of ``labels``; see the class docstring for unseen phones."""

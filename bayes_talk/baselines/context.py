@@ -44,10 +44,8 @@ the label encoder, the MFCC standardisation, ``coef_``/``intercept_`` and the va
 """
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Sequence as Seq
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Self
 
@@ -57,158 +55,33 @@ import scipy.sparse as sp
 from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 
-from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
-from bayes_talk.data.phones import SILENCE
+from bayes_talk.baselines.base import Baseline, check_test, check_train
+from bayes_talk.baselines.context_features import (
+    LABEL_WINDOWS,
+    MFCC_WINDOWS,
+    ContextFeatures,
+    Window,
+    listed,
+    stack_context,
+    tupled,
+    window_grid,
+)
 from bayes_talk.data.sequence import Sequence
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.files import check_format, read_model_files, write_model_files
 
 __all__ = [
     "FORMAT_VERSION",
     "ContextBaseline",
-    "ContextFeatures",
     "ContextRidge",
     "grouped_ridge_cv",
-    "listed",
     "read_saved",
     "select_context",
-    "stack_context",
-    "tupled",
-    "window_grid",
     "write_saved",
 ]
 
 FORMAT_VERSION = 1
-#: default grids of the cross-validated window half-widths
-LABEL_WINDOWS: tuple[int, ...] = (2, 4, 8)
-MFCC_WINDOWS: tuple[int | None, ...] = (None, 4)
 #: default ridge penalties searched per visual dimension
 ALPHAS: tuple[float, ...] = tuple(float(a) for a in np.logspace(-2, 6, 17))
-
-Window = int | None
-
-
-# --------------------------------------------------------------------------- features
-def window_grid(value: Window | Seq[Window], what: str, allow_none: bool = True) -> tuple[Window, ...]:
-    """The candidate half-widths given as one value or a sequence (ValueError if invalid)."""
-    vals = list(value) if isinstance(value, (list, tuple)) else [value]
-    if not vals:
-        raise ValueError(f"{what}: empty grid")
-    for v in vals:
-        if v is None:
-            if not allow_none:
-                raise ValueError(f"{what}: None is not allowed")
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise ValueError(f"{what} must be a non-negative integer{' or None' if allow_none else ''}, "
-                             f"got {v!r}")
-    return tuple(dict.fromkeys(None if v is None else int(v) for v in vals))
-
-
-@dataclass
-class ContextFeatures:
-    """The map (CTX) from an utterance to its (T, F) context matrix.
-
-    encoder: fitted label encoder (P = ``encoder.n_classes``); label_window: L or None;
-    mfcc_window: M or None; mfcc_mean, mfcc_scale: (D_y,) training standardisation.
-    """
-
-    encoder: LabelEncoder
-    label_window: int | None
-    mfcc_window: int | None
-    mfcc_mean: np.ndarray
-    mfcc_scale: np.ndarray
-
-    @classmethod
-    def fit(cls, train: list[Sequence], label_window: int | None, mfcc_window: int | None) -> ContextFeatures:
-        """Encoder and MFCC statistics from the training utterances only."""
-        if label_window is None and mfcc_window is None:
-            raise ValueError("label_window and mfcc_window cannot both be None (no inputs)")
-        y = np.concatenate([s.mfcc for s in train])
-        scale = y.std(axis=0)
-        scale[scale <= 0] = 1.0
-        return cls(LabelEncoder().fit(train), label_window, mfcc_window, y.mean(axis=0), scale)
-
-    @property
-    def n_features(self) -> int:
-        P, Dy = self.encoder.n_classes, self.mfcc_mean.shape[0]
-        lab = 0 if self.label_window is None else (2 * self.label_window + 1) * P
-        aud = 0 if self.mfcc_window is None else (2 * self.mfcc_window + 1) * Dy
-        return lab + aud
-
-    def columns(self, label_window: int | None, mfcc_window: int | None) -> np.ndarray:
-        """Column indices, within this (wider) context, of the context (label_window, mfcc_window)."""
-        P, Dy = self.encoder.n_classes, self.mfcc_mean.shape[0]
-        cols = []
-        L = self.label_window or 0
-        if label_window is not None:
-            if self.label_window is None or label_window > L:
-                raise ValueError(f"label window {label_window} is not inside {self.label_window}")
-            for k in range(-label_window, label_window + 1):
-                cols.append(np.arange(P) + (k + L) * P)
-        if mfcc_window is not None:
-            if self.mfcc_window is None or mfcc_window > self.mfcc_window:
-                raise ValueError(f"MFCC window {mfcc_window} is not inside {self.mfcc_window}")
-            base = 0 if self.label_window is None else (2 * L + 1) * P
-            for k in range(-mfcc_window, mfcc_window + 1):
-                cols.append(base + np.arange(Dy) + (k + self.mfcc_window) * Dy)
-        return np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64)
-
-    def transform(self, seq: Sequence, sparse: bool = False) -> np.ndarray | sp.csr_matrix:
-        """(T, F) context matrix (CTX) of ``seq`` (labels and mfcc; never ``aam``)."""
-        T = seq.n_frames
-        blocks: list[Any] = []
-        if self.label_window is not None:
-            L, P = self.label_window, self.encoder.n_classes
-            idx = self.encoder.encode(seq.labels, where=f"sequence {seq.name!r}")
-            pad = self.encoder.index_.get(SILENCE, -1)
-            padded = np.concatenate([np.full(L, pad), idx, np.full(L, pad)])
-            W = 2 * L + 1
-            # column of frame t in block j (offset j − L): j·P + π_{t+j−L}
-            cls = np.stack([padded[j:j + T] for j in range(W)], axis=1)       # (T, W)
-            col = cls + P * np.arange(W)[None, :]
-            rows = np.repeat(np.arange(T), W)
-            keep = (cls >= 0).ravel()
-            blocks.append(sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep], col.ravel()[keep])),
-                                        shape=(T, W * P)))
-        if self.mfcc_window is not None:
-            M = self.mfcc_window
-            ys = (seq.mfcc - self.mfcc_mean) / self.mfcc_scale
-            ys = np.pad(ys, ((M, M), (0, 0)), mode="edge")
-            blocks.append(sp.csr_matrix(np.hstack([ys[j:j + T] for j in range(2 * M + 1)])))
-        X = sp.hstack(blocks, format="csr") if len(blocks) > 1 else blocks[0].tocsr()
-        return X if sparse else X.toarray()
-
-    def check(self, seq: Sequence) -> None:
-        """Validate a test utterance against the training audio dimension."""
-        check_test(seq, n_audio=self.mfcc_mean.shape[0])
-
-    # -- persistence
-    def to_meta(self) -> dict[str, Any]:
-        return {"label_window": self.label_window, "mfcc_window": self.mfcc_window,
-                "classes": list(self.encoder.classes_)}
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {"class_counts": self.encoder.counts_, "mfcc_mean": self.mfcc_mean,
-                "mfcc_scale": self.mfcc_scale}
-
-    @classmethod
-    def from_saved(cls, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> ContextFeatures:
-        enc = LabelEncoder.from_counts(list(meta["classes"]), arrays["class_counts"])
-        lw = window_grid(meta["label_window"], "label_window")[0]
-        mw = window_grid(meta["mfcc_window"], "mfcc_window")[0]
-        mean = np.asarray(arrays["mfcc_mean"], dtype=np.float64)
-        scale = np.asarray(arrays["mfcc_scale"], dtype=np.float64)
-        if mean.ndim != 1 or scale.shape != mean.shape:
-            raise ValueError(f"mfcc_mean {mean.shape} and mfcc_scale {scale.shape} must be equal 1-D shapes")
-        return cls(enc, lw, mw, mean, scale)
-
-
-def stack_context(feats: ContextFeatures, train: list[Sequence]) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
-    """(X sparse (N, F), Z (N, D_z), groups (N,) utterance names) of the training frames."""
-    X = sp.vstack([feats.transform(s, sparse=True) for s in train], format="csr")
-    Z = np.concatenate([s.aam for s in train])
-    groups = np.concatenate([np.full(s.n_frames, s.name, dtype=object) for s in train]).astype(str)
-    return X, Z, groups
 
 
 # --------------------------------------------------------------------------- cross-validation
@@ -278,32 +151,19 @@ def write_saved(path: str | os.PathLike, fmt: str, meta: dict[str, Any], arrays:
         for p in (jpath, npath):
             if p.exists():
                 raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
-    write_npz(npath, arrays)
-    digest = hashlib.sha256(npath.read_bytes()).hexdigest()
-    full = {"format": fmt, "version": FORMAT_VERSION, **meta, "npz_file": npath.name, "npz_sha256": digest,
+    full = {"format": fmt, "version": FORMAT_VERSION, **meta,
             "arrays": {k: list(np.shape(a)) for k, a in arrays.items()}}
-    write_json(jpath, full)
-    return jpath
+    return write_model_files(jpath, npath, full, arrays)
 
 
 def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read a pair written by :func:`write_saved`. A missing file is FileNotFoundError; a
     truncated, modified, foreign, wrong-format or wrong-version file a ValueError naming
     the file and the problem."""
-    from bayes_talk.models.sgpdm import read_model_files
 
     jpath, npath = _paths(path)
     meta, arrays = read_model_files(jpath, npath)
-    if not isinstance(meta, dict):
-        raise ValueError(f"model file {jpath}: expected a JSON object, found {type(meta).__name__}")  # noqa: TRY004
-    if meta.get("format") != fmt:
-        raise ValueError(f"model file {jpath}: format expected {fmt!r}, found {meta.get('format')!r}")
-    if meta.get("version") != FORMAT_VERSION:
-        raise ValueError(f"model file {jpath}: version expected {FORMAT_VERSION}, found {meta.get('version')!r}")
-    digest = hashlib.sha256(npath.read_bytes()).hexdigest()
-    if digest != meta.get("npz_sha256"):
-        raise ValueError(f"model file {npath}: SHA-256 expected {meta.get('npz_sha256')}, found {digest} "
-                         "(modified or from another model)")
+    check_format(meta, fmt, FORMAT_VERSION, f"model file {jpath}")
     for k, shape in (meta.get("arrays") or {}).items():
         if k not in arrays:
             raise ValueError(f"model file {npath}: array {k!r} missing")
@@ -411,8 +271,8 @@ class ContextRidge(ContextBaseline):
             raise ValueError(f"n_splits must be an integer >= 2, got {n_splits!r}")
         self.label_window = label_window
         self.mfcc_window = mfcc_window
-        self.alphas = tuple(float(a) for a in alphas)
-        self.n_splits = int(n_splits)
+        self.alphas = alphas
+        self.n_splits = n_splits
         self.blas_threads = blas_threads
 
     def fit(self, train: list[Sequence]) -> Self:
@@ -447,7 +307,7 @@ class ContextRidge(ContextBaseline):
         """Write ``<base>.json`` + ``<base>.npz`` (``path`` with or without suffix)."""
         self._check_fitted()
         meta = {"params": {"label_window": listed(self.label_window), "mfcc_window": listed(self.mfcc_window),
-                           "alphas": list(self.alphas), "n_splits": self.n_splits},
+                           "alphas": [float(a) for a in self.alphas], "n_splits": self.n_splits},
                 "features": self.features_.to_meta(), "n_audio": self.n_audio_, "n_visual": self.n_visual_,
                 "cv_table": self.cv_table_, "cv_splits": self.cv_splits_}
         arrays = {**self.features_.arrays(), "coef": self.coef_, "intercept": self.intercept_,
@@ -461,7 +321,7 @@ class ContextRidge(ContextBaseline):
         try:
             p = meta["params"]
             obj = cls(label_window=tupled(p["label_window"]), mfcc_window=tupled(p["mfcc_window"]),
-                      alphas=p["alphas"], n_splits=p["n_splits"])
+                      alphas=tuple(p["alphas"]), n_splits=p["n_splits"])
             obj.features_ = ContextFeatures.from_saved(meta["features"], arrays)
             obj.n_audio_, obj.n_visual_ = int(meta["n_audio"]), int(meta["n_visual"])
             obj.coef_, obj.intercept_ = arrays["coef"], arrays["intercept"]
@@ -477,13 +337,3 @@ class ContextRidge(ContextBaseline):
             raise ValueError(f"model file {path}: mfcc_mean has shape {obj.features_.mfcc_mean.shape}, "
                              f"expected ({obj.n_audio_},)")
         return obj
-
-
-def listed(v: Any) -> Any:
-    """A window grid as JSON can hold it (tuples become lists)."""
-    return list(v) if isinstance(v, (list, tuple)) else v
-
-
-def tupled(v: Any) -> Any:
-    """A window grid read back from JSON (lists become tuples)."""
-    return tuple(v) if isinstance(v, list) else v

@@ -40,19 +40,16 @@ import numpy as np
 from sklearn.neural_network import MLPRegressor
 
 from bayes_talk.baselines.base import check_train
-from bayes_talk.baselines.context import (
+from bayes_talk.baselines.context import ContextBaseline, read_saved, select_context, write_saved
+from bayes_talk.baselines.context_features import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,
-    ContextBaseline,
     ContextFeatures,
     Window,
     listed,
-    read_saved,
-    select_context,
     stack_context,
     tupled,
     window_grid,
-    write_saved,
 )
 from bayes_talk.data.sequence import Sequence
 
@@ -110,15 +107,15 @@ class ContextMLP(ContextBaseline):
                 raise ValueError(f"{nm} must be a positive number, got {v!r}")
         self.label_window = label_window
         self.mfcc_window = mfcc_window
-        self.hidden = int(hidden)
-        self.l2 = float(l2)
-        self.learning_rate = float(learning_rate)
-        self.batch_size = int(batch_size)
-        self.max_epochs = int(max_epochs)
-        self.patience = int(patience)
-        self.validation_fraction = float(validation_fraction)
-        self.n_splits = int(n_splits)
-        self.seed = int(seed)
+        self.hidden = hidden
+        self.l2 = l2
+        self.learning_rate = learning_rate
+        self.batch_size = batch_size
+        self.max_epochs = max_epochs
+        self.patience = patience
+        self.validation_fraction = validation_fraction
+        self.n_splits = n_splits
+        self.seed = seed
         self.blas_threads = blas_threads
 
     def _features(self, train: list[Sequence]) -> ContextFeatures:

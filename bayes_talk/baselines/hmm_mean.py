@@ -15,18 +15,18 @@ with s²_π the per-phone ML variance of each dimension, floored at ``var_floor`
 global variance of that dimension (a phone seen once has zero ML variance).
 
 A label outside the phone set raises ValueError. A valid phone that never occurred in
-training is predicted by the global mean (and scored with the global variance), with a
-UserWarning.
+training is replaced, with a UserWarning, by the package's one unseen-phone policy
+(:func:`bayes_talk.data.phones.substitute_unseen`: the most frequent training phone of its
+viseme, else the most frequent training phone).
 """
 from __future__ import annotations
 
-import warnings
 from typing import ClassVar, Self
 
 import numpy as np
 
 from bayes_talk.baselines.base import Baseline, check_test, check_train
-from bayes_talk.data.phones import check_phone
+from bayes_talk.data.phones import check_phone, replace_unseen
 from bayes_talk.data.sequence import Sequence
 
 __all__ = ["HMMMean"]
@@ -46,9 +46,10 @@ class HMMMean(Baseline):
     def __init__(self, var_floor: float = 1e-3) -> None:
         if not var_floor > 0:
             raise ValueError(f"var_floor must be > 0, got {var_floor}")
-        self.var_floor = float(var_floor)
+        self.var_floor = var_floor
 
     def fit(self, train: list[Sequence]) -> Self:
+        """Per-phone mean and variance of the visual features (global ones for the fallback); returns ``self``."""
         d_y, d_z = check_train(train)
         z = np.concatenate([s.aam for s in train])
         labs: list[str] = []
@@ -68,6 +69,7 @@ class HMMMean(Baseline):
         self.global_var_ = np.maximum(z.var(axis=0), np.finfo(np.float64).tiny)
         floor = self.var_floor * self.global_var_
         self.classes_: list[str] = classes
+        self.counts_ = counts.astype(np.int64)
         self.means_ = means
         self.vars_ = np.maximum(sq / counts[:, None], floor)
         self.n_audio_, self.n_visual_ = d_y, d_z
@@ -75,27 +77,23 @@ class HMMMean(Baseline):
 
     def _params(self, seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
         index = {p: i for i, p in enumerate(self.classes_)}
-        mean = np.empty((seq.n_frames, self.n_visual_))
-        var = np.empty_like(mean)
-        unseen: set[str] = set()
-        for t, lab in enumerate(seq.labels):
-            i = index.get(lab)
-            if i is None:
-                check_phone(lab, where=f"sequence {seq.name!r}")
-                unseen.add(lab)
-                mean[t], var[t] = self.global_mean_, self.global_var_
-            else:
-                mean[t], var[t] = self.means_[i], self.vars_[i]
-        if unseen:
-            warnings.warn(f"sequence {seq.name!r}: phones not seen in training "
-                          f"{sorted(unseen)} predicted by the global mean", UserWarning, stacklevel=3)
-        return mean, var
+        counts = dict(zip(self.classes_, self.counts_.tolist(), strict=True))
+        labels = replace_unseen(seq.labels, counts, where=f"sequence {seq.name!r}", stacklevel=4)
+        idx = np.array([index[lab] for lab in labels], dtype=np.int64)
+        return self.means_[idx], self.vars_[idx]
 
     def predict(self, seq: Sequence) -> np.ndarray:
-        """ẑ_t = m_{π_t} (global mean for a phone unseen in training)."""
+        """ẑ_t = m_{π_t} (unseen phones: :func:`bayes_talk.data.phones.substitute_unseen`)."""
         self._check_fitted()
         check_test(seq)
         return self._params(seq)[0]
+
+    def predict_var(self, seq: Sequence) -> np.ndarray:
+        """Per-frame variance: the training variance of each frame's phone (unseen phones as
+        in :meth:`predict`)."""
+        self._check_fitted()
+        check_test(seq)
+        return self._params(seq)[1]
 
     def log_likelihood(self, seq: Sequence) -> float:
         """Σ_t log N(z_t; m_{π_t}, diag s²_{π_t}) -- conditioned on the labels only."""

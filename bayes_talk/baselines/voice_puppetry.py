@@ -169,6 +169,7 @@ class VoicePuppetry(Baseline):
     """
 
     name: ClassVar[str] = "voice-puppetry"
+    _derived: ClassVar[tuple[str, ...]] = ("audio_hmm_",)
     has_log_likelihood: ClassVar[bool] = False
 
     def __init__(self, n_states: int = 26, visual_covariance: CovType = "diag",
@@ -180,20 +181,21 @@ class VoicePuppetry(Baseline):
         for nm, v in (("visual_covariance", visual_covariance), ("audio_covariance", audio_covariance)):
             if v not in ("diag", "full"):
                 raise ValueError(f"{nm} must be 'diag' or 'full', got {v!r}")
-        self.n_states = int(n_states)
+        self.n_states = n_states
         self.visual_covariance: CovType = visual_covariance
         self.audio_covariance: CovType = audio_covariance
-        self.audio_deltas = bool(audio_deltas)
-        self.n_iter = int(n_iter)
-        self.tol = float(tol)
-        self.min_covar = float(min_covar)
-        self.audio_reg = float(audio_reg)
-        self.random_state = int(random_state)
+        self.audio_deltas = audio_deltas
+        self.n_iter = n_iter
+        self.tol = tol
+        self.min_covar = min_covar
+        self.audio_reg = audio_reg
+        self.random_state = random_state
 
     def _audio(self, y: np.ndarray) -> np.ndarray:
         return delta_features(y) if self.audio_deltas else np.asarray(y, dtype=np.float64)
 
     def fit(self, train: list[Sequence]) -> Self:
+        """Train the facial HMM on visual features, then remap its states to audio (Brand 1999); returns ``self``."""
         d_y, d_z = check_train(train)
         lengths = np.array([s.n_frames for s in train])
         if lengths.sum() < self.n_states:
@@ -215,7 +217,6 @@ class VoicePuppetry(Baseline):
         vis.means_ = init_means
         vis.fit(Vs, lengths)
         gamma = vis.predict_proba(Vs, lengths)  # (N, K) facial-state posteriors
-        self.visual_hmm_ = vis
         self.startprob_ = vis.startprob_.copy()
         self.transmat_ = vis.transmat_.copy()
         self.visual_means_ = vis.means_ * scale + loc                       # (K, 2D)
@@ -243,6 +244,12 @@ class VoicePuppetry(Baseline):
         self.audio_means_ = means
         self.audio_covars_ = (np.diagonal(covs, axis1=1, axis2=2).copy()
                               if self.audio_covariance == "diag" else covs)
+        self.n_audio_, self.n_visual_ = d_y, d_z
+        self._rebuild()
+        return self
+
+    def _rebuild(self) -> None:
+        """The audio HMM (hmmlearn) from the saved start, transition and audio parameters."""
         aud = GaussianHMM(n_components=self.n_states, covariance_type=self.audio_covariance,
                           init_params="", params="")
         aud.startprob_ = self.startprob_
@@ -250,8 +257,6 @@ class VoicePuppetry(Baseline):
         aud.means_ = self.audio_means_
         aud.covars_ = self.audio_covars_
         self.audio_hmm_ = aud
-        self.n_audio_, self.n_visual_ = d_y, d_z
-        return self
 
     def decode_states(self, seq: Sequence) -> np.ndarray:
         """Viterbi state path s*_{1:T} (int array) of the audio HMM for ``seq.mfcc``."""

@@ -30,6 +30,9 @@ they start from) is ours.
 """
 from __future__ import annotations
 
+import warnings
+from collections.abc import Mapping, Sequence
+
 SILENCE = "sil"
 
 #: ARPAbet 39 phones + silence, in a fixed order (index = integer code).
@@ -85,3 +88,37 @@ def check_phone(label: str, where: str = "") -> str:
             + " ".join(PHONES)
         )
     return label
+
+
+def substitute_unseen(label: str, counts: Mapping[str, int], where: str = "") -> str:
+    """The one unseen-phone policy of the package (every model that reads phone labels).
+
+    A valid phone never seen in training is replaced by the most frequent training phone
+    of its MPEG-4 viseme (:data:`PHONE_TO_VISEME`: the same mouth shape), or, when no phone
+    of that viseme was seen, by the most frequent training phone overall; ties go to the
+    alphabetically first. ``counts``: training frames per phone (phones with count > 0
+    are the seen ones). A label outside the phone set raises ValueError (naming ``where``).
+    """
+    check_phone(label, where)
+    seen = sorted(p for p, n in counts.items() if n > 0)
+    if not seen:
+        raise ValueError("no phones seen in training")
+    mates = [p for p in seen if PHONE_TO_VISEME[p] == PHONE_TO_VISEME[label]]
+    return max(mates or seen, key=lambda p: counts[p])
+
+
+def replace_unseen(labels: Sequence[str], counts: Mapping[str, int], where: str = "",
+                   stacklevel: int = 3) -> list[str]:
+    """``labels`` with every phone unseen in training replaced by :func:`substitute_unseen`,
+    with one UserWarning listing the replacements."""
+    out, unseen = [], {}
+    for lab in labels:
+        if counts.get(lab, 0) > 0:
+            out.append(lab)
+            continue
+        out.append(unseen.setdefault(lab, substitute_unseen(lab, counts, where)))
+    if unseen:
+        pairs = ", ".join(f"{k!r}->{v!r}" for k, v in sorted(unseen.items()))
+        loc = f" in {where}" if where else ""
+        warnings.warn(f"phones not seen in training{loc} replaced: {pairs}", UserWarning, stacklevel=stacklevel)
+    return out

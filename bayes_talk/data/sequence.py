@@ -57,4 +57,5 @@ class Sequence:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames T."""
         return int(self.mfcc.shape[0])

@@ -127,6 +127,7 @@ class SpeechResult:
 
     @property
     def duration(self) -> float:
+        """Length of the audio in seconds."""
         return self.samples.shape[0] / self.sample_rate
 
 

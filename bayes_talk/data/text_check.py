@@ -15,6 +15,7 @@ __all__ = ["check_pronounceable", "check_voice", "is_english_voice"]
 
 
 def is_english_voice(voice: str) -> bool:
+    """Whether an eSpeak voice name is an English voice."""
     name = str(voice).strip().lower().rsplit("/", 1)[-1].split("+", 1)[0]   # "en+f3": voice + variant
     return name == "en" or name.startswith("en-")
 

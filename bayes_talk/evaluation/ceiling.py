@@ -53,11 +53,13 @@ class ZeroModel:
     variance: np.ndarray | None = None
 
     def fit(self, train: list) -> ZeroModel:
+        """Nothing to learn; returns ``self``."""
         z = np.concatenate([np.asarray(s.aam, np.float64) for s in train])
         self.variance = z.var(axis=0)
         return self
 
     def predict(self, seq) -> tuple[np.ndarray, np.ndarray]:
+        """Zero mean and the utterance's own per-dimension variance (the still-face floor)."""
         if self.variance is None:
             raise RuntimeError("ZeroModel: call fit first")
         T = seq.n_frames
@@ -118,6 +120,7 @@ class OracleModel:
     seed: int = 0
 
     def fit(self, train: list) -> OracleModel:  # nothing to learn: the generator is known
+        """Nothing to learn (the generator is known); returns ``self``."""
         return self
 
     def predict(self, seq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -46,6 +46,7 @@ trajectory, so it is comparable with the baselines only loosely).
 """
 from __future__ import annotations
 
+import inspect
 import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -53,7 +54,10 @@ from typing import Any
 
 import numpy as np
 
+from bayes_talk.baselines import DPDS, SLDS, VoicePuppetry
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.estimators.sgplvm import SGPLVM
+from bayes_talk.models.switching import SwitchingConfig
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
@@ -75,9 +79,18 @@ log = logging.getLogger(__name__)
 VAR_FLOOR = 1e-10
 
 
+def _default(fn: Any, param: str) -> Any:
+    """The default of ``fn``'s argument ``param``: the family's own default is the one source."""
+    return inspect.signature(fn).parameters[param].default
+
+
+_SWITCHING = SwitchingConfig()
+
+
 @dataclass
 class SystemConfig:
     """Settings of every family, fixed by a protocol (see :mod:`bayes_talk.evaluation.protocols`).
+    Each default is read from the family's own defaults (one source).
 
     latent_dim: d of our GP models (8 in deena2009, 6 in deena2010).
     seed: seeds every model (and the switching models' subsequence caps).
@@ -86,7 +99,7 @@ class SystemConfig:
     posterior_draws: posterior draws of the ``*-posterior`` methods.
     lowpass_hz: optional zero-phase low-pass (Hz) applied to every method's predicted mean,
         the post-filter of deena2010 §4.2.3 (None: off); variances are left as predicted.
-    sgplvm_*: :class:`~bayes_talk.models.sgplvm.SGPLVM` settings.
+    sgplvm_*: :class:`~bayes_talk.estimators.sgplvm.SGPLVM` settings.
     vp_*: Voice Puppetry settings (number of HMM states, Baum-Welch iterations).
     slds_n_iter, dpds_max_iter: EM / gradient iterations of the LDS baselines.
     torch_threads: torch intra-op threads while fitting and synthesising (1: the GP
@@ -94,24 +107,24 @@ class SystemConfig:
         :mod:`bayes_talk.gp.threads`).
     """
 
-    latent_dim: int = 6
+    latent_dim: int = _SWITCHING.latent_dim
     seed: int = 0
-    ssgpdm_max_frames_per_state: int = 300
-    ssgpdm_min_frames_per_state: int = 12
-    ssgpdm_min_count: int | None = None
-    ssgpdm_max_iter: int = 100
-    ssgpdm_fallback_frames: int = 400
+    ssgpdm_max_frames_per_state: int = _SWITCHING.max_frames_per_state
+    ssgpdm_min_frames_per_state: int = _SWITCHING.min_frames_per_state
+    ssgpdm_min_count: int | None = _SWITCHING.min_count
+    ssgpdm_max_iter: int = _SWITCHING.max_iter
+    ssgpdm_fallback_frames: int = _SWITCHING.fallback_frames
     synth_max_iter: int = SEGMENT_MAX_ITER
     lowpass_hz: float | None = None
     posterior_draws: int = 64
-    sgplvm_max_frames: int = 1500
-    sgplvm_max_iter: int = 200
-    sgplvm_synth_max_iter: int = 100
-    sgplvm_validation_frames: int = 300
-    vp_n_states: int = 26
-    vp_n_iter: int = 50
-    slds_n_iter: int = 100
-    dpds_max_iter: int = 200
+    sgplvm_max_frames: int = _default(SGPLVM, "max_frames")
+    sgplvm_max_iter: int = _default(SGPLVM, "max_iter")
+    sgplvm_synth_max_iter: int = _default(SGPLVM.synthesize, "max_iter")
+    sgplvm_validation_frames: int = _default(SGPLVM, "validation_frames")
+    vp_n_states: int = _default(VoicePuppetry, "n_states")
+    vp_n_iter: int = _default(VoicePuppetry, "n_iter")
+    slds_n_iter: int = _default(SLDS, "n_iter")
+    dpds_max_iter: int = _default(DPDS, "max_iter")
     torch_threads: int = 1
     #: generator draws per utterance of method ``oracle`` (>= 2)
     oracle_draws: int = 32
@@ -217,39 +230,28 @@ def group_by_family(methods: Iterable[str]) -> dict[str, list[str]]:
 
 
 def _build(family: str, cfg: SystemConfig) -> Any:
-    if family in ("ssgpdm-vlmm", "ssgpdm-phone"):
-        from bayes_talk.models.switching import SwitchingSGPDM
-
-        return SwitchingSGPDM(states=family.split("-")[1], latent_dim=cfg.latent_dim,
-                              max_frames_per_state=cfg.ssgpdm_max_frames_per_state,
-                              min_frames_per_state=cfg.ssgpdm_min_frames_per_state,
-                              min_count=cfg.ssgpdm_min_count, max_iter=cfg.ssgpdm_max_iter,
-                              fallback_frames=cfg.ssgpdm_fallback_frames, seed=cfg.seed)
-    if family == "sgplvm":
-        from bayes_talk.models.sgplvm import SGPLVM
-
-        return SGPLVM(latent_dim=cfg.latent_dim, max_frames=cfg.sgplvm_max_frames,
-                      max_iter=cfg.sgplvm_max_iter, seed=cfg.seed,
-                      validation_frames=cfg.sgplvm_validation_frames)
-    from bayes_talk.baselines import REGISTRY
-
-    if family == "voice-puppetry":
-        return REGISTRY[family](n_states=cfg.vp_n_states, n_iter=cfg.vp_n_iter, random_state=cfg.seed)
-    if family == "slds":
-        return REGISTRY[family](n_iter=cfg.slds_n_iter)
-    if family == "dpds":
-        return REGISTRY[family](max_iter=cfg.dpds_max_iter)
-    if family == "hmm-mean":
-        return REGISTRY[family]()
-    if family == "context-ridge":
-        return REGISTRY[family]()
-    if family == "context-mlp":
-        return REGISTRY[family](seed=cfg.seed)
     if family in ("zero", "oracle"):
         from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel
 
         return ZeroModel() if family == "zero" else OracleModel(n_draws=cfg.oracle_draws, seed=cfg.seed)
-    raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
+    from bayes_talk.estimators.registry import make_estimator
+
+    params: dict[str, dict[str, Any]] = {
+        "ssgpdm-vlmm": {"latent_dim": cfg.latent_dim, "max_frames_per_state": cfg.ssgpdm_max_frames_per_state,
+                        "min_frames_per_state": cfg.ssgpdm_min_frames_per_state, "min_count": cfg.ssgpdm_min_count,
+                        "max_iter": cfg.ssgpdm_max_iter, "fallback_frames": cfg.ssgpdm_fallback_frames,
+                        "seed": cfg.seed},
+        "sgplvm": {"latent_dim": cfg.latent_dim, "max_frames": cfg.sgplvm_max_frames, "max_iter": cfg.sgplvm_max_iter,
+                   "seed": cfg.seed, "validation_frames": cfg.sgplvm_validation_frames},
+        "voice-puppetry": {"n_states": cfg.vp_n_states, "n_iter": cfg.vp_n_iter, "random_state": cfg.seed},
+        "slds": {"n_iter": cfg.slds_n_iter},
+        "dpds": {"max_iter": cfg.dpds_max_iter},
+        "context-mlp": {"seed": cfg.seed},
+    }
+    params["ssgpdm-phone"] = params["ssgpdm-vlmm"]
+    if family not in FAMILIES:
+        raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
+    return make_estimator(family, **params.get(family, {}))
 
 
 def fit_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, executor=None) -> Any:

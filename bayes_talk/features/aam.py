@@ -2,15 +2,8 @@
 
 Building (:meth:`AAM.fit`):
 
-1. **Generalised Procrustes alignment** of the landmark shapes under similarity
-   transforms. With shapes as complex vectors ``z`` (x + iy), the least-squares
-   similarity taking a centred shape ``z_c`` onto the mean ``m`` is ``b z_c`` with
-   ``b = <z_c, m> / <z_c, z_c>`` (``b = s e^{i rot}``). Iterate: align all, average,
-   rescale the mean to the average training size (so the model frame is in pixels), rotate
-   it onto the average raw orientation (so rotation 0 = upright), until the mean moves less
-   than 1e-10 px. No tangent-space projection (head rotations are a few degrees).
-2. **Pose**. Landmarks ``L = a x + t`` with ``x`` the aligned shape (centroid 0), ``t`` the
-   centroid of ``L`` and ``a = 1/b``. Stored per frame as ``(tx, ty, log s, rot)``.
+1. **Generalised Procrustes alignment** of the landmark shapes under similarity transforms
+   and 2. **pose** ``(tx, ty, log s, rot)`` per frame: :mod:`bayes_talk.features.procrustes`.
 3. **Texture frame**: the mean shape shifted to a pixel grid with a 1-px margin; its
    Delaunay triangulation (``scipy.spatial.Delaunay``) covers the convex hull, and every
    grid pixel centre inside it is a texture pixel, with a fixed triangle and barycentric
@@ -46,6 +39,11 @@ Fitting to new frames. In the built-in corpus the landmarks are known, so
 pixels and projects. Real video needs the landmarks from a tracker or the AAM search of
 :mod:`bayes_talk.features.aam_fit` (``bayes-talk corpus track``) first.
 
+Procrustes alignment and pose are in :mod:`bayes_talk.features.procrustes`, PCA in
+:mod:`bayes_talk.features.pca`, the piecewise-affine warp in :mod:`bayes_talk.features.warp`.
+This module stays above ~400 lines because :class:`AAM` is one object: its build,
+projection, reconstruction, rendering and file format share the texture frame's arrays.
+
 Files: :meth:`AAM.save` writes ``<base>.npz`` (arrays) and ``<base>.json`` (format
 version, sizes and the SHA-256 of the .npz), each atomically (temporary file +
 ``os.replace``). :meth:`AAM.load` raises ``ValueError`` for a missing, truncated or
@@ -56,147 +54,29 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay
 
-from bayes_talk.data.render import bilinear_sample, warp_piecewise_affine
-from bayes_talk.files import write_bytes
+from bayes_talk.features.pca import PCAModel
+from bayes_talk.features.procrustes import (
+    align_to,
+    as_complex,
+    pose_apply,
+    procrustes_align,
+)
+from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine
+from bayes_talk.files import check_format, write_bytes
 
-__all__ = ["AAM", "FORMAT_VERSION", "PCAModel", "procrustes_align", "remove_sequence_mean"]
+__all__ = ["AAM", "FORMAT_VERSION", "remove_sequence_mean"]
 
 FORMAT_VERSION = 1
 _FORMAT_NAME = "bayes_talk.aam"
 _N_POSE = 4
 _N_PHOTO = 2
 _CHUNK = 128  # frames warped together
-
-
-# --------------------------------------------------------------------------------------
-# Helpers
-# --------------------------------------------------------------------------------------
-def _as_complex(shapes: np.ndarray) -> np.ndarray:
-    return shapes[..., 0] + 1j * shapes[..., 1]
-
-
-def _as_real(z: np.ndarray) -> np.ndarray:
-    return np.stack([z.real, z.imag], axis=-1)
-
-
-def procrustes_align(
-    landmarks: np.ndarray, tol: float = 1e-10, max_iter: int = 100
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Generalised Procrustes alignment under similarity transforms.
-
-    Parameters
-    ----------
-    landmarks : (N, P, 2) shapes in pixels.
-
-    Returns
-    -------
-    mean : (P, 2) mean shape, centroid 0, size (Frobenius norm) = average training size,
-        orientation = that of the average of the centred raw shapes.
-    aligned : (N, P, 2) shapes in the mean's frame (centroid 0).
-    pose : (N, 4) ``(tx, ty, log s, rot)`` with ``landmarks = s R(rot) aligned + t``.
-    """
-    z = _as_complex(np.asarray(landmarks, dtype=np.float64))
-    centroid = z.mean(axis=1)
-    zc = z - centroid[:, None]
-    norms = np.sqrt((np.abs(zc) ** 2).sum(axis=1))
-    size = norms.mean()
-    ref = zc.mean(axis=0)
-    mean = zc[0] / norms[0] * size
-    for _ in range(max_iter):
-        b = (np.conj(zc) @ mean) / norms**2
-        new = (b[:, None] * zc).mean(axis=0)
-        new *= size / np.sqrt((np.abs(new) ** 2).sum())
-        rot = np.vdot(new, ref)
-        if abs(rot) > 0:
-            new *= rot / abs(rot)
-        done = np.max(np.abs(new - mean)) < tol
-        mean = new
-        if done:
-            break
-    mean, aligned, pose = _align_to(mean, z)
-    return _as_real(mean), aligned, pose
-
-
-def _align_to(mean: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    centroid = z.mean(axis=1)
-    zc = z - centroid[:, None]
-    b = (np.conj(zc) @ mean) / (np.abs(zc) ** 2).sum(axis=1)
-    aligned = _as_real(b[:, None] * zc)
-    pose = np.stack([centroid.real, centroid.imag, -np.log(np.abs(b)), -np.angle(b)], axis=1)
-    return mean, aligned, pose
-
-
-def _pose_apply(aligned: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    z = _as_complex(aligned)
-    a = np.exp(pose[:, 2]) * np.exp(1j * pose[:, 3])
-    t = pose[:, 0] + 1j * pose[:, 1]
-    return _as_real(a[:, None] * z + t[:, None])
-
-
-@dataclass
-class PCAModel:
-    """``X ~ mean + scores @ components``; components (k, D) orthonormal rows.
-
-    eigenvalues : (k,) variances of the kept modes (sample covariance, N - 1);
-    total_variance : trace of the sample covariance (all modes).
-    """
-
-    mean: np.ndarray
-    components: np.ndarray
-    eigenvalues: np.ndarray
-    total_variance: float
-
-    @classmethod
-    def fit(cls, X: np.ndarray, variance: float) -> PCAModel:
-        """Keep the fewest modes whose eigenvalues sum to >= ``variance`` of the total.
-
-        Uses the eigen-decomposition of the smaller of the Gram (N x N) and covariance
-        (D x D) matrices (BLAS-3 friendly; the squared condition number is harmless for
-        the modes a 0.99 threshold keeps). Signs are fixed (largest-magnitude loading
-        positive) so the same data always give the same model.
-        """
-        N, D = X.shape
-        mean = X.mean(axis=0)
-        Xc = X - mean
-        denom = max(N - 1, 1)
-        if N <= D:
-            lam, U = np.linalg.eigh(Xc @ Xc.T)
-            order = np.argsort(lam)[::-1]
-            lam, U = np.maximum(lam[order], 0.0), U[:, order]
-            keep = lam > lam[0] * 1e-12 if lam[0] > 0 else np.zeros_like(lam, dtype=bool)
-            comps = (U[:, keep].T @ Xc) / np.sqrt(lam[keep])[:, None]
-        else:
-            lam, V = np.linalg.eigh(Xc.T @ Xc)
-            order = np.argsort(lam)[::-1]
-            lam, V = np.maximum(lam[order], 0.0), V[:, order]
-            keep = lam > lam[0] * 1e-12 if lam[0] > 0 else np.zeros_like(lam, dtype=bool)
-            comps = V[:, keep].T
-        lam = lam[keep] / denom
-        total = float((Xc**2).sum() / denom)
-        if lam.size == 0:
-            k = 0
-        elif variance >= 1.0:
-            k = lam.size
-        else:
-            k = int(np.searchsorted(np.cumsum(lam) / total, variance - 1e-12) + 1)
-            k = min(k, lam.size)
-        comps = comps[:k]
-        flip = np.sign(comps[np.arange(k), np.argmax(np.abs(comps), axis=1)])
-        comps = comps * flip[:, None]
-        return cls(mean, comps, lam[:k], total)
-
-    def project(self, X: np.ndarray) -> np.ndarray:
-        return (X - self.mean) @ self.components.T
-
-    def reconstruct(self, b: np.ndarray) -> np.ndarray:
-        return self.mean + b @ self.components
 
 
 def _check_images_landmarks(images, landmarks, image_shape=None, n_landmarks=None):
@@ -264,18 +144,22 @@ class AAM:
 
     @property
     def n_combined(self) -> int:
+        """Number of combined appearance parameters."""
         return int(self.combined_pca.components.shape[0])
 
     @property
     def n_shape_modes(self) -> int:
+        """Number of shape PCA modes."""
         return int(self.shape_pca.components.shape[0])
 
     @property
     def n_texture_modes(self) -> int:
+        """Number of texture PCA modes."""
         return int(self.texture_pca.components.shape[0])
 
     @property
     def n_landmarks(self) -> int:
+        """Number of landmarks of the shape model."""
         return int(self._a["mean_shape"].shape[0])
 
     @property
@@ -460,7 +344,7 @@ class AAM:
         """AAM parameters (N, n_params) of frames with known landmarks (no AAM search)."""
         images, landmarks = _check_images_landmarks(images, landmarks, self.image_shape, self.n_landmarks)
         N = images.shape[0]
-        _, aligned, pose = _align_to(_as_complex(self._a["mean_shape"]), _as_complex(landmarks))
+        _, aligned, pose = align_to(as_complex(self._a["mean_shape"]), as_complex(landmarks))
         g_norm, photo = _normalise_textures(self.warp_to_mean(images, landmarks))
         b = np.hstack([self.shape_texture_weight * self.shape_pca.project(aligned.reshape(N, -1)),
                        self.texture_pca.project(g_norm)])
@@ -484,7 +368,7 @@ class AAM:
         b = self.combined_pca.reconstruct(p[:, sl["combined"]])
         k_s = self.n_shape_modes
         x = self.shape_pca.reconstruct(b[:, :k_s] / self.shape_texture_weight)
-        landmarks = _pose_apply(x.reshape(p.shape[0], -1, 2), p[:, sl["pose"]])
+        landmarks = pose_apply(x.reshape(p.shape[0], -1, 2), p[:, sl["pose"]])
         g = self.texture_pca.reconstruct(b[:, k_s:])
         photo = p[:, sl["photometric"]]
         textures = photo[:, :1] + np.exp(photo[:, 1:2]) * g
@@ -532,10 +416,7 @@ class AAM:
             raise ValueError(f"AAM file {json_path}: not found") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"AAM file {json_path}: not valid JSON (truncated?): {exc}") from None
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT_NAME:
-            raise ValueError(f"AAM file {json_path}: format expected {_FORMAT_NAME!r}, found {meta.get('format') if isinstance(meta, dict) else type(meta).__name__!r}")
-        if meta.get("version") != FORMAT_VERSION:
-            raise ValueError(f"AAM file {json_path}: version expected {FORMAT_VERSION}, found {meta.get('version')!r}")
+        check_format(meta, _FORMAT_NAME, FORMAT_VERSION, f"AAM file {json_path}")
         try:
             data = npz_path.read_bytes()
         except FileNotFoundError:

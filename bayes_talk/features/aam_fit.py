@@ -68,6 +68,10 @@ score 0.42, 0.72 and 0.90, a diverged fit or a frame without a face 1.0-1.3 (v1
 renderer; on the anti-aliased v2 corpora tracked frames score at most 0.07 on
 heldout40 and 0.37 on 100 training utterances). So 0.6 flags
 fits that are off by more than ~1.5 px, not frames that merely look unusual.
+
+This module stays above ~400 lines because the fitter is one algorithm: the per-level
+appearance models, the inverse-compositional search, the pyramid and the tracker's
+lost-frame rule share the precomputed Jacobians of :class:`_Level`.
 """
 from __future__ import annotations
 
@@ -77,8 +81,9 @@ import numpy as np
 from skimage.transform import downscale_local_mean
 from threadpoolctl import threadpool_limits
 
-from bayes_talk.data.render import bilinear_sample
-from bayes_talk.features.aam import AAM, _align_to, _as_complex, _pose_apply
+from bayes_talk.features.aam import AAM
+from bayes_talk.features.procrustes import align_to, as_complex, pose_apply
+from bayes_talk.features.warp import bilinear_sample
 
 __all__ = [
     "LOST_THRESHOLD",
@@ -179,7 +184,7 @@ class _Level:
         self.tri = a["triangles"]                            # (M, 3)
         self.vert = aam._pix_vertices                        # (n_pix, 3)
         self.bary = a["pixel_bary"]                          # (n_pix, 3)
-        self.mean_shape_c = _as_complex(a["mean_shape"])
+        self.mean_shape_c = as_complex(a["mean_shape"])
         self.shape_mean = aam.shape_pca.mean
         self.shape_comp = aam.shape_pca.components            # (k_s, 2P)
         self.A0 = aam.texture_pca.mean                       # (n_pix,)
@@ -240,10 +245,10 @@ class _Level:
 
     def project_shape(self, shape: np.ndarray) -> np.ndarray:
         """The closest model shape N(s0 + sum p_i s_i; q) to image landmarks ``shape``."""
-        _, aligned, pose = _align_to(self.mean_shape_c, _as_complex(shape[None]))
+        _, aligned, pose = align_to(self.mean_shape_c, as_complex(shape[None]))
         b = (aligned.reshape(1, -1) - self.shape_mean) @ self.shape_comp.T
         x = (self.shape_mean + b @ self.shape_comp).reshape(1, -1, 2)
-        return _pose_apply(x, pose)[0]
+        return pose_apply(x, pose)[0]
 
     def compose(self, shape: np.ndarray, dp: np.ndarray) -> np.ndarray:
         """W(x; s) o W(x; dp)^-1 (M&B eqs. 31-34), before projection onto the model."""
@@ -315,10 +320,12 @@ class AAMFitter:
 
     @property
     def image_shape(self) -> tuple[int, int]:
+        """(H, W) of the frames the fitter expects."""
         return self.aam.image_shape
 
     @property
     def n_landmarks(self) -> int:
+        """Number of landmarks fitted per frame."""
         return self.aam.n_landmarks
 
     @classmethod
@@ -339,7 +346,7 @@ class AAMFitter:
             fitter = cls(aams, **kwargs)
             lv = fitter.levels[0]
             fitter.prototype_shapes = np.stack([
-                _align_to(lv.mean_shape_c, _as_complex(lv.project_shape(x)[None]))[1][0]
+                align_to(lv.mean_shape_c, as_complex(lv.project_shape(x)[None]))[1][0]
                 for x in landmarks])
         return fitter
 
@@ -419,8 +426,8 @@ class AAMFitter:
         cands = [self._fit_pyramid(pyr, prev)]
         if self.prototype_shapes is not None:
             lv = self.levels[0]
-            _, _, pose = _align_to(lv.mean_shape_c, _as_complex(prev[None]))
-            starts = _pose_apply(self.prototype_shapes, np.repeat(pose, len(self.prototype_shapes), 0))
+            _, _, pose = align_to(lv.mean_shape_c, as_complex(prev[None]))
+            starts = pose_apply(self.prototype_shapes, np.repeat(pose, len(self.prototype_shapes), 0))
             start_rms = lv.residual_rms_many(pyr[0], starts)
             for i in np.argsort(start_rms)[:n_best]:
                 cands.append(self._fit_pyramid(pyr, starts[i], levels=range(1)))
@@ -435,10 +442,11 @@ class AAMFitter:
         aam = self.aam
         pose = aam.mean_params[aam.param_slices["pose"]]
         x = aam.shape_pca.mean.reshape(1, -1, 2)
-        return _pose_apply(x, pose[None])[0]
+        return pose_apply(x, pose[None])[0]
 
     def track(self, frames: np.ndarray, annotations: dict[int, np.ndarray] | None = None,
               where: str = "video", search_stride: int = 10) -> TrackResult:
+        """Fit the AAM to every frame of a video, each frame starting from the previous fit."""
         with threadpool_limits(limits=1):   # small products: 2 BLAS threads only contend
             return self._track(frames, annotations, where, search_stride)
 

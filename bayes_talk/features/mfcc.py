@@ -25,17 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
+from bayes_talk.audio import downmix, load_audio
+from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
-N_MFCC = 20
-WINDOW_S = 0.060
-N_MELS = 40
-#: upper edge of the mel filterbank (Hz): 7.6 kHz, inside the pass band of a 16 kHz
-#: recording (soxr keeps ~0.95 of its 8 kHz Nyquist), so that a model's features do not
-#: change with the recording's rate (issue 12; before, sr/2 -- and 8 kHz still moved the
-#: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
-#: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
-FMAX_HZ = 7600.0
+__all__ = ["FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
 
 
 def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
@@ -70,8 +63,6 @@ def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: f
         y = y.astype(np.float64) / 32768.0
     y = np.asarray(y, dtype=np.float64)
     if y.ndim == 2:
-        from bayes_talk.audio import downmix
-
         y = downmix(y, where)
     if y.ndim != 1:
         raise ValueError(f"{where}: expected a 1-D waveform (or (n, channels)), found shape {y.shape}")
@@ -115,8 +106,6 @@ def load_wav(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarray
     correlated, else the loudest channel); ``target_sr``: resample to it (one log line).
     Errors name the file: unreadable, empty, or non-finite audio raise ValueError.
     """
-    from bayes_talk.audio import load_audio
-
     return load_audio(path, target_sr)
 
 

@@ -28,9 +28,11 @@ class MLPBackConstraint:
 
     # parameters optimised by training, in a fixed order
     def parameters(self) -> list[torch.Tensor]:
+        """The trainable tensors (W1, b1, W2, b2)."""
         return [self.W1, self.b1, self.W2, self.b2]
 
     def set_input_scaling(self, Y: np.ndarray | torch.Tensor) -> None:
+        """Fix the input standardisation from the training inputs ``Y``."""
         Y = torch.as_tensor(Y, dtype=torch.float64)
         self.in_mean = Y.mean(0)
         self.in_std = Y.std(0).clamp_min(1e-12)
@@ -56,11 +58,13 @@ class MLPBackConstraint:
         return float(((self(Y) - X) ** 2).mean())
 
     def state(self) -> dict[str, np.ndarray]:
+        """The weights and scaling as named arrays (saved with the model)."""
         names = ("W1", "b1", "W2", "b2", "in_mean", "in_std")
         return {n: getattr(self, n).detach().numpy().copy() for n in names}
 
     @classmethod
     def from_state(cls, arrays: dict[str, np.ndarray]) -> MLPBackConstraint:
+        """A back-constraint restored from :meth:`state`."""
         W1, W2 = arrays["W1"], arrays["W2"]
         obj = cls(W1.shape[1], W2.shape[0], W1.shape[0])
         for n in ("W1", "b1", "W2", "b2", "in_mean", "in_std"):

@@ -35,11 +35,13 @@ class GPObservation(TorchDistribution):
         super().__init__(torch.Size(), torch.Size((X.shape[0], w.shape[0])), validate_args=False)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        """Log density of ``value`` (the equation in the class docstring)."""
         return observation_loglik(
             value, self.X, self.alpha, self.gamma, self.beta, self.w, self.alpha_lin, self.what
         )
 
     def sample(self, sample_shape=torch.Size()) -> torch.Tensor:
+        """Draws of Y: each column L ε / w with K = L Lᵀ the kernel matrix and ε ~ N(0, I)."""
         K = train_cov(self.X, self.alpha, self.gamma, self.beta, self.alpha_lin)
         L = cholesky(K.detach(), self.what)
         shape = torch.Size(sample_shape) + self.event_shape
@@ -68,6 +70,7 @@ class GPDynamics(TorchDistribution):
         super().__init__(torch.Size(), torch.Size((n, latent_dim)), validate_args=False)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        """Log density of ``value`` (the equation in the class docstring)."""
         return dynamics_loglik(
             value, self.seq_lengths, self.alpha, self.gamma, self.beta, self.alpha_lin
         )

@@ -46,6 +46,7 @@ class GPPredictor:
 
     @property
     def out_dim(self) -> int:
+        """Output dimension D."""
         return int(self.Y.shape[1])
 
     def mean_var(self, Xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,4 +1,8 @@
-"""The shared Gaussian-process dynamical model (SGPDM) as a Pyro program.
+"""The shared Gaussian-process dynamical model (SGPDM): the model class and its MAP fit.
+
+The settings and the Pyro program are in :mod:`bayes_talk.models.sgpdm_program`,
+persistence in :mod:`bayes_talk.models.sgpdm_io`, inference of latents for new
+observations in :mod:`bayes_talk.synthesis.latents`.
 
 deena2010 §2.1.1 (eq. 1–7), deena2009 §2; conventions pinned in DESIGN.md §3.
 
@@ -30,152 +34,80 @@ Example
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
-import zipfile
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
 import pyro
-import pyro.distributions as dist
 import torch
 from pyro import poutine
 
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.errors import not_fitted
+from bayes_talk.files import read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
-from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.predictive import GPPredictor
-from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_split
+from bayes_talk.gp.terms import dynamics_split
+from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
+from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
-FORMAT_NAME = "bayes_talk.sgpdm"
 
 
-@dataclass
-class SGPDMConfig:
-    """Settings of an :class:`SGPDM` (all documented in docs/model.md).
-
-    latent_dim: d (8 in deena2009, 6 in deena2010).
-    dynamics: GP dynamics on X (eq. 7); False gives a shared GPLVM with X ~ N(0, I).
-    learn_dynamics: learn α_x, γ_x, β_x (then they carry the 1/θ prior) instead of fixing
-        them at the signal-to-noise ratio 100:1 of deena2010 §4.1.
-    dyn_alpha, dyn_gamma, dyn_beta: α_x, γ_x, β_x (precision) of the dynamics kernel.
-    dyn_linear: α_lin of an optional linear term in the dynamics kernel (None: off).
-    balanced: λ = D/d on ln p(X) (balanced GPDM, D = total observed dimension);
-        False: λ = 1 (plain GPDM).
-    back_constraint: name of the view g(·) maps from (deena2009 eq. 4–5), or None.
-    bc_hidden: hidden tanh units of the back-constraint MLP.
-    init: "pca-average" (PCA of each view to d, each scaled to unit variance per
-        dimension, then averaged: deena2010 §4.1) or "pca-concat" (PCA of the
-        concatenated standardised views).
-    init_scale: the initial latent std per dimension; None gives √α_x with dynamics
-        (the dynamics signal std, 0.1 by default) and 1 without.
-    learn_w: learn the per-dimension output scales W (else W = 1/std of the data, fixed).
-    max_iter: L-BFGS iterations; tol: stop when an outer step improves L by < tol·|L|.
-    seed: seeds the back-constraint weights and anything random in fitting.
-    """
-
-    latent_dim: int = 8
-    dynamics: bool = True
-    learn_dynamics: bool = False
-    dyn_alpha: float = 0.01
-    dyn_gamma: float = 0.2
-    dyn_beta: float = 1e6
-    dyn_linear: float | None = None
-    balanced: bool = False
-    back_constraint: str | None = None
-    bc_hidden: int = 20
-    init: str = "pca-average"
-    init_scale: float | None = None
-    learn_w: bool = True
-    max_iter: int = 300
-    tol: float = 1e-9
-    seed: int = 0
-
-
-def _pca(Y: np.ndarray, d: int) -> np.ndarray:
-    """Scores of the first d principal components, each scaled to unit variance."""
-    Yc = Y - Y.mean(0)
-    U, S, _ = np.linalg.svd(Yc, full_matrices=False)
-    Z = U[:, :d] * S[:d]
-    # fix the sign so the largest-magnitude loading is positive (deterministic init)
-    Z *= np.sign(Z[np.abs(Z).argmax(0), range(Z.shape[1])])
-    return Z / np.maximum(Z.std(0), 1e-12)
-
-
-def sgpdm_model(
-    views: Mapping[str, torch.Tensor],
-    X: torch.Tensor,
-    hyper: Mapping[str, torch.Tensor],
-    seq_lengths: Sequence[int],
-    cfg: SGPDMConfig,
-    learned: Sequence[str],
-) -> None:
-    """The SGPDM as a Pyro program; every site is observed at MAP training.
-
-    ``hyper`` maps names to constrained values: ``alpha/<v>``, ``gamma/<v>``,
-    ``beta/<v>``, ``w/<v>`` for each view and ``alpha/dyn``, ``gamma/dyn``, ``beta/dyn``
-    (and ``lin/dyn``); ``learned`` lists the kernel hyperparameters that carry the 1/θ
-    prior.
-    """
-    d = X.shape[1]
-    if cfg.dynamics:
-        lam = sum(Y.shape[1] for Y in views.values()) / d if cfg.balanced else 1.0
-        with poutine.scale(scale=lam):
-            pyro.sample(
-                "X",
-                GPDynamics(
-                    seq_lengths, d, hyper["alpha/dyn"], hyper["gamma/dyn"], hyper["beta/dyn"],
-                    hyper.get("lin/dyn"),
-                ),
-                obs=X,
-            )
-    else:
-        pyro.sample("X", dist.Normal(torch.zeros_like(X), 1.0).to_event(2), obs=X)
-    for v, Y in views.items():
-        w = hyper[f"w/{v}"]
-        if cfg.learn_w:
-            pyro.sample(
-                f"w/{v}", dist.HalfNormal(torch.full_like(w, math.sqrt(W_PRIOR_VARIANCE))).to_event(1),
-                obs=w,
-            )
-        pyro.sample(
-            f"Y/{v}",
-            GPObservation(X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
-                          what=f"{v} kernel matrix"),
-            obs=Y,
-        )
-    if learned:
-        pyro.factor("hyperprior", -sum(torch.log(hyper[k]) for k in learned))
-
-
-@dataclass
-class FitHistory:
-    """Objective (log joint) after each outer L-BFGS step; with a monitor, its value after
-    each step (``monitor``) and the step whose parameters were kept (``best_step``, 1-based)."""
-
-    log_joint: list[float] = field(default_factory=list)
-    monitor: list[float] = field(default_factory=list)
-    best_step: int | None = None
+_DEFAULTS = SGPDMConfig()
 
 
 class SGPDM:
-    """Shared GPDM with any number of observed views; scikit-learn-like ``fit``."""
+    """Shared GPDM with any number of observed views; scikit-learn-like ``fit``.
 
-    def __init__(self, config: SGPDMConfig | None = None, **kwargs):
-        if config is not None and kwargs:
-            raise ValueError("give either a config or keyword settings, not both")
-        self.config = config if config is not None else SGPDMConfig(**kwargs)
+    The keyword arguments are the fields of :class:`SGPDMConfig` (their one source of
+    defaults), stored as given; :attr:`config` gathers them. :meth:`from_config` builds
+    a model from a config. Inference for new observations is in
+    :mod:`bayes_talk.synthesis.latents`.
+
+    Subclasses (e.g. a sparse SGPDM) set :attr:`config_class` to a dataclass extending
+    :class:`SGPDMConfig` and take its extra fields as keyword arguments too; they save under
+    their own :attr:`format_name` / :attr:`format_version` and restore extra arrays in
+    :meth:`_restore_extra`.
+    """
+
+    #: the settings dataclass whose fields are the constructor arguments
+    config_class: type[SGPDMConfig] = SGPDMConfig
+    #: saved-model format written by :meth:`state`
+    format_name: str = FORMAT_NAME
+    format_version: int = FORMAT_VERSION
+
+    def __init__(self, *, latent_dim: int = _DEFAULTS.latent_dim, dynamics: bool = _DEFAULTS.dynamics,
+                 learn_dynamics: bool = _DEFAULTS.learn_dynamics, dyn_alpha: float = _DEFAULTS.dyn_alpha,
+                 dyn_gamma: float = _DEFAULTS.dyn_gamma, dyn_beta: float = _DEFAULTS.dyn_beta,
+                 dyn_linear: float | None = _DEFAULTS.dyn_linear, balanced: bool = _DEFAULTS.balanced,
+                 back_constraint: str | None = _DEFAULTS.back_constraint, bc_hidden: int = _DEFAULTS.bc_hidden,
+                 init: str = _DEFAULTS.init, init_scale: float | None = _DEFAULTS.init_scale,
+                 learn_w: bool = _DEFAULTS.learn_w, max_iter: int = _DEFAULTS.max_iter,
+                 tol: float = _DEFAULTS.tol, seed: int = _DEFAULTS.seed):
+        self.latent_dim, self.dynamics, self.learn_dynamics = latent_dim, dynamics, learn_dynamics
+        self.dyn_alpha, self.dyn_gamma, self.dyn_beta, self.dyn_linear = dyn_alpha, dyn_gamma, dyn_beta, dyn_linear
+        self.balanced, self.back_constraint, self.bc_hidden = balanced, back_constraint, bc_hidden
+        self.init, self.init_scale, self.learn_w = init, init_scale, learn_w
+        self.max_iter, self.tol, self.seed = max_iter, tol, seed
         self.view_names: list[str] = []
         self.history = FitHistory()
         self._fitted = False
         self.var_scale_: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def from_config(cls, config: SGPDMConfig) -> SGPDM:
+        """An unfitted model with the settings of ``config``."""
+        return cls(**asdict(config))
+
+    @property
+    def config(self) -> SGPDMConfig:
+        """The settings, gathered from the constructor arguments."""
+        return self.config_class(**{f.name: getattr(self, f.name) for f in fields(self.config_class)})
 
     # ------------------------------------------------------------------ validation/init
     def _check_views(self, views: Mapping[str, np.ndarray], seq_lengths) -> tuple[dict, list[int]]:
@@ -224,11 +156,11 @@ class SGPDM:
         cfg = self.config
         d = cfg.latent_dim
         if cfg.init == "pca-average":
-            X = np.mean([_pca(Y, d) for Y in centred.values()], axis=0)
+            X = np.mean([pca_scores(Y, d) for Y in centred.values()], axis=0)
             X = X / np.maximum(X.std(0), 1e-12)
         else:
             Z = np.hstack([Y / np.maximum(Y.std(0), 1e-12) for Y in centred.values()])
-            X = _pca(Z, d)
+            X = pca_scores(Z, d)
         scale = cfg.init_scale
         if scale is None:
             scale = math.sqrt(cfg.dyn_alpha) if cfg.dynamics else 1.0
@@ -437,7 +369,7 @@ class SGPDM:
     # ------------------------------------------------------------------ prediction
     def _require_fitted(self) -> None:
         if not self._fitted:
-            raise RuntimeError("this SGPDM is not fitted yet: call fit() or load()")
+            raise not_fitted(self)
 
     def predict_view(self, view: str, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean (T, D) and per-dimension variance σ²(x)/w² (T, D) of a view (eq. 10),
@@ -459,7 +391,7 @@ class SGPDM:
         :meth:`predict_view` from then on (saved with the model). The MAP objective, the
         latents and every synthesis path are unchanged; only reported variances scale."""
         self.var_scale_.pop(view, None)
-        Y = self._check_new(view, Y)
+        Y = self.check_new_observations(view, Y)
         mu, var = self.predict_view(view, X)
         if mu.shape != Y.shape:
             raise ValueError(f"calibrate_variance: {len(X)} latent points but {len(Y)} observations")
@@ -469,46 +401,10 @@ class SGPDM:
                  view, len(Y), c.min(), c.max(), float(np.median(c)))
         return c
 
-    def infer_latents(
-        self,
-        view: str,
-        Y: np.ndarray,
-        X_init: np.ndarray | str = "nn",
-        method: str = "sequence",
-        max_iter: int = 100,
-    ) -> np.ndarray:
-        """Latent points for new observations of one view (deena2009 §4.1, eq. 9).
-
-        method: "sequence" (eq. 9: observation + dynamics terms) or "point" (each frame
-        alone). X_init: an array, or the name of an initialiser ("nn", "back-constraint",
-        "hmm"; see :mod:`bayes_talk.synthesis.initialisers`).
-        """
-        from bayes_talk.synthesis.initialisers import initialise
-        from bayes_talk.synthesis.optimise import optimise_points, optimise_sequence
-
+    def check_new_observations(self, view: str, Y: np.ndarray) -> np.ndarray:
+        """``Y`` as a float64 (T, D) array of new observations of ``view``; ValueError naming
+        the view when its shape is wrong or it holds NaN/inf (the model must be fitted)."""
         self._require_fitted()
-        Y = self._check_new(view, Y)
-        X0 = initialise(X_init, self, view, Y) if isinstance(X_init, str) else np.asarray(X_init, float)
-        if method == "sequence":
-            return optimise_sequence(self.predictors_[view], Y, X0, self.dynamics_predictor_, max_iter=max_iter)
-        if method == "point":
-            return optimise_points(self.predictors_[view], Y, X0, max_iter=max_iter)
-        raise ValueError(f"method must be 'sequence' or 'point', got {method!r}")
-
-    def predict(
-        self,
-        Y: np.ndarray,
-        view_in: str = "audio",
-        view_out: str = "visual",
-        X_init: np.ndarray | str = "nn",
-        method: str = "sequence",
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Visual prediction from audio (eq. 10): returns (mean, variance, latents)."""
-        X = self.infer_latents(view_in, Y, X_init, method)
-        mu, var = self.predict_view(view_out, X)
-        return mu, var, X
-
-    def _check_new(self, view: str, Y: np.ndarray) -> np.ndarray:
         if view not in self.predictors_:
             raise ValueError(f"unknown view {view!r}; this model has {self.view_names}")
         Y = np.asarray(Y, dtype=np.float64)
@@ -521,93 +417,28 @@ class SGPDM:
 
     # ------------------------------------------------------------------ persistence
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """(JSON-able metadata, arrays) that fully describe the fitted model."""
-        self._require_fitted()
-        meta = {
-            "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
-            "config": asdict(self.config),
-            "views": self.view_names,
-            "seq_lengths": self.seq_lengths_,
-            "history": self.history.log_joint,
-            "history_monitor": self.history.monitor,
-            "history_best_step": self.history.best_step,
-        }
-        arrays: dict[str, np.ndarray] = {"X": self.X_}
-        for v in self.view_names:
-            arrays[f"Y/{v}"] = self._Y[v].numpy()
-            arrays[f"mean/{v}"] = self.means_[v]
-        for k, val in self.hyper_.items():
-            arrays[f"hyper/{k}"] = np.asarray(val, dtype=np.float64)
-        if self.backconstraint is not None:
-            for k, val in self.backconstraint.state().items():
-                arrays[f"bc/{k}"] = val
-        for v, c in self.var_scale_.items():
-            arrays[f"varscale/{v}"] = c
-        return meta, arrays
+        """(JSON-able metadata, arrays) that fully describe the fitted model
+        (:func:`bayes_talk.models.sgpdm_io.sgpdm_state`)."""
+        return sgpdm_state(self)
 
     @classmethod
     def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
-        if meta.get("format") != FORMAT_NAME:
-            raise ValueError(f"not an SGPDM model (format {meta.get('format')!r})")
-        if meta.get("version") != FORMAT_VERSION:
-            raise ValueError(
-                f"SGPDM model format version {meta.get('version')!r}; this bayes_talk reads version "
-                f"{FORMAT_VERSION}"
-            )
-        try:
-            obj = cls(SGPDMConfig(**meta["config"]))
-            obj.view_names = list(meta["views"])
-            obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
-            obj.history = FitHistory(list(meta.get("history", [])), list(meta.get("history_monitor", [])),
-                                     meta.get("history_best_step"))
-            obj.X_ = np.asarray(arrays["X"], dtype=np.float64)
-            obj._Y = {v: torch.as_tensor(np.asarray(arrays[f"Y/{v}"], dtype=np.float64)) for v in obj.view_names}
-            obj.means_ = {v: np.asarray(arrays[f"mean/{v}"], dtype=np.float64) for v in obj.view_names}
-            hyper = {k[len("hyper/"):]: torch.as_tensor(np.asarray(a, dtype=np.float64))
-                     for k, a in arrays.items() if k.startswith("hyper/")}
-            bc_keys = {k[3:]: arrays[k] for k in arrays if k.startswith("bc/")}
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"SGPDM model is incomplete or corrupt: missing {exc}") from None
-        obj.backconstraint = MLPBackConstraint.from_state(bc_keys) if bc_keys else None
-        if obj.backconstraint is not None:
-            obj._bc_params = obj.backconstraint.parameters()
-        obj._X = torch.as_tensor(obj.X_)
-        obj._log = {}
-        obj._fixed = hyper
-        obj._finalise()
-        obj.var_scale_ = {k[len("varscale/"):]: np.asarray(a, dtype=np.float64)
-                          for k, a in arrays.items() if k.startswith("varscale/")}
-        return obj
+        """A fitted model from :meth:`state`'s metadata and arrays (ValueError if incomplete)."""
+        return sgpdm_from_state(cls, meta, arrays)
+
+    def _restore_extra(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Hook for subclasses: restore their own arrays before the predictors are built."""
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""
         path = Path(path)
         meta, arrays = self.state()
-        write_npz(path.with_suffix(".npz"), arrays)
-        write_json(path.with_suffix(".json"), meta)
-        return path.with_suffix(".json")
+        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SGPDM:
+        """Read a model written by :meth:`save`; errors name the damaged file."""
         path = Path(path)
         jpath, npath = path.with_suffix(".json"), path.with_suffix(".npz")
         meta, arrays = read_model_files(jpath, npath)
         return cls.from_state(meta, arrays)
-
-
-def read_model_files(jpath: Path, npath: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """Read a JSON + NPZ model pair, turning every kind of damage into a ValueError."""
-    for p in (jpath, npath):
-        if not p.exists():
-            raise FileNotFoundError(f"model file {p} does not exist")
-    try:
-        meta = json.loads(jpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"model file {jpath} is truncated or not JSON ({exc})") from None
-    try:
-        with np.load(npath, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        raise ValueError(f"model file {npath} is truncated or corrupt ({exc})") from None
-    return meta, arrays

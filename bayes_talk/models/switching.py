@@ -19,25 +19,30 @@ executor, or a Dask/Ray one with the same ``map``); the default runs them in tur
 Back-off: a state with fewer than ``min_frames_per_state`` training frames gets no model
 of its own; at synthesis it uses the model of its longest suffix that has one, and a
 single phone without a model uses the global fallback SGPDM (trained on a random subset
-of all frames). Phones never seen in training are mapped to ``sil`` with a warning.
+of all frames). A phone never seen in training is replaced, with a warning, by the
+package's one unseen-phone policy (:func:`bayes_talk.data.phones.substitute_unseen`: the
+most frequent training phone of its viseme).
 
-Synthesis is in :mod:`bayes_talk.synthesis.sequential`.
+Synthesis is in :mod:`bayes_talk.synthesis.sequential` (Algorithms 1-2) and
+:mod:`bayes_talk.synthesis.posterior`; the estimator is
+:class:`bayes_talk.estimators.switching.SwitchingSGPDM`.
 """
 from __future__ import annotations
 
 import logging
-import warnings
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.sequence import Sequence as Utterance
-from bayes_talk.files import write_json, write_npz
+from bayes_talk.errors import not_fitted
+from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig, read_model_files
+from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.models.vlmm import VLMM, Segment
 
 log = logging.getLogger(__name__)
@@ -58,6 +63,7 @@ class PhoneStates:
         self.alphabet_: list[str] = []
 
     def fit(self, sequences: Iterable[Sequence[str]]) -> PhoneStates:
+        """Learn the phone alphabet; returns ``self``."""
         self.alphabet_ = sorted({lab for s in sequences for lab in s})
         return self
 
@@ -73,6 +79,7 @@ class PhoneStates:
         return out
 
     def segment(self, labels: Sequence[str], unknown: str = "error") -> list[Segment]:
+        """Runs of equal labels as segments; ``unknown``: "error" or "sil" for unseen phones."""
         labs = self._map_unknown(labels, unknown)
         segs, start = [], 0
         for t in range(1, len(labs) + 1):
@@ -84,10 +91,12 @@ class PhoneStates:
     training_subsequences = segment
 
     def to_dict(self) -> dict:
+        """JSON-able description (saved with the switching model)."""
         return {"kind": "phone", "alphabet": self.alphabet_}
 
     @classmethod
     def from_dict(cls, d: dict) -> PhoneStates:
+        """Phone states from :meth:`to_dict`'s dict."""
         obj = cls()
         obj.alphabet_ = list(d["alphabet"])
         return obj
@@ -95,7 +104,7 @@ class PhoneStates:
 
 @dataclass
 class SwitchingConfig:
-    """Settings of :class:`SwitchingSGPDM` (documented in docs/switching.md).
+    """Settings of :class:`SwitchingModel` (documented in docs/switching.md).
 
     states: "vlmm" (deena2010) or "phone" (its baseline).
     max_memory, epsilon, min_count: VLMM settings; epsilon=None scales the VLMM default
@@ -130,7 +139,7 @@ def _fit_state(job: tuple) -> tuple[dict, dict]:
     """Fit one state's SGPDM (a top-level function so process pools can pickle it)."""
     audio, visual, lengths, cfg_dict = job
     with torch_threads(1):
-        m = SGPDM(SGPDMConfig(**cfg_dict)).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
+        m = SGPDM(**cfg_dict).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
     return m.state()
 
 
@@ -138,20 +147,44 @@ def _key(state: tuple[str, ...]) -> str:
     return " ".join(state)
 
 
-class SwitchingSGPDM:
-    """Switching shared GPDM: ``fit`` on utterances, ``synthesize`` from audio + labels."""
+_DEFAULTS = SwitchingConfig()
 
-    def __init__(self, config: SwitchingConfig | None = None, **kwargs):
-        if config is not None and kwargs:
-            raise ValueError("give either a config or keyword settings, not both")
-        self.config = config if config is not None else SwitchingConfig(**kwargs)
-        if self.config.states not in ("vlmm", "phone"):
-            raise ValueError(f"states must be 'vlmm' or 'phone', got {self.config.states!r}")
+
+class SwitchingModel:
+    """Switching shared GPDM, the generative model: ``fit`` on utterances (the state model
+    and one SGPDM per state), the state lookup with back-off, and persistence.
+
+    The keyword arguments are the fields of :class:`SwitchingConfig` (their one source of
+    defaults), stored as given; :attr:`config` gathers them. Synthesis from new audio is
+    in :mod:`bayes_talk.synthesis.sequential` and :mod:`bayes_talk.synthesis.posterior`;
+    the estimator with ``predict`` / ``predict_dist`` is
+    :class:`bayes_talk.estimators.switching.SwitchingSGPDM`.
+    """
+
+    def __init__(self, *, states: str = _DEFAULTS.states, max_memory: int = _DEFAULTS.max_memory,
+                 epsilon: float | None = _DEFAULTS.epsilon, min_count: int | None = _DEFAULTS.min_count,
+                 latent_dim: int = _DEFAULTS.latent_dim, max_frames_per_state: int = _DEFAULTS.max_frames_per_state,
+                 min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
+                 fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed):
+        if states not in ("vlmm", "phone"):
+            raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
+        self.states, self.max_memory, self.epsilon, self.min_count = states, max_memory, epsilon, min_count
+        self.latent_dim, self.max_frames_per_state = latent_dim, max_frames_per_state
+        self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
+        self.fallback_frames, self.seed = fallback_frames, seed
         self.models_: dict[tuple[str, ...], SGPDM] = {}
+        #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
+        self.phone_counts_: dict[str, int] = {}
         self.entry_: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     @property
+    def config(self) -> SwitchingConfig:
+        """The settings, gathered from the constructor arguments."""
+        return SwitchingConfig(**{f.name: getattr(self, f.name) for f in fields(SwitchingConfig)})
+
+    @property
     def name(self) -> str:
+        """Method family name: ``ssgpdm-vlmm`` or ``ssgpdm-phone``."""
         return f"ssgpdm-{self.config.states}"
 
     # ------------------------------------------------------------------ training
@@ -160,7 +193,7 @@ class SwitchingSGPDM:
                                   back_constraint=None, init="pca-average", max_iter=self.config.max_iter,
                                   seed=self.config.seed))
 
-    def fit(self, train: Sequence[Utterance], executor=None) -> SwitchingSGPDM:
+    def fit(self, train: Sequence[Utterance], executor=None) -> SwitchingModel:
         """Train the state model (VLMM or phones) and one SGPDM per state.
 
         executor: anything with ``map(fn, iterable)`` that runs ``fn`` in other processes
@@ -211,6 +244,7 @@ class SwitchingSGPDM:
         self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
         self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         self.n_training_frames_ = n_frames
+        self.phone_counts_ = dict(sorted(Counter(lab for s in train for lab in s.labels).items()))
         # per-dimension mean square frame-to-frame motion of the visual features
         self.motion_var_ = np.mean(np.vstack([np.diff(s.aam, axis=0) for s in train if s.n_frames > 1]) ** 2, 0)
         return self
@@ -250,33 +284,18 @@ class SwitchingSGPDM:
 
     def segment(self, labels: Sequence[str]) -> list[Segment]:
         """Non-overlapping state segmentation of a label sequence (§4.2.1)."""
-        known = set(self.states_model_.alphabet_)
-        unseen = sorted({lab for lab in labels if lab not in known})
-        if unseen:
-            warnings.warn(f"phone labels never seen in training mapped to 'sil': {unseen}", stacklevel=2)
-        return self.states_model_.segment(labels, unknown="sil")
-
-    def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
-                   smoothness: str | bool = True, lowpass_hz: float | None = None,
-                   max_iter: int | None = None):
-        """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`
-        (``max_iter`` None: its ``SEGMENT_MAX_ITER``)."""
-        from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
-
-        return synthesize(self, mfcc, labels, algorithm=algorithm, smoothness=smoothness,
-                          lowpass_hz=lowpass_hz, max_iter=SEGMENT_MAX_ITER if max_iter is None else max_iter)
-
-    def predict(self, seq: Utterance, **kw) -> np.ndarray:
-        """Mean AAM trajectory for a test utterance (uses its mfcc and labels only)."""
-        return self.synthesize(seq.mfcc, seq.labels, **kw).mean
+        counts = self.phone_counts_ or {p: 1 for p in self.states_model_.alphabet_}
+        return self.states_model_.segment(replace_unseen(list(labels), counts, stacklevel=3), unknown="error")
 
     # ------------------------------------------------------------------ persistence
     def save(self, directory: str | Path) -> Path:
         """Write ``model.json`` + ``arrays.npz`` into ``directory`` (atomically)."""
+        if not self.models_:
+            raise not_fitted(self, "call fit(train) or load() first")
         directory = Path(directory)
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
-                "n_training_frames": self.n_training_frames_, "models": []}
+                "n_training_frames": self.n_training_frames_, "phone_counts": self.phone_counts_, "models": []}
         arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_}
         for j, (st, m) in enumerate(self.models_.items()):
             mmeta, marr = m.state()
@@ -284,23 +303,21 @@ class SwitchingSGPDM:
             for k, a in marr.items():
                 arrays[f"{j}/{k}"] = a
             arrays[f"{j}/entry_mean"], arrays[f"{j}/entry_cov"] = self.entry_[st]
-        write_npz(directory / "arrays.npz", arrays)
-        write_json(directory / "model.json", meta)
+        write_model_files(directory / "model.json", directory / "arrays.npz", meta, arrays)
         return directory
 
     @classmethod
-    def load(cls, directory: str | Path) -> SwitchingSGPDM:
+    def load(cls, directory: str | Path) -> SwitchingModel:
+        """Read a model written by :meth:`save`; errors name the damaged file."""
         directory = Path(directory)
         meta, arrays = read_model_files(directory / "model.json", directory / "arrays.npz")
-        if meta.get("format") != FORMAT_NAME:
-            raise ValueError(f"{directory} does not hold a switching SGPDM (format {meta.get('format')!r})")
-        if meta.get("version") != FORMAT_VERSION:
-            raise ValueError(f"{directory}: model format version {meta.get('version')!r}, "
-                             f"this bayes_talk reads version {FORMAT_VERSION}")
+        check_format(meta, FORMAT_NAME, FORMAT_VERSION, f"{directory / 'model.json'}")
         try:
-            obj = cls(SwitchingConfig(**meta["config"]))
+            obj = cls(**meta["config"])
             obj.dims_ = tuple(meta["dims"])
             obj.n_training_frames_ = meta["n_training_frames"]
+            # models saved before the counts were recorded: every seen phone counts once
+            obj.phone_counts_ = {k: int(v) for k, v in meta.get("phone_counts", {}).items()}
             sm = meta["states_model"]
             obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
             obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)

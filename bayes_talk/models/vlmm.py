@@ -64,6 +64,10 @@ is always consumed from the start state (``(l_1,)``, even if ``s(l_1) = 0``). Si
 frame ``t`` never exceeds the number of frames consumed since the last reset, and the
 state is always a suffix of those frames. Labels never seen in training raise a
 ValueError, or (``unknown="sil"``) are replaced by ``"sil"`` first.
+
+This module stays above ~400 lines because a fifth of it is this description and the rest
+is one class: fitting, traversal, segmentation, sampling and persistence all walk the same
+prediction suffix tree.
 """
 from __future__ import annotations
 
@@ -75,6 +79,9 @@ from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+
+from bayes_talk.errors import not_fitted
+from bayes_talk.files import check_format, write_text
 
 __all__ = ["FORMAT_VERSION", "START", "VLMM", "Segment", "State"]
 
@@ -279,7 +286,7 @@ class VLMM:
     # ------------------------------------------------------------------ accessors
     def _require_fitted(self) -> None:
         if not self._fitted:
-            raise ValueError("this VLMM is not fitted yet; call fit(sequences) first")
+            raise not_fitted(self, "call fit(sequences) first")
 
     @property
     def n_states(self) -> int:
@@ -551,13 +558,7 @@ class VLMM:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> VLMM:
         """Inverse of :meth:`to_dict`; ValueError on a wrong format, version or content."""
-        if not isinstance(d, dict) or d.get("format") != _FORMAT_NAME:
-            raise ValueError(f"not a saved VLMM (expected format {_FORMAT_NAME!r})")
-        if d.get("version") != FORMAT_VERSION:
-            raise ValueError(
-                f"unsupported VLMM format version {d.get('version')!r}; this code reads "
-                f"version {FORMAT_VERSION}"
-            )
+        check_format(d, _FORMAT_NAME, FORMAT_VERSION, "saved VLMM")
         try:
             p = d["params"]
             model = cls(p["max_memory"], p["epsilon"], p["min_count"])
@@ -606,8 +607,8 @@ class VLMM:
         return model
 
     def save(self, path: str | Path) -> None:
-        """Write :meth:`to_dict` as JSON to ``path``."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1), encoding="utf-8")
+        """Write :meth:`to_dict` as JSON to ``path`` (atomically: a crash never leaves half a file)."""
+        write_text(path, json.dumps(self.to_dict(), indent=1))
 
     @classmethod
     def load(cls, path: str | Path) -> VLMM:

@@ -16,6 +16,7 @@ and ``X0`` a (T, d) array:
 """
 from __future__ import annotations
 
+import weakref
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -27,10 +28,14 @@ if TYPE_CHECKING:
 
 
 class Initialiser(Protocol):
+    """``(model, view, Y) -> X0``: a (T, d) start for the latents of new observations."""
+
     def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray: ...
 
 
 class NearestNeighbour:
+    """Nearest training frame in the model's scaling (deena2010 §4.2.2)."""
+
     def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         p = model.predictors_[view]
         w = p.w.numpy()
@@ -41,6 +46,8 @@ class NearestNeighbour:
 
 
 class BackConstraint:
+    """The back-constraint mapping X* = g(Ŷ; φ) ("SGPLVM A", deena2009)."""
+
     def __call__(self, model: SGPDM, view: str, Y: np.ndarray) -> np.ndarray:
         bc = model.backconstraint
         if bc is None or model.config.back_constraint != view:
@@ -70,7 +77,14 @@ def viterbi(log_start: np.ndarray, log_trans: np.ndarray, log_emit: np.ndarray) 
     return path
 
 
+#: per-model caches of :class:`HMMViterbi` (states, transitions, emission parameters); they
+#: depend only on the fitted model and go when it does
+_HMM_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 class HMMViterbi:
+    """Viterbi path over a subset of training latent points ("SGPLVM B", deena2009 §4.2)."""
+
     def __init__(self, n_states: int = 300, seed: int = 0):
         self.n_states = n_states
         self.seed = seed
@@ -78,7 +92,7 @@ class HMMViterbi:
     def _states(self, model: SGPDM) -> tuple[np.ndarray, np.ndarray]:
         """Hidden states (indices of training latents) and the log transition matrix. They
         do not depend on the new audio: computed once per model and cached on it."""
-        cache = model.__dict__.setdefault("_hmm_cache", {})
+        cache = _HMM_CACHE.setdefault(model, {})
         key = (self.n_states, self.seed)
         if key not in cache:
             N = model.X_.shape[0]
@@ -102,7 +116,7 @@ class HMMViterbi:
 
     def _emission_params(self, model: SGPDM, view: str) -> tuple[torch.Tensor, torch.Tensor]:
         """Predictive mean (M, D) and variance (M,) of ``view`` at the hidden states (cached)."""
-        cache = model.__dict__.setdefault("_hmm_cache", {})
+        cache = _HMM_CACHE.setdefault(model, {})
         key = (self.n_states, self.seed, view)
         if key not in cache:
             idx, _ = self._states(model)

@@ -58,7 +58,7 @@ from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
 
 if TYPE_CHECKING:
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.models.switching import SwitchingModel
 
 SMOOTHNESS = ("frame", "off")
 
@@ -87,6 +87,7 @@ class Block:
 
     @property
     def length(self) -> int:
+        """Number of frames of the block."""
         return self.stop - self.start
 
 
@@ -103,14 +104,16 @@ class UtterancePlan:
 
     @property
     def n_frames(self) -> int:
+        """Frames T of the utterance."""
         return int(self.audio.shape[0])
 
     @property
     def model_states(self) -> list[tuple[str, ...]]:
+        """The state whose model synthesises each block (after back-off)."""
         return [b.key for b in self.blocks]
 
 
-def make_plan(model: SwitchingSGPDM, mfcc: np.ndarray, labels, smoothness: str = "frame") -> UtterancePlan:
+def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str = "frame") -> UtterancePlan:
     """Segment ``labels`` with the model's states and assemble the blocks of the density."""
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
@@ -143,6 +146,7 @@ class SwitchingLatents(TorchDistribution):
         super().__init__(torch.Size(), torch.Size((plan.n_frames, plan.latent_dim)), validate_args=False)
 
     def log_prob(self, X: torch.Tensor) -> torch.Tensor:
+        """Joint log density of the utterance's latents (the class docstring's sum)."""
         lp = X.new_zeros(())
         for b in self.plan.blocks:
             a, e = b.start, b.stop
@@ -157,6 +161,7 @@ class SwitchingLatents(TorchDistribution):
         return lp
 
     def sample(self, sample_shape=torch.Size()) -> torch.Tensor:
+        """Ancestral draws: entry distribution at each unlinked block start, then the block model's GP dynamics."""
         if sample_shape != torch.Size():
             return torch.stack([self.sample() for _ in range(int(np.prod(sample_shape)))]).reshape(
                 sample_shape + self.event_shape)

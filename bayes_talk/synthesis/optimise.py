@@ -11,6 +11,12 @@ samplers differentiate); the optimisers maximise it through its closed-form twin
 :mod:`bayes_talk.synthesis.segment_objective` with scipy's L-BFGS-B (about 5x faster on
 2-5 frame segments than torch autograd + torch L-BFGS), falling back to torch for
 kernels the closed form does not cover. float64 throughout.
+
+One verb: every function that finds latents by maximising a log density is called
+``maximise_*`` (:func:`maximise_points`, :func:`maximise_sequence`,
+:func:`~bayes_talk.synthesis.segment_objective.maximise_segment`,
+:func:`~bayes_talk.synthesis.sequential.maximise_state_segment`,
+:func:`~bayes_talk.synthesis.posterior.maximise_utterance`).
 """
 from __future__ import annotations
 
@@ -76,12 +82,12 @@ def _closed_form_ok(*predictors: GPPredictor | None) -> bool:
     return all(p is None or p.alpha_lin is None for p in predictors)
 
 
-def optimise_points(obs: GPPredictor, Y: np.ndarray, X0: np.ndarray, max_iter: int = 100) -> np.ndarray:
+def maximise_points(obs: GPPredictor, Y: np.ndarray, X0: np.ndarray, max_iter: int = 100) -> np.ndarray:
     """Point optimisation of every frame (independent problems, solved jointly)."""
-    return optimise_sequence(obs, Y, X0, None, max_iter=max_iter)
+    return maximise_sequence(obs, Y, X0, None, max_iter=max_iter)
 
 
-def optimise_sequence(
+def maximise_sequence(
     obs: GPPredictor,
     Y: np.ndarray,
     X0: np.ndarray,

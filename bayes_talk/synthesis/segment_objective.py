@@ -109,6 +109,7 @@ class _NumpyGP:
 
 
 def numpy_gp(p: GPPredictor) -> _NumpyGP:
+    """The GP predictor's arrays as NumPy (float64) for the fast segment objective."""
     cached = getattr(p, "_numpy_gp", None)
     if cached is None:
         cached = _NumpyGP(p)

@@ -19,11 +19,12 @@
    frames, makes every segment's first frame copy the previous one; measurements in
    docs/switching.md. ``smoothness="off"`` makes segments independent.
 4. ẑ_t = μ_Z(x̂_t) with per-dimension variance σ²_Z(x̂_t)/w² (eq. 10), then an optional
-   zero-phase Butterworth low-pass (filtfilt) on the mean.
+   zero-phase Butterworth low-pass (filtfilt) on the mean. The result is a one-component
+   :class:`~bayes_talk.synthesis.result.SynthesisResult` (a Gaussian per entry; ``.latents``
+   the (T, d) path).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,32 +32,19 @@ import torch
 from scipy.signal import butter, filtfilt
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
-from bayes_talk.synthesis.optimise import optimise_sequence
+from bayes_talk.synthesis.optimise import maximise_sequence
+from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 if TYPE_CHECKING:
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.models.switching import SwitchingModel
 
 ALGORITHMS = ("optimise", "predict")
 
 SMOOTHNESS = ("frame", "off")
 DEFAULT_SMOOTHNESS = "frame"
 _NN = NearestNeighbour()
-
-
-@dataclass
-class SynthesisResult:
-    """mean, var: (T, D_z) visual prediction and its per-dimension GP predictive variance;
-    latents: (T, d) inferred latent points; segments: the segmentation used, with the
-    state whose model synthesised each (after back-off) in ``model_states``."""
-
-    mean: np.ndarray
-    var: np.ndarray
-    latents: np.ndarray
-    segments: list[Segment]
-    model_states: list[tuple[str, ...]]
 
 
 def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) -> np.ndarray:
@@ -70,7 +58,7 @@ def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) 
     return filtfilt(b, a, Z, axis=0)
 
 
-def _check_inputs(model: SwitchingSGPDM, mfcc: np.ndarray, labels) -> np.ndarray:
+def _check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels) -> np.ndarray:
     mfcc = np.asarray(mfcc, dtype=np.float64)
     Dy = model.dims_[0]
     if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
@@ -83,7 +71,7 @@ def _check_inputs(model: SwitchingSGPDM, mfcc: np.ndarray, labels) -> np.ndarray
 
 
 def synthesize(
-    model: SwitchingSGPDM,
+    model: SwitchingModel,
     mfcc: np.ndarray,
     labels,
     algorithm: str = "optimise",
@@ -120,7 +108,7 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         # Algorithm 1 optimises the whole segment; Algorithm 2 (and one-frame segments)
         # optimise its first frame only and roll the dynamics mean forward.
         n_opt = b - a if algorithm == "optimise" else 1
-        Xs = optimise_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
+        Xs = maximise_state_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
                                model.motion_var_)
         if n_opt < b - a:
             Xs = _roll_dynamics(m, Xs[0], b - a)
@@ -128,15 +116,15 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         mean[a:b], var[a:b] = m.predict_view("visual", Xs)
     if lowpass_hz is not None:
         mean = lowpass(mean, lowpass_hz)
-    return SynthesisResult(mean, var, X, segments, used)
+    return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used)
 
 
-def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
+def maximise_state_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
                       max_iter: int, motion_var: np.ndarray) -> np.ndarray:
     """Latent points of one segment (or of its first frame) under state model ``m``.
 
     The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`
-    (maximised by :func:`~bayes_talk.synthesis.optimise.optimise_sequence`). With
+    (maximised by :func:`~bayes_talk.synthesis.optimise.maximise_sequence`). With
     smoothness "frame" (DESIGN.md §5) x_a itself must explain the last synthesised
     frame, which differs from the current one by the frame-to-frame motion (variance
     ``motion_var``).
@@ -146,7 +134,7 @@ def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothn
     smooth = None
     if z_prev is not None and smoothness == "frame":
         smooth = (m.predictors_["visual"], z_prev, motion_var)
-    return optimise_sequence(m.predictors_["audio"], Y, X0, dyn, first=entry, smooth=smooth, max_iter=max_iter)
+    return maximise_sequence(m.predictors_["audio"], Y, X0, dyn, first=entry, smooth=smooth, max_iter=max_iter)
 
 
 def _roll_dynamics(m, x1: np.ndarray, n: int) -> np.ndarray:
@@ -171,7 +159,7 @@ def _synthesize_job(job: tuple) -> SynthesisResult:
     return synthesize(model, mfcc, labels, **kw)
 
 
-def synthesize_many(model: SwitchingSGPDM, utterances: list, workers: int = 2, executor=None,
+def synthesize_many(model: SwitchingModel, utterances: list, workers: int = 2, executor=None,
                     **kw) -> list[SynthesisResult]:
     """:func:`synthesize` for many ``(mfcc, labels)`` pairs, through ``executor``
     (bayes_talk.executor; None: ``workers`` processes, or this process when 1).

@@ -13,7 +13,7 @@ import numpy as np
 from sklearn.model_selection import GroupKFold
 from bayes_talk.data.corpus import load_corpus
 from bayes_talk.evaluation import metrics as M
-from bayes_talk.models.switching import SwitchingSGPDM
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.baselines.context import ContextRidge
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.posterior import sample_synthesis

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 
 from bayes_talk.data.corpus import load_corpus
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.protocols import PROTOCOLS
 from bayes_talk.evaluation.splits import make_splits
-from bayes_talk.models.switching import SwitchingSGPDM
 from bayes_talk.pipeline import fit_model
 
 seqs = list(load_corpus(sys.argv[1]).sequences)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.data.checks import LABEL_TOLERANCE_S
 from bayes_talk.data.phones import PHONES
 from bayes_talk.files import sha256_file, write_json, write_npz
 
@@ -33,7 +34,7 @@ FEATURE_VERSION = 1
 _CACHE_NAME = "features.npz"
 _MANIFEST = "manifest.json"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-_LABEL_TOL_S = 1.0 / FPS
+_LABEL_TOL_S = LABEL_TOLERANCE_S  # one tolerance for the corpus and synthesis (bayes_talk.data.checks)
 _VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".webm")
 _IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 

@@ -20,25 +20,24 @@ early-stopped MAP fit reports noise levels far below its real error.
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.files import read_model_files, write_model_files
+from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
+from bayes_talk.synthesis.latents import infer_latents
+from bayes_talk.synthesis.result import SynthesisResult
 
 
-@dataclass
-class SGPLVMResult:
-    mean: np.ndarray
-    var: np.ndarray
-    latents: np.ndarray
-
-
-class SGPLVM:
-    """deena2009's shared GPLVM with back-constraint and dynamics."""
+class SGPLVM(Estimator):
+    """deena2009's shared GPLVM with back-constraint and dynamics (an estimator)."""
 
     def __init__(self, latent_dim: int = 8, max_frames: int = 1500, chunk: int = 25, max_iter: int = 200,
                  init: str = "back-constraint", seed: int = 0, validation_frames: int = 300):
@@ -52,7 +51,8 @@ class SGPLVM:
         self.calibration_iter = 100
 
     @property
-    def name(self) -> str:
+    def name(self) -> str:  # type: ignore[override]
+        """Method name: ``sgplvm-a`` (back-constraint init.), ``sgplvm-b`` (HMM) or ``sgplvm-nn``."""
         return "sgplvm-a" if self.init == "back-constraint" else "sgplvm-b" if self.init == "hmm" else "sgplvm-nn"
 
     def fit(self, train: Sequence[Utterance]) -> SGPLVM:
@@ -88,30 +88,65 @@ class SGPLVM:
                 mu, _ = model.predict_view("visual", X)
                 return float(np.sqrt(np.mean((mu - z_val) ** 2)))
 
-        self.model_ = SGPDM(cfg).fit({"audio": audio, "visual": visual}, seq_lengths=[b - a for _, a, b in chosen],
-                                     monitor=monitor)
-        if held:  # calibrate at the latents SGPLVM A's sequence optimisation finds for each chunk
-            X_val = np.vstack([self.model_.infer_latents("audio", y, "back-constraint", "sequence",
-                                                         max_iter=self.calibration_iter) for y in a_val])
-            self.model_.calibrate_variance("visual", X_val, z_val)
+        with torch_threads(1):  # as every other GP entry point (bayes_talk.gp.threads)
+            self.model_ = SGPDM.from_config(cfg).fit({"audio": audio, "visual": visual},
+                                                     seq_lengths=[b - a for _, a, b in chosen], monitor=monitor)
+            if held:  # calibrate at the latents SGPLVM A's sequence optimisation finds for each chunk
+                X_val = np.vstack([infer_latents(self.model_, "audio", y, "back-constraint", "sequence",
+                                                 max_iter=self.calibration_iter) for y in a_val])
+                self.model_.calibrate_variance("visual", X_val, z_val)
         return self
 
-    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SGPLVMResult:
-        X = self.model_.infer_latents("audio", mfcc, init or self.init, "sequence", max_iter=max_iter)
-        mu, var = self.model_.predict_view("visual", X)
-        return SGPLVMResult(mu, var, X)
+    def _is_fitted(self) -> bool:
+        return hasattr(self, "model_")
+
+    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None,
+                   max_iter: int = 100) -> SynthesisResult:
+        """Sequence optimisation (eq. 9) of the latents of ``mfcc`` from initialiser ``init``
+        (None: the estimator's), then the visual GP's Gaussian predictive at them (eq. 10), a
+        one-component :class:`~bayes_talk.synthesis.result.SynthesisResult`; ``labels`` unused."""
+        self._require_fitted()
+        with torch_threads(1):  # small L-BFGS-B problems: extra BLAS threads only contend (gp.threads)
+            X = infer_latents(self.model_, "audio", mfcc, init or self.init, "sequence", max_iter=max_iter)
+            mu, var = self.model_.predict_view("visual", X)
+        return SynthesisResult.gaussian(mu, var, X, method="sgplvm")
 
     def predict(self, seq: Utterance, **kw) -> np.ndarray:
+        """Mean visual trajectory of ``seq`` (its mfcc only)."""
         return self.synthesize(seq.mfcc, seq.labels, **kw).mean
 
-    def save(self, path) -> None:
-        self.model_.save(path)
+    def predict_dist(self, seq: Utterance, **kw) -> SynthesisResult:
+        """Mean, calibrated variance and latents of ``seq``'s visual trajectory."""
+        return self.synthesize(seq.mfcc, seq.labels, **kw)
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write ``<path>.npz`` then ``<path>.json``: the SGPDM's state plus this estimator's
+        constructor parameters (so :meth:`load` restores every setting)."""
+        self._require_fitted()
+        path = Path(path)
+        meta, arrays = self.model_.state()
+        meta["estimator"] = {"name": "sgplvm", "params": self.get_params(),
+                             "calibration_iter": self.calibration_iter}
+        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
 
     @classmethod
-    def load(cls, path, init: str = "back-constraint") -> SGPLVM:
-        obj = cls(init=init)
-        obj.model_ = SGPDM.load(path)
-        obj.latent_dim = obj.model_.config.latent_dim
+    def load(cls, path: str | os.PathLike, init: str | None = None) -> SGPLVM:
+        """Read :meth:`save`'s files; ``init`` overrides the saved initialiser. A model saved
+        before the estimator's settings were recorded keeps its latent dimension and the
+        defaults for the rest."""
+        path = Path(path)
+        meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))
+        est = meta.get("estimator") if isinstance(meta, dict) else None
+        with torch_threads(1):  # the predictors' Cholesky factors exactly as fit computed them
+            model = SGPDM.from_state(meta, arrays)
+        if est is not None:
+            obj = cls(**est["params"])
+            obj.calibration_iter = int(est.get("calibration_iter", obj.calibration_iter))
+        else:
+            obj = cls(latent_dim=model.config.latent_dim)
+        if init is not None:
+            obj.set_params(init=init)
+        obj.model_ = model
         return obj
 
 

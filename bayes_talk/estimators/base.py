@@ -1,0 +1,146 @@
+"""The estimator protocol every method implements (issue 11; docs/architecture.md).
+
+An estimator turns the audio and phone labels of an utterance into visual features,
+with scikit-learn conventions:
+
+* the constructor only stores its arguments, as given (validation may reject bad values,
+  but never rewrites them), so ``get_params`` / ``set_params`` and
+  ``sklearn.base.clone`` work (:class:`sklearn.base.BaseEstimator`);
+* ``fit(train) -> self`` learns from training utterances (``mfcc``, ``aam``, ``labels``);
+  fitted attributes end in ``_``;
+* ``predict(utt) -> (T, D_z)`` mean trajectory, from ``utt.mfcc`` / ``utt.labels`` only;
+* ``predict_dist(utt)``: the predictive distribution, a
+  :class:`~bayes_talk.synthesis.result.SynthesisResult` (``.mean``, ``.var``, bands);
+  NotImplementedError for a point predictor (no variance: Voice Puppetry, SLDS, DPDS);
+* ``save(directory)`` / ``load(directory)``: a model bundle, JSON + NPZ, never pickle;
+* anything but ``fit``/``load`` before fitting raises :class:`~bayes_talk.errors.NotFittedError`.
+
+Bundles written by :meth:`Estimator.save` (the baselines): ``estimator.json`` (format,
+version, method name, constructor parameters, fitted metadata), ``arrays.npz`` (fitted
+arrays) and ``bundle_manifest.json`` (SHA-256 of both, written last;
+:mod:`bayes_talk.bundle`). :meth:`Estimator.load` refuses a bundle whose file was
+swapped from another model or truncated, naming the file.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, ClassVar, Self
+
+import numpy as np
+from sklearn.base import BaseEstimator
+
+from bayes_talk.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, write_bundle_manifest
+from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.errors import NotFittedError, not_fitted
+from bayes_talk.files import check_format, read_model_files, write_json, write_npz
+from bayes_talk.synthesis.result import SynthesisResult
+
+__all__ = ["ARRAYS_FILE", "ESTIMATOR_FILE", "FORMAT_NAME", "FORMAT_VERSION", "Estimator", "NotFittedError"]
+
+FORMAT_NAME = "bayes_talk.estimator"
+FORMAT_VERSION = 1
+ESTIMATOR_FILE = "estimator.json"
+ARRAYS_FILE = "arrays.npz"
+
+
+class Estimator(BaseEstimator):
+    """Base class of every estimator; see the module docstring for the protocol."""
+
+    #: method-family name in :data:`bayes_talk.estimators.registry.ESTIMATORS`
+    name: ClassVar[str] = ""
+
+    def fit(self, train: list[Utterance]) -> Self:
+        """Learn from training utterances (with ``aam``); returns ``self``."""
+        raise NotImplementedError
+
+    def predict(self, utt: Utterance) -> np.ndarray:
+        """The (T, D_z) mean visual trajectory of ``utt`` (``utt.aam`` is not used)."""
+        raise NotImplementedError
+
+    def predict_dist(self, utt: Utterance) -> SynthesisResult:
+        """The predictive distribution of ``utt``'s visual features, the one synthesis result
+        type (:class:`~bayes_talk.synthesis.result.SynthesisResult`). The default: a Gaussian
+        per frame and dimension from :meth:`predict` and ``predict_var``; an estimator without
+        ``predict_var`` is a point predictor and raises NotImplementedError."""
+        if not hasattr(self, "predict_var"):
+            raise NotImplementedError(f"{type(self).__name__} ({self.name}) is a point predictor: it defines "
+                                      "no predictive distribution (use predict)")
+        return SynthesisResult.gaussian(self.predict(utt), self.predict_var(utt), method=self.name)
+
+    # ------------------------------------------------------------------ fitted state
+    def _is_fitted(self) -> bool:
+        return any(k.endswith("_") and not k.startswith("_") for k in vars(self))
+
+    def _require_fitted(self) -> None:
+        if not self._is_fitted():
+            raise not_fitted(self, "call fit(train) or load() first")
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """(JSON-able metadata, arrays) of the fitted model; every estimator saved by
+        :meth:`save` implements it with :meth:`_set_state`."""
+        raise NotImplementedError(f"{type(self).__name__} defines no saved state")
+
+    def _set_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        """Restore what :meth:`_get_state` returned (raise KeyError/TypeError if incomplete)."""
+        raise NotImplementedError(f"{type(self).__name__} defines no saved state")
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, directory: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Write the bundle (module docstring) into ``directory``; an existing bundle there is
+        refused (FileExistsError) unless ``overwrite``. Returns the directory."""
+        self._require_fitted()
+        d = Path(directory)
+        if (d / ESTIMATOR_FILE).exists() and not overwrite:
+            raise FileExistsError(f"{d / ESTIMATOR_FILE} exists; pass overwrite=True to replace it")
+        meta, arrays = self._get_state()
+        d.mkdir(parents=True, exist_ok=True)
+        begin_bundle(d, ESTIMATOR_FILE)
+        write_npz(d / ARRAYS_FILE, arrays)
+        write_json(d / ESTIMATOR_FILE, {"format": FORMAT_NAME, "version": FORMAT_VERSION, "name": self.name,
+                                        "class": type(self).__name__, "params": _jsonable(self.get_params()),
+                                        "state": meta})
+        write_bundle_manifest(d)
+        return d
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> Self:
+        """Read a bundle written by :meth:`save`. FileNotFoundError for a missing file;
+        :class:`~bayes_talk.bundle.BundleError` (a ValueError) naming the file when one was
+        swapped from another model, truncated or changed; ValueError for another method's
+        bundle, a wrong format or version."""
+        d = Path(directory)
+        if not (d / BUNDLE_MANIFEST).is_file() and not (d / ESTIMATOR_FILE).is_file():
+            raise FileNotFoundError(f"{d} holds no saved estimator (no {ESTIMATOR_FILE})")
+        verify_bundle(d)
+        meta, arrays = read_model_files(d / ESTIMATOR_FILE, d / ARRAYS_FILE)
+        where = str(d / ESTIMATOR_FILE)
+        check_format(meta, FORMAT_NAME, FORMAT_VERSION, where)
+        if meta.get("name") != cls.name:
+            raise ValueError(f"{where}: a saved {meta.get('name')!r} estimator, not {cls.name!r}")
+        try:
+            obj = cls(**_from_json(meta["params"]))
+            obj._set_state(meta["state"], arrays)
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{where}: incomplete or corrupt (missing {exc})") from None
+        return obj
+
+
+def _jsonable(v: Any) -> Any:
+    """Constructor parameters as JSON holds them (tuples become lists)."""
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _from_json(v: Any) -> Any:
+    """Inverse of :func:`_jsonable` for constructor parameters (lists become tuples)."""
+    if isinstance(v, dict):
+        return {k: _from_json(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return tuple(_from_json(x) for x in v)
+    return v

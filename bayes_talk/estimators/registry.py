@@ -1,0 +1,34 @@
+"""The one registry of trainable method families: name -> estimator class and fixed
+constructor arguments. Used by the command line (``train --model``), the pipeline
+(:func:`bayes_talk.pipeline.new_model`) and ``evaluate`` (:mod:`bayes_talk.evaluation.systems`,
+whose methods name a family here, or ``zero`` / ``oracle``).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from bayes_talk.baselines import REGISTRY as _BASELINES
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.estimators.sgplvm import SGPLVM
+from bayes_talk.estimators.switching import SwitchingSGPDM
+
+__all__ = ["ESTIMATORS", "make_estimator"]
+
+#: family name -> (estimator class, constructor arguments the family fixes)
+ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
+    "ssgpdm-vlmm": (SwitchingSGPDM, {"states": "vlmm"}),
+    "ssgpdm-phone": (SwitchingSGPDM, {"states": "phone"}),
+    "sgplvm": (SGPLVM, {}),
+    **{name: (cls, {}) for name, cls in _BASELINES.items()},
+}
+
+
+def make_estimator(name: str, **params: Any) -> Estimator:
+    """An unfitted estimator of family ``name`` with ``params`` (others: the class defaults)."""
+    if name not in ESTIMATORS:
+        raise ValueError(f"unknown method family {name!r}; choose one of {', '.join(ESTIMATORS)}")
+    cls, fixed = ESTIMATORS[name]
+    clash = sorted(set(fixed) & set(params))
+    if clash:
+        raise ValueError(f"{name}: {clash} are fixed by the family name")
+    return cls(**fixed, **params)

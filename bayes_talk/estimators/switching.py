@@ -1,0 +1,49 @@
+"""The switching shared GPDM as an estimator (deena2010; docs/switching.md).
+
+:class:`SwitchingSGPDM` is the generative model of :mod:`bayes_talk.models.switching`
+(``fit``, state lookup, ``save`` / ``load`` of ``model.json`` + ``arrays.npz``) with the
+inference of :mod:`bayes_talk.synthesis` on top: ``synthesize`` runs deena2010's
+Algorithm 1 or 2 (:func:`bayes_talk.synthesis.sequential.synthesize`), ``predict`` returns
+its mean, ``predict_dist`` its mean and GP predictive variance. The whole-utterance
+posterior is :func:`bayes_talk.synthesis.posterior.sample_synthesis` (it takes this
+estimator as its model).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.models.switching import SwitchingModel
+from bayes_talk.synthesis.result import SynthesisResult
+from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
+
+__all__ = ["SwitchingSGPDM"]
+
+
+class SwitchingSGPDM(SwitchingModel, Estimator):
+    """Switching shared GPDM: ``fit`` on utterances, ``synthesize`` / ``predict`` /
+    ``predict_dist`` from audio + labels (constructor arguments: :class:`SwitchingConfig
+    <bayes_talk.models.switching.SwitchingConfig>`)."""
+
+    def _is_fitted(self) -> bool:
+        return bool(self.models_)
+
+    def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
+                   smoothness: str | bool = True, lowpass_hz: float | None = None,
+                   max_iter: int | None = None) -> SynthesisResult:
+        """Visual features for new audio: see :func:`bayes_talk.synthesis.sequential.synthesize`
+        (``max_iter`` None: its ``SEGMENT_MAX_ITER``)."""
+        self._require_fitted()
+        return synthesize(self, mfcc, labels, algorithm=algorithm, smoothness=smoothness,
+                          lowpass_hz=lowpass_hz, max_iter=SEGMENT_MAX_ITER if max_iter is None else max_iter)
+
+    def predict(self, seq: Utterance, **kw) -> np.ndarray:
+        """Mean AAM trajectory for a test utterance (uses its mfcc and labels only)."""
+        return self.synthesize(seq.mfcc, seq.labels, **kw).mean
+
+    def predict_dist(self, seq: Utterance, **kw) -> SynthesisResult:
+        """Algorithm 1's mean and GP predictive variance (with latents and segments)."""
+        return self.synthesize(seq.mfcc, seq.labels, **kw)

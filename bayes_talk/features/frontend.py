@@ -1,0 +1,22 @@
+"""The fixed settings of the MFCC front end, shared by :mod:`bayes_talk.features.mfcc`
+(which computes the features) and :mod:`bayes_talk.audio` (which records them in a
+model's bundle as :class:`~bayes_talk.audio.AudioSettings`).
+
+A module of its own so that the audio loader and the MFCC code do not import each other.
+"""
+from __future__ import annotations
+
+__all__ = ["FMAX_HZ", "N_MELS", "N_MFCC", "WINDOW_S"]
+
+#: cepstral coefficients per frame (D_y = 20, DESIGN.md §2)
+N_MFCC = 20
+#: analysis window (s), centred on each 40 ms video frame
+WINDOW_S = 0.060
+#: mel bands
+N_MELS = 40
+#: upper edge of the mel filterbank (Hz): 7.6 kHz, inside the pass band of a 16 kHz
+#: recording (soxr keeps ~0.95 of its 8 kHz Nyquist), so that a model's features do not
+#: change with the recording's rate (issue 12; before, sr/2 -- and 8 kHz still moved the
+#: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
+#: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
+FMAX_HZ = 7600.0

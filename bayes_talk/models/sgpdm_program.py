@@ -1,0 +1,128 @@
+"""The shared GPDM as a generative model: its settings (:class:`SGPDMConfig`), the Pyro
+program whose log joint MAP training maximises (:func:`sgpdm_model`, deena2010 eq. 1-7;
+the module docstring of :mod:`bayes_talk.models.sgpdm` has the equations), the PCA
+initialisation of the latents and the record of a fit."""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro import poutine
+
+from bayes_talk.gp.distributions import GPDynamics, GPObservation
+from bayes_talk.gp.terms import W_PRIOR_VARIANCE
+
+__all__ = ["FitHistory", "SGPDMConfig", "pca_scores", "sgpdm_model"]
+
+
+@dataclass
+class SGPDMConfig:
+    """Settings of an :class:`SGPDM` (all documented in docs/model.md).
+
+    latent_dim: d (8 in deena2009, 6 in deena2010).
+    dynamics: GP dynamics on X (eq. 7); False gives a shared GPLVM with X ~ N(0, I).
+    learn_dynamics: learn α_x, γ_x, β_x (then they carry the 1/θ prior) instead of fixing
+        them at the signal-to-noise ratio 100:1 of deena2010 §4.1.
+    dyn_alpha, dyn_gamma, dyn_beta: α_x, γ_x, β_x (precision) of the dynamics kernel.
+    dyn_linear: α_lin of an optional linear term in the dynamics kernel (None: off).
+    balanced: λ = D/d on ln p(X) (balanced GPDM, D = total observed dimension);
+        False: λ = 1 (plain GPDM).
+    back_constraint: name of the view g(·) maps from (deena2009 eq. 4–5), or None.
+    bc_hidden: hidden tanh units of the back-constraint MLP.
+    init: "pca-average" (PCA of each view to d, each scaled to unit variance per
+        dimension, then averaged: deena2010 §4.1) or "pca-concat" (PCA of the
+        concatenated standardised views).
+    init_scale: the initial latent std per dimension; None gives √α_x with dynamics
+        (the dynamics signal std, 0.1 by default) and 1 without.
+    learn_w: learn the per-dimension output scales W (else W = 1/std of the data, fixed).
+    max_iter: L-BFGS iterations; tol: stop when an outer step improves L by < tol·|L|.
+    seed: seeds the back-constraint weights and anything random in fitting.
+    """
+
+    latent_dim: int = 8
+    dynamics: bool = True
+    learn_dynamics: bool = False
+    dyn_alpha: float = 0.01
+    dyn_gamma: float = 0.2
+    dyn_beta: float = 1e6
+    dyn_linear: float | None = None
+    balanced: bool = False
+    back_constraint: str | None = None
+    bc_hidden: int = 20
+    init: str = "pca-average"
+    init_scale: float | None = None
+    learn_w: bool = True
+    max_iter: int = 300
+    tol: float = 1e-9
+    seed: int = 0
+
+
+def pca_scores(Y: np.ndarray, d: int) -> np.ndarray:
+    """Scores of the first d principal components, each scaled to unit variance."""
+    Yc = Y - Y.mean(0)
+    U, S, _ = np.linalg.svd(Yc, full_matrices=False)
+    Z = U[:, :d] * S[:d]
+    # fix the sign so the largest-magnitude loading is positive (deterministic init)
+    Z *= np.sign(Z[np.abs(Z).argmax(0), range(Z.shape[1])])
+    return Z / np.maximum(Z.std(0), 1e-12)
+
+
+def sgpdm_model(
+    views: Mapping[str, torch.Tensor],
+    X: torch.Tensor,
+    hyper: Mapping[str, torch.Tensor],
+    seq_lengths: Sequence[int],
+    cfg: SGPDMConfig,
+    learned: Sequence[str],
+) -> None:
+    """The SGPDM as a Pyro program; every site is observed at MAP training.
+
+    ``hyper`` maps names to constrained values: ``alpha/<v>``, ``gamma/<v>``,
+    ``beta/<v>``, ``w/<v>`` for each view and ``alpha/dyn``, ``gamma/dyn``, ``beta/dyn``
+    (and ``lin/dyn``); ``learned`` lists the kernel hyperparameters that carry the 1/θ
+    prior.
+    """
+    d = X.shape[1]
+    if cfg.dynamics:
+        lam = sum(Y.shape[1] for Y in views.values()) / d if cfg.balanced else 1.0
+        with poutine.scale(scale=lam):
+            pyro.sample(
+                "X",
+                GPDynamics(
+                    seq_lengths, d, hyper["alpha/dyn"], hyper["gamma/dyn"], hyper["beta/dyn"],
+                    hyper.get("lin/dyn"),
+                ),
+                obs=X,
+            )
+    else:
+        pyro.sample("X", dist.Normal(torch.zeros_like(X), 1.0).to_event(2), obs=X)
+    for v, Y in views.items():
+        w = hyper[f"w/{v}"]
+        if cfg.learn_w:
+            pyro.sample(
+                f"w/{v}", dist.HalfNormal(torch.full_like(w, math.sqrt(W_PRIOR_VARIANCE))).to_event(1),
+                obs=w,
+            )
+        pyro.sample(
+            f"Y/{v}",
+            GPObservation(X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
+                          what=f"{v} kernel matrix"),
+            obs=Y,
+        )
+    if learned:
+        pyro.factor("hyperprior", -sum(torch.log(hyper[k]) for k in learned))
+
+
+@dataclass
+class FitHistory:
+    """Objective (log joint) after each outer L-BFGS step; with a monitor, its value after
+    each step (``monitor``) and the step whose parameters were kept (``best_step``, 1-based)."""
+
+    log_joint: list[float] = field(default_factory=list)
+    monitor: list[float] = field(default_factory=list)
+    best_step: int | None = None
