@@ -104,6 +104,8 @@ class Executor:
     """
 
     kind = "local"
+    #: map() draws its own progress bar (read by bayes_talk.progress.ProgressMapper)
+    draws_progress = True
     n_workers = 1
 
     @property
@@ -143,6 +145,7 @@ class LocalExecutor(Executor):
     kind = "local"
 
     def map(self, fn, items, desc=None, unit="task"):
+        """Run the tasks one after another here, in input order."""
         items = list(items)
         return [run_task(fn, x) for x in _bar(items, len(items), desc, unit)]
 
@@ -162,6 +165,7 @@ class ProcessExecutor(Executor):
                                          initializer=_init_process_worker)
 
     def map(self, fn, items, desc=None, unit="task"):
+        """Run the tasks in the worker processes; results in input order."""
         from concurrent.futures import as_completed
 
         items = list(items)
@@ -176,6 +180,7 @@ class ProcessExecutor(Executor):
             raise
 
     def close(self) -> None:
+        """Shut the process pool down."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -232,14 +237,17 @@ class DaskExecutor(Executor):
 
     @property
     def n_workers(self) -> int:  # type: ignore[override]
+        """Workers of the cluster (those connected now)."""
         return max(1, sum(int(w.get("nthreads", 1)) for w in
                           self.client.scheduler_info(n_workers=-1).get("workers", {}).values()))
 
     @property
     def parallel(self) -> bool:
+        """True: the tasks run in other processes."""
         return True
 
     def map(self, fn, items, desc=None, unit="task"):
+        """Submit every task to the cluster (seeded per task, retried on a lost worker); results in input order."""
         from dask.distributed import as_completed
 
         items = list(items)
@@ -256,6 +264,7 @@ class DaskExecutor(Executor):
             self.client.cancel(futures)
 
     def close(self) -> None:
+        """Close the client (and the LocalCluster this executor started, if any)."""
         if self._own_client:
             self.client.close()
         if self._cluster is not None:

@@ -63,9 +63,7 @@ class ProgressMapper:
     def map(self, fn: Callable, iterable: Iterable) -> Iterator:
         """``executor.map(fn, iterable)`` (or the built-in ``map``), ticking the bar per result."""
         items = list(iterable)
-        from bayes_talk.executor import Executor
-
-        if isinstance(self.executor, Executor):  # draws its own bar as tasks finish
+        if getattr(self.executor, "draws_progress", False):  # a bayes_talk.executor.Executor: its own bar
             return iter(self.executor.map(fn, items, desc=self.desc, unit=self.unit))
         mapper = self.executor.map if self.executor is not None else map
         return bar(mapper(fn, items), total=len(items), desc=self.desc, unit=self.unit)

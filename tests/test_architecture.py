@@ -54,10 +54,6 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 #: arrows tolerated for now, backward or closing a cycle: (importer, imported) -> reason.
 #: Keep it empty.
 ALLOWED: dict[tuple[str, str], str] = {
-    ("bayes_talk.evaluation.label_sources", "bayes_talk.evaluation.protocols"):
-        "TEMPORARY cycle (protocols imports label_sources, label_sources imports make_splits): branch "
-        "issue14a splits protocols.py into protocols / splits / harness; label_sources then imports "
-        "the splits module and the lead removes this entry after merging it",
     ("bayes_talk.synthesis.posterior", "bayes_talk.evaluation.diagnostics"):
         "TEMPORARY: branch issue10b moves the ArviZ adapter into bayes_talk/synthesis/diagnostics.py; "
         "the lead removes this entry after merging it",
@@ -237,10 +233,7 @@ def test_checker_sees_cycles_and_backward_arrows():
 #: a module longer than this must say why in its docstring ("above ~400 lines")
 MAX_LINES = 450
 #: modules being split on other branches (temporary; the lead removes them after merging)
-SPLIT_ELSEWHERE = {
-    "bayes_talk.data.corpus": "split into the data/corpus/ package on branch issue14a",
-    "bayes_talk.evaluation.protocols": "split into protocols / splits / harness on branch issue14a",
-}
+SPLIT_ELSEWHERE: dict[str, str] = {}
 
 
 def test_long_modules_say_why():

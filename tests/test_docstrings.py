@@ -14,8 +14,6 @@ import bayes_talk
 
 #: objects left undocumented for now, with the reason. Keep it empty.
 KNOWN: dict[str, str] = {
-    "bayes_talk.data.corpus.Corpus.names": "data/corpus.py is being split on branch issue14a",
-    "bayes_talk.evaluation.protocols.Protocol.describe": "evaluation/protocols.py is being split on branch issue14a",
     "bayes_talk.synthesis.result.SynthesisResult.n_chains": "synthesis/result.py is branch issue10a's (in progress)",
     "bayes_talk.synthesis.result.SynthesisResult.n_frames": "synthesis/result.py is branch issue10a's (in progress)",
     "bayes_talk.synthesis.result.SynthesisResult.summary": "synthesis/result.py is branch issue10a's (in progress)",

@@ -80,6 +80,7 @@ class Protocol:
         return self.n_train + self.n_test
 
     def describe(self) -> str:
+        """One sentence: the split scheme, the numbers of utterances and the paper."""
         q = "quick variant of " if self.quick else ""
         if self.scheme == "repeats":
             s = f"{self.n_repeats} repeats of random {self.n_train} train / {self.n_test} test"

@@ -83,6 +83,7 @@ class Corpus:
 
     @property
     def names(self) -> list[str]:
+        """The utterance names, in corpus order."""
         return [s.name for s in self.sequences]
 
 
