@@ -112,3 +112,49 @@ def test_inference_data_groups_and_netcdf_round_trip(tmp_path):
     assert len(summ) == 4 * 2 and np.all(np.isfinite(summ["r_hat"]))
     with pytest.raises(ValueError, match=r"\(4, 3\)"):
         r.to_inference_data(truth=np.zeros((3, 3)))
+
+
+def test_evaluate_scores_the_bands_of_the_result_not_a_gaussian_of_its_moments():
+    from bayes_talk.evaluation.protocols import _utterance_metrics
+    from bayes_talk.evaluation.systems import Prediction
+
+    # two well separated modes at ±3 (sd 0.5): the mixture's 50 % band is [-3, 3], the
+    # moment-matched Gaussian's (sd 3.04) only ±2.05, which misses values near the modes
+    T, D = 50, 2
+    m = np.stack([np.full((T, D), -3.0), np.full((T, D), 3.0)])[None]      # (1, 2, T, D)
+    r = SynthesisResult("laplace", None, m, np.full_like(m, 0.25))
+    z = np.where(np.arange(T)[:, None] % 2 == 0, 0.0, 2.9) * np.ones((T, D))  # half at the gap, half by a mode
+    pred = Prediction(r.mean, r.var, result=r)
+    out = _utterance_metrics(z, pred, np.ones(D), None)
+    for level in (0.5, 0.9):
+        lo, hi = r.interval(level)
+        assert out[f"coverage_{int(level * 100)}"] == pytest.approx(np.mean((z >= lo) & (z <= hi)))
+    assert out["coverage_50"] == pytest.approx(1.0)
+    gauss = _utterance_metrics(z, Prediction(r.mean, r.var), np.ones(D), None)
+    assert gauss["coverage_50"] == pytest.approx(0.5)  # the values by a mode lie outside ±2.05
+
+
+def test_a_low_pass_post_filter_moves_the_scored_bands_with_the_mean():
+    import dataclasses
+
+    from bayes_talk.evaluation import systems as S
+
+    rng = np.random.default_rng(2)
+    T, D = 40, 2
+    m = np.cumsum(rng.normal(size=(1, 3, T, D)), axis=2)
+    r = SynthesisResult("optimise", None, m, np.full_like(m, 0.1))
+
+    class _Fixed:  # stands in for a fitted switching model
+        def synthesize(self, mfcc, labels, algorithm="optimise", max_iter=0):
+            return r
+
+    seq = type("U", (), {"mfcc": np.zeros((T, 3)), "labels": ["a"] * T})()
+    cfg = dataclasses.replace(S.SystemConfig(), lowpass_hz=4.0)
+    pred = S.predict("ssgpdm-vlmm-optimise", _Fixed(), seq, cfg)
+    from bayes_talk.synthesis.sequential import lowpass
+
+    np.testing.assert_allclose(pred.mean, lowpass(r.mean, 4.0))
+    lo, hi = pred.band(0.9)
+    lo0, hi0 = r.interval(0.9)
+    np.testing.assert_allclose(lo - lo0, pred.mean - r.mean, atol=1e-9)
+    np.testing.assert_allclose(hi - lo, hi0 - lo0, atol=1e-9)
