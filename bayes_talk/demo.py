@@ -130,7 +130,11 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
 
 def _show_uncertainty(out: Path, r, s, corpus, offset: np.ndarray) -> dict[str, Path]:
     """bands.png, uncertainty.mp4 and posterior.nc of the posterior ``r`` of utterance ``s``."""
-    from bayes_talk.uncertainty_outputs import plot_bands, uncertainty_frames, write_posterior_netcdf
+    from bayes_talk.uncertainty_outputs import (
+        plot_bands,
+        uncertainty_frames,
+        write_posterior_netcdf,
+    )
     from bayes_talk.video import write_video
 
     return {"plot": plot_bands(out / "bands.png", r, s.aam, fps=corpus.fps,

@@ -385,8 +385,12 @@ def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav
                        seed: int) -> dict[str, Path]:
     """bands.npz, posterior.nc, bands.png and (with a video and an AAM) uncertainty.mp4 of
     the synthesis result ``res`` (see :func:`synth`)."""
-    from bayes_talk.uncertainty_outputs import (BAND_LEVELS, plot_bands, uncertainty_frames,
-                                                write_posterior_netcdf)
+    from bayes_talk.uncertainty_outputs import (
+        BAND_LEVELS,
+        plot_bands,
+        uncertainty_frames,
+        write_posterior_netcdf,
+    )
     from bayes_talk.video import write_video
 
     written = {}

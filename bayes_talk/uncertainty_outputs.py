@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.files import atomic_write
+from bayes_talk.files import atomic_write, write_figure
 from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["BAND_LEVELS", "PLOT_PARAMS", "SD_FULL_SCALE", "VIDEO_DRAWS", "plot_bands", "read_truth",
@@ -89,11 +89,7 @@ def plot_bands(path: str | os.PathLike, result: SynthesisResult, truth: np.ndarr
     fig.suptitle(title or f"{result.method}: mean and central bands ({result.n_draws} component"
                  f"{'s' if result.n_draws > 1 else ''})", fontsize=9)
     fig.tight_layout()
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), suffix=".png")
-    finally:
-        plt.close(fig)
-    return Path(path)
+    return write_figure(path, fig, dpi=100)
 
 
 def uncertainty_frames(aam, result: SynthesisResult, offset: np.ndarray, n_draws: int = VIDEO_DRAWS,

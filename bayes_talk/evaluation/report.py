@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.files import atomic_write, write_text
+from bayes_talk.files import write_figure, write_text
 
 __all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
 
@@ -142,8 +142,4 @@ def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | No
     if title:
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), suffix=".png")
-    finally:
-        plt.close(fig)
-    return Path(path)
+    return write_figure(path, fig, dpi=110)
