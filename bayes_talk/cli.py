@@ -359,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default=None,
                    help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
-                        "write the posterior mean, variance, bands.npz and diagnostics.json")
+                        "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
+                        "posterior.nc, bands.png)")
     s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
