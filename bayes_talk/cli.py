@@ -121,7 +121,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method)
+                    transcript=args.transcript, align_method=args.align_method, truth=args.truth)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -194,7 +194,11 @@ outputs in --out (docs/outputs.md):
   landmarks.npy    (T, P, 2) landmark (x, y) pixels = AAM shape of trajectory + offset
   segments.json    the state segmentation (switching models) and fps
   face.mp4         rendered frames with the audio (unless --no-video)
-  bands.npz, diagnostics.json   with --posterior laplace|nuts|emcee
+  bands.npz        central 50 % / 90 % bands (lower50, upper50, lower90, upper90), mean-removed
+  posterior.nc     ArviZ InferenceData (az.from_netcdf; az.summary)
+  bands.png        the first AAM parameters over time: mean, 50 %/90 % bands (+ --truth)
+  uncertainty.mp4  mean face | per-pixel standard deviation of rendered draws (unless --no-video)
+  diagnostics.json with --posterior laplace|nuts|emcee
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -380,10 +384,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default=None,
                    help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
-                        "write the posterior mean, variance, bands.npz and diagnostics.json")
+                        "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
+                        "posterior.nc, bands.png)")
     s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
-    s.add_argument("--no-video", action="store_true", help="skip the MP4")
+    s.add_argument("--truth", default=None,
+                   help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
+                        "drawn in bands.png and stored as observed_data in posterior.nc")
+    s.add_argument("--no-video", action="store_true", help="skip the MP4s")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

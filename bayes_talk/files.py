@@ -144,3 +144,13 @@ def check_format(meta: object, name: str, version: int, where: str) -> dict:
         raise ValueError(f"{where}: version expected {version}, found {meta.get('version')!r} (of format "
                          f"{name!r}; this bayes_talk reads version {version} only)")
     return meta
+
+
+def write_figure(path: str | os.PathLike, fig, dpi: int = 100) -> Path:
+    """A matplotlib figure as PNG at ``path`` (atomically); the figure is closed after."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), suffix=".png")
+    finally:
+        plt.close(fig)
