@@ -48,7 +48,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # protocols, metrics, reports
     ("evaluation", ("bayes_talk.evaluation",)),
     # what a user runs: train / synth directories, the command line, the demo
-    ("application", ("bayes_talk.pipeline", "bayes_talk.cli", "bayes_talk.demo", "bayes_talk.__main__")),
+    ("application", ("bayes_talk.pipeline", "bayes_talk.cli", "bayes_talk.demo", "bayes_talk.__main__",
+                     "bayes_talk.uncertainty_outputs")),
 ]
 
 #: arrows tolerated for now, backward or closing a cycle: (importer, imported) -> reason.
