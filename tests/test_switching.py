@@ -173,3 +173,39 @@ def test_closed_form_segment_objective_equals_the_torch_reference(vlmm_model):
     ref.backward()
     assert f == pytest.approx(float(ref.detach()), rel=1e-9)
     np.testing.assert_allclose(g, Xt.grad.numpy(), rtol=1e-6, atol=1e-6 * np.abs(g).max())
+
+
+def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
+    """audio_context=k: the state models see the PCA-reduced MFCCs of frames t−k..t+k, the
+    transform travels with the model, and a later frame's audio changes an earlier frame's
+    synthesis (which per-frame MFCCs cannot do)."""
+    from bayes_talk.features.audio_context import AudioContext, splice
+    from bayes_talk.synthesis.posterior import sample_synthesis
+
+    train, test = data
+    m = SwitchingSGPDM(states="vlmm", seed=0, audio_context=2, **SMALL).fit(train)
+    D = train[0].mfcc.shape[1]
+    s = test[0]
+    a = m.audio_input(s.mfcc)
+    assert a.shape == s.mfcc.shape and not np.allclose(a, s.mfcc)
+    ref = (splice(s.mfcc, 2) - m.audio_.mean_) @ m.audio_.projection_
+    np.testing.assert_allclose(a, ref)
+    assert m.audio_.projection_.shape == (5 * D, D)
+    # the state models were trained on the transformed audio
+    st, sm = next((k, v) for k, v in m.models_.items() if k != FALLBACK)
+    assert sm.predictors_["audio"].X.shape[0] > 0
+    r = m.synthesize(s.mfcc, s.labels)
+    # change only the last two frames' audio: with context, frame T−3's audio view changes
+    mf = s.mfcc.copy()
+    mf[-2:] += 3.0
+    assert not np.allclose(m.audio_input(mf)[-3], a[-3])
+    assert np.allclose(AudioContext(0).fit([s.mfcc]).transform(mf)[-3], mf[-3])
+    m.save(tmp_path / "m")
+    m2 = SwitchingSGPDM.load(tmp_path / "m")
+    assert m2.audio_context == 2
+    np.testing.assert_array_equal(m2.audio_input(s.mfcc), a)
+    np.testing.assert_array_equal(m2.synthesize(s.mfcc, s.labels).mean, r.mean)
+    p = sample_synthesis(m2, s.mfcc, s.labels, method="map", seed=0, log_warnings=False)
+    assert p.mean.shape == r.mean.shape and np.all(np.isfinite(p.mean))
+    with pytest.raises(ValueError, match="audio context"):
+        AudioContext(-1)

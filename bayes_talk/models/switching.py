@@ -40,6 +40,7 @@ import numpy as np
 from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.errors import not_fitted
+from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
@@ -121,6 +122,8 @@ class SwitchingConfig:
     max_iter: L-BFGS iterations per state model.
     fallback_frames: frames of the global fallback SGPDM.
     seed: seeds subsequence selection and every state model.
+    audio_context: k, the audio view of frame t is the PCA-reduced MFCCs of frames t−k..t+k
+        (:mod:`bayes_talk.features.audio_context`); 0 is deena2010's per-frame MFCC.
     """
 
     states: str = "vlmm"
@@ -133,6 +136,7 @@ class SwitchingConfig:
     max_iter: int = 100
     fallback_frames: int = 400
     seed: int = 0
+    audio_context: int = 0
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -165,13 +169,16 @@ class SwitchingModel:
                  epsilon: float | None = _DEFAULTS.epsilon, min_count: int | None = _DEFAULTS.min_count,
                  latent_dim: int = _DEFAULTS.latent_dim, max_frames_per_state: int = _DEFAULTS.max_frames_per_state,
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
-                 fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed):
+                 fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
+                 audio_context: int = _DEFAULTS.audio_context):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         self.states, self.max_memory, self.epsilon, self.min_count = states, max_memory, epsilon, min_count
         self.latent_dim, self.max_frames_per_state = latent_dim, max_frames_per_state
         self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
         self.fallback_frames, self.seed = fallback_frames, seed
+        self.audio_context = audio_context
+        self.audio_ = AudioContext(audio_context)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
         self.phone_counts_: dict[str, int] = {}
@@ -186,6 +193,12 @@ class SwitchingModel:
     def name(self) -> str:
         """Method family name: ``ssgpdm-vlmm`` or ``ssgpdm-phone``."""
         return f"ssgpdm-{self.config.states}"
+
+    def audio_input(self, mfcc: np.ndarray) -> np.ndarray:
+        """The audio view the state models see for these MFCCs (T, D): the MFCCs
+        themselves, or with ``audio_context`` > 0 their context window (eq. 1 of
+        :mod:`bayes_talk.features.audio_context`)."""
+        return self.audio_.transform(mfcc)
 
     # ------------------------------------------------------------------ training
     def _state_cfg(self) -> dict:
@@ -209,6 +222,8 @@ class SwitchingModel:
             raise ValueError(f"training sequences need aam features of one dimension; found (D_y, D_z) = {dims}")
         self.dims_ = next(iter(dims))
         n_frames = sum(s.n_frames for s in train)
+        self.audio_ = AudioContext(cfg.audio_context).fit([s.mfcc for s in train])
+        audio_in = [self.audio_input(s.mfcc) for s in train]
         if cfg.states == "vlmm":
             eps = cfg.epsilon if cfg.epsilon is not None else 2e-4 * 19000.0 / n_frames
             mc = cfg.min_count if cfg.min_count is not None else max(10, round(40 * n_frames / 15000))
@@ -227,14 +242,14 @@ class SwitchingModel:
             n = sum(b - a for _, a, b in chosen)
             if n < max(cfg.min_frames_per_state, cfg.latent_dim + 1):
                 continue
-            audio = np.vstack([train[i].mfcc[a:b] for i, a, b in chosen])
+            audio = np.vstack([audio_in[i][a:b] for i, a, b in chosen])
             visual = np.vstack([train[i].aam[a:b] for i, a, b in chosen])
             jobs.append((audio, visual, [b - a for _, a, b in chosen], self._state_cfg()))
             keys.append(state)
         # global fallback: random whole utterance chunks up to fallback_frames
         chunks = [(i, a, min(a + 25, s.n_frames)) for i, s in enumerate(train) for a in range(0, s.n_frames, 25)]
         chosen = self._cap(chunks, rng, cfg.fallback_frames)
-        jobs.append((np.vstack([train[i].mfcc[a:b] for i, a, b in chosen]),
+        jobs.append((np.vstack([audio_in[i][a:b] for i, a, b in chosen]),
                      np.vstack([train[i].aam[a:b] for i, a, b in chosen]),
                      [b - a for _, a, b in chosen], self._state_cfg()))
         keys.append(FALLBACK)
@@ -296,7 +311,7 @@ class SwitchingModel:
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
                 "n_training_frames": self.n_training_frames_, "phone_counts": self.phone_counts_, "models": []}
-        arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_}
+        arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_, **self.audio_.arrays()}
         for j, (st, m) in enumerate(self.models_.items()):
             mmeta, marr = m.state()
             meta["models"].append({"state": list(st), "meta": mmeta})
@@ -321,6 +336,7 @@ class SwitchingModel:
             sm = meta["states_model"]
             obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
             obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
+            obj.audio_ = AudioContext.from_arrays(obj.audio_context, arrays)
             grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
             for k, a in arrays.items():
                 if "/" not in k:

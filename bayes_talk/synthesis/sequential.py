@@ -96,6 +96,7 @@ def synthesize(
 
 def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter) -> SynthesisResult:
     segments = model.segment(list(labels))
+    audio = model.audio_input(mfcc)   # what the state models' audio GPs explain
     T, Dz = mfcc.shape[0], model.dims_[1]
     d = model.config.latent_dim
     mean, var, X = np.zeros((T, Dz)), np.zeros((T, Dz)), np.zeros((T, d))
@@ -108,7 +109,7 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         # Algorithm 1 optimises the whole segment; Algorithm 2 (and one-frame segments)
         # optimise its first frame only and roll the dynamics mean forward.
         n_opt = b - a if algorithm == "optimise" else 1
-        Xs = maximise_state_segment(m, mfcc[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
+        Xs = maximise_state_segment(m, audio[a:a + n_opt], z_prev, model.entry_[key], smoothness, max_iter,
                                model.motion_var_)
         if n_opt < b - a:
             Xs = _roll_dynamics(m, Xs[0], b - a)
