@@ -12,8 +12,9 @@ from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONES
 from bayes_talk.data.sequence import Sequence
 from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel, add_gain_fractions, gain_fraction
-from bayes_talk.evaluation.harness import _utterance_metrics, run_protocol
+from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
+from bayes_talk.evaluation.scoring import _utterance_metrics
 from bayes_talk.evaluation.systems import Prediction, SystemConfig, predict
 from bayes_talk.features.aam import AAM
 

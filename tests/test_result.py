@@ -115,7 +115,7 @@ def test_inference_data_groups_and_netcdf_round_trip(tmp_path):
 
 
 def test_evaluate_scores_the_bands_of_the_result_not_a_gaussian_of_its_moments():
-    from bayes_talk.evaluation.harness import _utterance_metrics
+    from bayes_talk.evaluation.scoring import _utterance_metrics
     from bayes_talk.evaluation.systems import Prediction
 
     # two well separated modes at ±3 (sd 0.5): the mixture's 50 % band is [-3, 3], the

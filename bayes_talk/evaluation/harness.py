@@ -17,11 +17,9 @@ training time and name each other in ``train_shared_with``) and
 from __future__ import annotations
 
 import logging
-import math
 import os
 import tempfile
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,9 +28,9 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
-from bayes_talk.evaluation import metrics as M
 from bayes_talk.evaluation.ceiling import add_gain_fractions
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
+from bayes_talk.evaluation.scoring import _clean, _summary, _utterance_metrics
 from bayes_talk.evaluation.splits import Split, _dims, check_test_set, make_splits
 from bayes_talk.evaluation.systems import (
     METHODS,
@@ -47,7 +45,6 @@ __all__ = ["Trajectory", "check_writable", "evaluate", "run_protocol"]
 
 log = logging.getLogger(__name__)
 
-VAR_FLOOR = 1e-10
 
 
 def check_writable(path: str | Path) -> Path:
@@ -69,60 +66,6 @@ def check_writable(path: str | Path) -> Path:
     os.close(fd)
     os.unlink(tmp)
     return p
-
-
-# ---------------------------------------------------------------------------- metrics
-def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | None) -> dict[str, float]:
-    mean = pred.mean
-    out = {
-        "mse": float(M.mse([z], [mean])[0]),
-        "rms": float(M.rms([z], [mean])[0]),
-        "l1": float(M.l1([z], [mean])[0]),
-        "linf": float(M.linf([z], [mean])[0]),
-        "nmse": float(M.normalised_mse([z], [mean], variance=variance)[0]),
-        "corr": float(M.correlation([z], [mean])[0]),
-    }
-    if ll is not None:
-        out["log_likelihood_per_frame"] = ll / z.shape[0]
-    if pred.var is not None:
-        sd = np.sqrt(np.maximum(pred.var, VAR_FLOOR))
-        for level in (50, 90):  # the bands synth writes (the result's exact interval)
-            lo, hi = pred.band(level / 100)
-            out[f"coverage_{level}"] = M.coverage([z], [lo], [hi])
-        out["crps"] = M.crps_gaussian([z], [mean], [sd])
-        out["nlpd"] = M.nlpd_gaussian([z], [mean], [sd * sd])
-    if getattr(pred, "mse_bias", None) is not None:  # oracle: remove its finite-sample bias
-        b = np.asarray(pred.mse_bias, np.float64).mean(axis=0)
-        keep = variance > 0
-        out["mse_corrected"] = out["mse"] - float(b.mean())
-        out["nmse_corrected"] = out["nmse"] - float(np.mean(b[keep] / variance[keep]))
-    return out
-
-
-def _summary(values: list[float]) -> dict[str, Any]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        v = np.asarray(values, dtype=np.float64)
-        if not np.isfinite(v).any():
-            return {"mean": None, "std": None, "ci95": [None, None], "n": 0}
-        s = M.summarise(v)
-    return s
-
-
-def _clean(obj: Any) -> Any:
-    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python, tuples -> lists."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    return obj
 
 
 # ---------------------------------------------------------------------------- the harness

@@ -1,0 +1,68 @@
+"""Scoring of one test utterance and summaries of the harness's results: the per-utterance
+metrics of :mod:`bayes_talk.evaluation.harness` (RMS, L1, L∞, NMSE, correlation, test
+log-likelihood; for methods with a variance: 50/90 % coverage, CRPS, NLPD), their
+summaries, and the JSON-safe copy of a result."""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import numpy as np
+
+from bayes_talk.evaluation import metrics as M
+
+VAR_FLOOR = 1e-10
+
+
+def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | None) -> dict[str, float]:
+    mean = pred.mean
+    out = {
+        "mse": float(M.mse([z], [mean])[0]),
+        "rms": float(M.rms([z], [mean])[0]),
+        "l1": float(M.l1([z], [mean])[0]),
+        "linf": float(M.linf([z], [mean])[0]),
+        "nmse": float(M.normalised_mse([z], [mean], variance=variance)[0]),
+        "corr": float(M.correlation([z], [mean])[0]),
+    }
+    if ll is not None:
+        out["log_likelihood_per_frame"] = ll / z.shape[0]
+    if pred.var is not None:
+        sd = np.sqrt(np.maximum(pred.var, VAR_FLOOR))
+        for level in (50, 90):  # the bands synth writes (the result's exact interval)
+            lo, hi = pred.band(level / 100)
+            out[f"coverage_{level}"] = M.coverage([z], [lo], [hi])
+        out["crps"] = M.crps_gaussian([z], [mean], [sd])
+        out["nlpd"] = M.nlpd_gaussian([z], [mean], [sd * sd])
+    if getattr(pred, "mse_bias", None) is not None:  # oracle: remove its finite-sample bias
+        b = np.asarray(pred.mse_bias, np.float64).mean(axis=0)
+        keep = variance > 0
+        out["mse_corrected"] = out["mse"] - float(b.mean())
+        out["nmse_corrected"] = out["nmse"] - float(np.mean(b[keep] / variance[keep]))
+    return out
+
+
+def _summary(values: list[float]) -> dict[str, Any]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        v = np.asarray(values, dtype=np.float64)
+        if not np.isfinite(v).any():
+            return {"mean": None, "std": None, "ci95": [None, None], "n": 0}
+        s = M.summarise(v)
+    return s
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python, tuples -> lists."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    return obj
