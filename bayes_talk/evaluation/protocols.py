@@ -34,6 +34,16 @@ Gaussian band), ``crps`` and ``nlpd`` (per entry); each as
 Also ``train_seconds`` (total over splits; methods sharing a family report the shared
 training time and name each other in ``train_shared_with``) and
 ``synth_frames_per_second``.
+
+Calibration (:mod:`bayes_talk.evaluation.calibration`): every method with a predictive
+variance also gets ``calibration`` — coverage of the exact central 50/80/90/95 % bands
+pooled and per AAM parameter with standard errors over utterances, the PIT histogram,
+mixture NLPD and CRPS. The ``*-posterior`` methods use a band calibration fitted on
+held-out *training* utterances (``SystemConfig.band_calibration``, one extra fit per
+split: :func:`~bayes_talk.evaluation.systems.fit_band_calibration`; its seconds are
+added to ``train_seconds`` and reported as ``calibration_seconds``); their
+``calibration_raw`` scores the same predictive before it, and ``band_calibration``
+holds the fitted factors.
 """
 from __future__ import annotations
 
@@ -54,9 +64,11 @@ import scipy.stats
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.evaluation import metrics as M
 from bayes_talk.evaluation.ceiling import add_gain_fractions
+from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.systems import (
     METHODS,
     SystemConfig,
+    fit_band_calibration,
     fit_family,
     group_by_family,
     log_likelihood,
@@ -428,6 +440,9 @@ def run_protocol(
     per_utt: dict[str, list[dict[str, float]]] = {n: [] for n in names}
     per_split: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     train_s = {f: 0.0 for f in families}
+    calib_s = {f: 0.0 for f in families}
+    cal_rows: dict[str, dict[str, list]] = {n: {"calibration": [], "calibration_raw": []} for n in names}
+    band_cal: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     synth_s = {n: 0.0 for n in names}
     synth_frames = {n: 0 for n in names}
     traj: Trajectory | None = None
@@ -448,6 +463,14 @@ def run_protocol(
             if model_cache is not None:
                 model_cache[(fam, split.index)] = model
             train_s[fam] += time.perf_counter() - t0
+            if (cfg.band_calibration is not None and getattr(model, "band_calibration_", None) is None
+                    and any("posterior" in METHODS[n].options for n in fam_methods)):
+                t0 = time.perf_counter()
+                fit_band_calibration(fam, model, train, cfg, executor=executor,
+                                     progress=lambda msg, s=split: say(f"split {s.index + 1}/{len(splits)}: {msg}"))
+                dt = time.perf_counter() - t0
+                calib_s[fam] += dt
+                train_s[fam] += dt
             for name in fam_methods:
                 rows = []
                 for j, seq in enumerate(test):
@@ -460,9 +483,14 @@ def run_protocol(
                                            f"expected {seq.aam.shape}")
                     ll = log_likelihood(name, model, seq, pred)
                     rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
+                    for key, res in _calibration_inputs(name, pred).items():
+                        cal_rows[name][key].append(CAL.score_utterance(res, seq.aam, seed=cfg.seed))
                     if split.index == splits[0].index and j == 0:
                         traj.predictions[name] = pred
                 per_utt[name].extend(rows)
+                cal = getattr(model, "band_calibration_", None)
+                if cal is not None and "posterior" in METHODS[name].options:
+                    band_cal[name].append({"split": split.index, **cal.to_dict()})
                 keys = rows[0].keys()
                 per_split[name].append({"split": split.index, "n_test": len(rows),
                                         **{k: float(np.nanmean([r[k] for r in rows])) for k in keys}})
@@ -476,6 +504,12 @@ def run_protocol(
         for k in rows[0]:
             entry[k] = _summary([r[k] for r in rows])
         entry["headline"] = {lab: (entry[k]["mean"] if k in entry else None) for lab, k in protocol.headline}
+        for key, sc in cal_rows[name].items():
+            if sc:
+                entry[key] = CAL.summarise_calibration(sc)
+        if band_cal[name]:
+            entry["band_calibration"] = band_cal[name]
+            entry["calibration_seconds"] = calib_s[m.family]
         entry["train_seconds"] = train_s[m.family]
         entry["train_shared_with"] = [n for n in families[m.family] if n != name]
         entry["synth_seconds"] = synth_s[name]
@@ -506,7 +540,25 @@ def run_protocol(
         "methods": result_methods,
         "elapsed_seconds": time.perf_counter() - t_start,
     }
+    section = CAL.markdown_calibration(result_methods)
+    if section:
+        result["markdown_sections"] = [section]
     return _clean(result), traj
+
+
+def _calibration_inputs(name: str, pred) -> dict[str, Any]:
+    """{"calibration": predictive, "calibration_raw": uncalibrated predictive} of a method
+    with a variance (a Gaussian SynthesisResult where the method gives mean and variance only)."""
+    from bayes_talk.synthesis.result import SynthesisResult
+
+    if pred.var is None:
+        return {}
+    res = pred.result if pred.result is not None else SynthesisResult.gaussian(
+        pred.mean, np.maximum(pred.var, VAR_FLOOR), method=name)
+    out = {"calibration": res}
+    if pred.raw is not None:
+        out["calibration_raw"] = pred.raw
+    return out
 
 
 def evaluate(
@@ -595,6 +647,16 @@ def evaluate(
     if figures:
         report.plot_trajectories(traj, png_path, title=f"{result['description']} — first AAM parameter, "
                                  f"utterance {traj.utterance}")
+        summaries = {f"{n}{tag}": e[k] for n, e in result["methods"].items()
+                     for k, tag in (("calibration", ""), ("calibration_raw", " (raw)")) if isinstance(e.get(k), dict)}
+        if summaries:
+            from bayes_talk.evaluation.calibration import plot_calibration
+
+            cal_png = out.with_name(out.stem + "_calibration.png")
+            plot_calibration(summaries, cal_png, title=result["description"])
+            result["outputs"]["calibration_figure"] = cal_png.name
+            result.setdefault("markdown_sections", []).append(
+                f"![PIT histogram and coverage diagram]({cal_png.name})\n")
     report.write_markdown(result, md_path)
     report.write_json(result, out)
     return result
