@@ -107,7 +107,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
-                alignment=not args.no_alignment)
+                alignment=not args.no_alignment, calibrate_bands=args.calibrate_bands)
     print(f"model written to {out}")
     return 0
 
@@ -118,7 +118,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method)
+                    transcript=args.transcript, align_method=args.align_method,
+                    calibrated=not args.raw_bands)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -331,6 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "recorded in the model and applied the same way by synth")
     t.add_argument("--no-alignment", action="store_true",
                    help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
+    t.add_argument("--calibrate-bands", type=float, nargs="?", const=0.2, default=None, metavar="FRACTION",
+                   help="hold out FRACTION (default 0.2) of the training utterances, train once more on the "
+                        "rest and fit per-parameter band scale factors of the Laplace posterior on them "
+                        "(saved in the model, applied by synth; docs/uncertainty.md)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",
@@ -359,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--no-video", action="store_true", help="skip the MP4")
+    s.add_argument("--raw-bands", action="store_true",
+                   help="do not apply the model's band calibration (train --calibrate-bands)")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

@@ -221,12 +221,14 @@ def split_for_calibration(n: int, holdout: float = HOLDOUT_FRACTION, seed: int =
 
 def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                          n_draws: int = 64, seed: int = 0, executor=None,
-                         progress: Callable[[str], None] | None = None) -> BandCalibration:
+                         progress: Callable[[str], None] | None = None,
+                         fit: Callable | None = None) -> BandCalibration:
     """Fit the calibration of a switching model's ``method`` posterior on held-out
     training utterances (module docstring): a model of ``model``'s configuration is
     trained on the other utterances of ``train`` (through ``executor`` as
     ``SwitchingSGPDM.fit``), the held-out ones are synthesised with ``n_draws`` draws
-    (seed ``seed``) and the factors fitted to their AAM parameters."""
+    (seed ``seed``) and the factors fitted to their AAM parameters. ``fit(model, utterances)``
+    replaces the training call (e.g. the CLI's, with its progress bar and process pool)."""
     from bayes_talk.models.switching import SwitchingSGPDM
     from bayes_talk.synthesis.posterior import sample_synthesis
 
@@ -237,7 +239,9 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     say = progress or (lambda msg: log.info("%s", msg))
     say(f"band calibration: training a {model.name} model on {len(fit_idx)} utterances, "
         f"holding out {len(held_idx)}")
-    sub = SwitchingSGPDM(replace(model.config)).fit([seqs[i] for i in fit_idx], executor=executor)
+    sub = SwitchingSGPDM(replace(model.config))
+    rest = [seqs[i] for i in fit_idx]
+    sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
     results, truths = [], []
     for j, i in enumerate(held_idx):
         s = seqs[i]
