@@ -202,14 +202,14 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
         return ""
     head = ["method"] + [f"cov{round(100 * q)}" for q in levels] + [
         "90 % per param. min–max", "params in [0.80, 0.97]", "NLPD (mixture)", "CRPS", "PIT KS"]
-    lines = ["## Calibration\n",
-             "Coverage of the exact central bands of each method's predictive (mixture quantiles for "
+    intro = ("Coverage of the exact central bands of each method's predictive (mixture quantiles for "
              "the posterior methods), pooled over utterances and AAM parameters, ± the cluster-robust "
              "standard error over utterances; NLPD is the mixture's own log density per entry, CRPS "
              "per entry; PIT KS is the largest gap between the pooled PIT histogram's CDF and the "
              "uniform one. Rows marked (raw) are the same predictive before the band calibration "
-             "fitted on held-out training utterances (docs/uncertainty.md).\n",
-             "| " + " | ".join(head) + " |", "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
+             "fitted on held-out training utterances (docs/uncertainty.md).\n")
+    lines = ["## Calibration\n", intro, "| " + " | ".join(head) + " |",
+             "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
     for name, c in rows:
         cov = c["coverage"]
         c90 = cov.get("0.9")
@@ -232,7 +232,7 @@ def plot_calibration(summaries: Mapping[str, Mapping[str, Any]], path: str | Pat
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from bayes_talk.files import atomic_write
+    from bayes_talk.evaluation.report import save_png
 
     if not summaries:
         raise ValueError("plot_calibration: no summaries")
@@ -260,11 +260,4 @@ def plot_calibration(summaries: Mapping[str, Mapping[str, Any]], path: str | Pat
     ax2.set_xlabel("nominal level")
     ax2.set_ylabel("coverage")
     ax2.set_title("coverage (±2 s.e.; dots: per parameter at 90 %)", fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), suffix=".png")
-    finally:
-        plt.close(fig)
-    return Path(path)
+    return save_png(fig, path, title)

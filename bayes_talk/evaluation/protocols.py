@@ -62,9 +62,9 @@ import numpy as np
 import scipy.stats
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation import metrics as M
 from bayes_talk.evaluation.ceiling import add_gain_fractions
-from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.systems import (
     METHODS,
     SystemConfig,

@@ -17,7 +17,7 @@ import numpy as np
 
 from bayes_talk.files import atomic_write, write_text
 
-__all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
+__all__ = ["gain_table", "markdown_table", "plot_trajectories", "save_png", "write_json", "write_markdown"]
 
 _COLUMNS = (  # (metric key, column label)
     ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
@@ -140,6 +140,14 @@ def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | No
         ax.set_title(name, fontsize=9, loc="left")
     axes[0, 0].legend(fontsize=7, loc="upper right", ncol=3)
     axes[-1, 0].set_xlabel("time (s)")
+    return save_png(fig, path, title)
+
+
+def save_png(fig: Any, path: str | Path, title: str | None = None) -> Path:
+    """Give ``fig`` its (small) suptitle, lay it out, write it atomically as a 110 dpi PNG
+    and close it."""
+    import matplotlib.pyplot as plt
+
     if title:
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()

@@ -313,7 +313,7 @@ def fit_band_calibration(family: str, model: Any, train: Sequence[Utterance], cf
     if not posterior or cfg.band_calibration is None:
         raise ValueError(f"family {family!r} has no posterior method to calibrate (or band_calibration is off)")
     with torch_threads(cfg.torch_threads):
-        cal = _fit(model, train, method=sorted(posterior)[0], holdout=cfg.band_calibration,
+        cal = _fit(model, train, method=min(posterior), holdout=cfg.band_calibration,
                    n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
     model.band_calibration_ = cal
     return cal
