@@ -232,7 +232,7 @@ def plot_calibration(summaries: Mapping[str, Mapping[str, Any]], path: str | Pat
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from bayes_talk.evaluation.report import save_png
+    from bayes_talk.files import write_figure
 
     if not summaries:
         raise ValueError("plot_calibration: no summaries")
@@ -260,4 +260,7 @@ def plot_calibration(summaries: Mapping[str, Mapping[str, Any]], path: str | Pat
     ax2.set_xlabel("nominal level")
     ax2.set_ylabel("coverage")
     ax2.set_title("coverage (±2 s.e.; dots: per parameter at 90 %)", fontsize=9)
-    return save_png(fig, path, title)
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    return write_figure(path, fig, dpi=110)
