@@ -110,7 +110,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
-                alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler)
+                alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler,
+                calibrate_bands=args.calibrate_bands)
     print(f"model written to {out}")
     return 0
 
@@ -121,7 +122,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method, truth=args.truth)
+                    transcript=args.transcript, align_method=args.align_method, truth=args.truth,
+                    calibrated=not args.raw_bands)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -360,6 +362,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-alignment", action="store_true",
                    help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
     _add_executor_args(t, "the per-state models and the featurisation")
+    t.add_argument("--calibrate-bands", type=float, nargs="?", const=0.2, default=None, metavar="FRACTION",
+                   help="hold out FRACTION (default 0.2) of the training utterances, train once more on the "
+                        "rest and fit per-parameter band scale factors of the Laplace posterior on them "
+                        "(saved in the model, applied by synth; docs/uncertainty.md)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",
@@ -392,6 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
                         "drawn in bands.png and stored as observed_data in posterior.nc")
     s.add_argument("--no-video", action="store_true", help="skip the MP4s")
+    s.add_argument("--raw-bands", action="store_true",
+                   help="do not apply the model's band calibration (train --calibrate-bands)")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

@@ -85,7 +85,8 @@ def fit_model(model, train: list[Sequence], workers: int = 2, executor=None, sch
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
-          alignment: bool = True, executor=None, scheduler: str | None = None, **overrides) -> Path:
+          alignment: bool = True, executor=None, scheduler: str | None = None,
+          calibrate_bands: float | None = None, **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
@@ -103,6 +104,10 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
 
     ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
     (:func:`fit_model`; docs/scaling.md); the model does not depend on it.
+    ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
+    the band calibration of the Laplace posterior (switching models;
+    bayes_talk.synthesis.band_calibration: one extra fit on the rest, saved as
+    ``band_calibration.json`` and applied by ``synth``); None: no calibration.
     """
     from bayes_talk.audio import AudioSettings, feature_statistics
     from bayes_talk.bundle import begin_bundle, write_bundle_manifest
@@ -114,6 +119,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
+    if calibrate_bands is not None and (kind == "sgplvm" or not 0 < calibrate_bands < 1):
+        raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a switching model, found "
+                         f"{calibrate_bands!r} for {kind} (sgplvm calibrates its variances itself)")
     fmax = _mf.FMAX_HZ if fmax is _DEFAULT else fmax
     from bayes_talk.executor import executor_for
 
@@ -123,6 +131,12 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
         corpus.sequences = train_seqs
         model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers, executor=ex)
+        band_cal = None
+        if calibrate_bands is not None:
+            from bayes_talk.synthesis.band_calibration import fit_band_calibration
+
+            band_cal = fit_band_calibration(model, corpus.sequences, holdout=calibrate_bands, seed=model.config.seed,
+                                            fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex))
     out.mkdir(parents=True, exist_ok=True)
     begin_bundle(out, DESCRIPTOR)
     audio = AudioSettings(sample_rate=int(corpus.sample_rate), fps=float(corpus.fps), n_mfcc=_mf.N_MFCC,
@@ -135,6 +149,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     offset = _aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
+    if band_cal is not None:
+        band_cal.save(out)
     write_json(out / DESCRIPTOR, {
         "format": DESCRIPTOR_FORMAT, "version": DESCRIPTOR_VERSION, "kind": kind,
         "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
@@ -206,6 +222,7 @@ class TrainedModel:
     offset: np.ndarray
     fps: float
     audio: object = None  # bayes_talk.audio.AudioSettings
+    calibration: object = None  # bayes_talk.synthesis.band_calibration.BandCalibration, if trained with one
 
 
 def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
@@ -240,8 +257,10 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
 
         raise BundleError(f"{d / 'aam.npz'}: an AAM with {aam.n_params} parameters, but the model in {d} "
                           f"was trained on {len(desc['aam_offset'])}: the AAM does not belong to this model")
+    from bayes_talk.synthesis.band_calibration import BandCalibration
+
     return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)),
-                        AudioSettings.from_dict(desc.get("audio"), where=str(d)))
+                        AudioSettings.from_dict(desc.get("audio"), where=str(d)), BandCalibration.load(d))
 
 
 POSTERIORS = ("map", "laplace", "nuts", "emcee")
@@ -255,7 +274,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
           force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
           seed: int = 0, tier: str | None = None, text: str | None = None,
           transcript: str | os.PathLike | None = None, align_method: str | None = None,
-          truth: str | os.PathLike | None = None) -> dict[str, Path]:
+          truth: str | os.PathLike | None = None, calibrated: bool = True) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -285,6 +304,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     ``truth`` when given: a .npy (T, n_params) in the space of ``trajectory.npy``) and, with
     a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
     rendered predictive draws; bayes_talk.uncertainty_outputs).
+
+    ``calibrated``: apply the model's band calibration (``band_calibration.json``, fitted by
+    ``train --calibrate-bands``) when ``posterior`` is the method it was fitted on; False:
+    the raw posterior bands. Whether it was applied is recorded in ``diagnostics.json``.
     """
     from bayes_talk.bundle import OutputSet
     from bayes_talk.video import write_video
@@ -338,6 +361,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
 
             res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
                                    seed=seed, log_warnings=False)
+            if calibrated and tm.calibration is not None and tm.calibration.method == posterior:
+                res = tm.calibration.apply(res)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if derived is not None:

@@ -86,6 +86,50 @@ def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, co
         synth(model_dir, wav, lab, tmp_path / "bad", posterior="gibbs")
 
 
+def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_path, monkeypatch):
+    from bayes_talk.bundle import write_bundle_manifest
+    from bayes_talk.pipeline import synth, train
+    from bayes_talk.synthesis import posterior
+    from bayes_talk.synthesis.band_calibration import BandCalibration
+    from bayes_talk.synthesis.result import SynthesisResult
+
+    m = tmp_path / "model"
+    shutil.copytree(model_dir, m)
+    D = len(json.loads((m / "bayes_talk_model.json").read_text())["aam_offset"])
+
+    def fake_posterior(model, mfcc, labels, method, n_draws, seed, **kw):   # the wiring is under test
+        rng = np.random.default_rng(seed)
+        shape = (1, n_draws, mfcc.shape[0], D)
+        return SynthesisResult(method, None, rng.normal(size=shape), rng.uniform(0.1, 1, size=shape), seed=seed)
+
+    monkeypatch.setattr(posterior, "sample_synthesis", fake_posterior)
+    scale = np.linspace(0.5, 3.0, D)
+    BandCalibration(scale, "laplace").save(m)
+    write_bundle_manifest(m)                          # as train --calibrate-bands does
+    assert load_trained(m).calibration is not None and load_trained(model_dir).calibration is None
+    wav, lab = _first_utterance(corpus_dir)
+    args = ["synth", str(m), "--audio", str(wav), "--labels", str(lab), "--no-video", "--posterior", "laplace",
+            "--draws", "16"]
+    assert main(args + ["--out", str(tmp_path / "cal")]) == 0
+    assert main(args + ["--out", str(tmp_path / "raw"), "--raw-bands"]) == 0
+    t_cal, t_raw = np.load(tmp_path / "cal" / "trajectory.npy"), np.load(tmp_path / "raw" / "trajectory.npy")
+    np.testing.assert_allclose(t_cal, t_raw, atol=1e-10)                 # the mean is unchanged
+    np.testing.assert_allclose(np.load(tmp_path / "cal" / "variance.npy"),
+                               np.load(tmp_path / "raw" / "variance.npy") * scale**2, rtol=1e-8)
+    with np.load(tmp_path / "cal" / "bands.npz") as c, np.load(tmp_path / "raw" / "bands.npz") as r:
+        np.testing.assert_allclose(c["upper90"] - t_cal, scale * (r["upper90"] - t_raw), rtol=1e-5, atol=1e-8)
+    diag = json.loads((tmp_path / "cal" / "diagnostics.json").read_text())["diagnostics"]
+    assert diag["band_calibration"]["scale_max"] == pytest.approx(3.0)
+    assert "band_calibration" not in json.loads((tmp_path / "raw" / "diagnostics.json").read_text())["diagnostics"]
+    # a calibration of another model's size is refused by name
+    BandCalibration(np.ones(D + 1), "laplace").save(m)
+    write_bundle_manifest(m)
+    with pytest.raises(ValueError, match=f"{D + 1} factors but the prediction has {D}"):
+        synth(m, wav, lab, tmp_path / "bad", posterior="laplace", n_draws=16, video=False)
+    with pytest.raises(ValueError, match="calibrate_bands: expected a fraction"):
+        train(corpus_dir, "sgplvm", tmp_path / "sg", calibrate_bands=0.2)
+
+
 def test_synth_writes_posterior_netcdf_bands_plot_and_uncertainty_video(model_dir, corpus_dir, tmp_path, capsys):
     import arviz as az
 

@@ -377,3 +377,26 @@ def test_quick_run_is_labelled_quick_in_the_result():
     assert res["quick"] is True and "quick" in res["description"]
     assert res["n_splits"] == proto.n_folds and res["n_scored"] == proto.n_use
     assert res["settings"]["vp_n_states"] == 4
+
+
+def test_harness_reports_calibration_and_calibrated_and_raw_posterior(gp_run):
+    res, traj, _ = gp_run
+    for name, e in res["methods"].items():
+        c = e["calibration"]
+        assert c["n_utterances"] == 2 and set(c["coverage"]) == {"0.5", "0.8", "0.9", "0.95"}
+        pooled = [c["coverage"][q]["pooled"] for q in ("0.5", "0.8", "0.9", "0.95")]
+        assert pooled == sorted(pooled) and 0 <= pooled[0] and pooled[-1] <= 1       # nested bands
+        assert len(c["coverage"]["0.9"]["per_param"]) == traj.truth.shape[1]
+        assert sum(c["pit"]["counts"]) == c["n_entries"] and np.isfinite(c["nlpd"]["mean"])
+        posterior = "posterior" in name
+        assert ("calibration_raw" in e) == posterior and ("band_calibration" in e) == posterior
+    post = res["methods"]["ssgpdm-vlmm-posterior"]
+    (bc,) = post["band_calibration"]
+    assert bc["method"] == "laplace" and len(bc["scale"]) == traj.truth.shape[1] and len(bc["held_out"]) == 1
+    assert post["calibration_seconds"] > 0
+    # the calibrated and raw predictive share the mean; the widths differ by the factors
+    pred = traj.predictions["ssgpdm-vlmm-posterior"]
+    np.testing.assert_allclose(pred.result.mean, pred.raw.mean, atol=1e-10)
+    np.testing.assert_allclose(pred.result.var, pred.raw.var * np.asarray(bc["scale"]) ** 2, rtol=1e-8)
+    assert "## Calibration" in res["markdown_sections"][0] and "ssgpdm-vlmm-posterior (raw)" in \
+        res["markdown_sections"][0]

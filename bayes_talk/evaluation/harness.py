@@ -13,6 +13,16 @@ Gaussian one for a baseline's variance), ``crps`` and ``nlpd`` (per entry, Gauss
 Also ``train_seconds`` (total over splits; methods sharing a family report the shared
 training time and name each other in ``train_shared_with``) and
 ``synth_frames_per_second``.
+
+Calibration (:mod:`bayes_talk.evaluation.calibration`): every method with a predictive
+variance also gets ``calibration`` — coverage of the exact central 50/80/90/95 % bands
+pooled and per AAM parameter with standard errors over utterances, the PIT histogram,
+mixture NLPD and CRPS. The ``*-posterior`` methods use a band calibration fitted on
+held-out *training* utterances (``SystemConfig.band_calibration``, one extra fit per
+split: :func:`~bayes_talk.evaluation.systems.fit_band_calibration`; its seconds are
+added to ``train_seconds`` and reported as ``calibration_seconds``); their
+``calibration_raw`` scores the same predictive before it, and ``band_calibration``
+holds the fitted factors.
 """
 from __future__ import annotations
 
@@ -28,12 +38,14 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.ceiling import add_gain_fractions
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
-from bayes_talk.evaluation.scoring import _clean, _summary, _utterance_metrics
+from bayes_talk.evaluation.scoring import _clean, _summary, _utterance_metrics, calibration_inputs
 from bayes_talk.evaluation.splits import Split, _dims, check_test_set, make_splits
 from bayes_talk.evaluation.systems import (
     METHODS,
+    fit_band_calibration,
     fit_family,
     group_by_family,
     log_likelihood,
@@ -101,6 +113,9 @@ class _SplitOutcome:
     synth_seconds: dict[str, float]
     synth_frames: dict[str, int]
     trajectory: Trajectory | None
+    calibration: dict[str, dict[str, list]] = field(default_factory=dict)   # method -> key -> scores
+    band_calibration: dict[str, dict[str, Any]] = field(default_factory=dict)
+    calibration_seconds: dict[str, float] = field(default_factory=dict)
 
 
 def _say_split(say: Callable[[str], None], job: _SplitJob, out: _SplitOutcome) -> None:
@@ -123,6 +138,9 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
     train_s: dict[str, float] = {}
     synth_s: dict[str, float] = {}
     synth_frames: dict[str, int] = {}
+    cal_rows: dict[str, dict[str, list]] = {}
+    band_cal: dict[str, dict[str, Any]] = {}
+    calib_s: dict[str, float] = {}
     for fam, fam_methods in job.families.items():
         if say is not None:
             say(f"split {split.index + 1}/{job.n_splits}: training {fam} on {len(job.train)} utterances")
@@ -134,8 +152,18 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
         if model_cache is not None:
             model_cache[(fam, split.index)] = model
         train_s[fam] = time.perf_counter() - t0
+        calib_s[fam] = 0.0
+        if (cfg.band_calibration is not None and getattr(model, "band_calibration_", None) is None
+                and any("posterior" in METHODS[n].options for n in fam_methods)):
+            t0 = time.perf_counter()
+            fit_band_calibration(fam, model, job.train, cfg, executor=executor,
+                                 progress=None if say is None else
+                                 (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
+            calib_s[fam] = time.perf_counter() - t0
+            train_s[fam] += calib_s[fam]
         for name in fam_methods:
             rows = []
+            cal_rows[name] = {"calibration": [], "calibration_raw": []}
             synth_s[name], synth_frames[name] = 0.0, 0
             for j, seq in enumerate(test):
                 t0 = time.perf_counter()
@@ -147,16 +175,21 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                                        f"expected {seq.aam.shape}")
                 ll = log_likelihood(name, model, seq, pred)
                 rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
+                for key, res in calibration_inputs(name, pred).items():
+                    cal_rows[name][key].append(CAL.score_utterance(res, seq.aam, seed=cfg.seed))
                 if traj is not None and j == 0:
                     traj.predictions[name] = pred
             rows_all[name] = rows
+            cal = getattr(model, "band_calibration_", None)
+            if cal is not None and "posterior" in METHODS[name].options:
+                band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
                                **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
             if say is not None:
                 say(f"split {split.index + 1}/{job.n_splits}: {name} " + ", ".join(
                     f"{k}={per_split[name][k]:.4g}" for k in ("mse", "corr")))
         del model  # one family's model alive at a time
-    return _SplitOutcome(rows_all, per_split, train_s, synth_s, synth_frames, traj)
+    return _SplitOutcome(rows_all, per_split, train_s, synth_s, synth_frames, traj, cal_rows, band_cal, calib_s)
 
 
 def run_protocol(
@@ -202,6 +235,9 @@ def run_protocol(
     train_s = {f: 0.0 for f in families}
     synth_s = {n: 0.0 for n in names}
     synth_frames = {n: 0 for n in names}
+    calib_s = {f: 0.0 for f in families}
+    cal_rows: dict[str, dict[str, list]] = {n: {"calibration": [], "calibration_raw": []} for n in names}
+    band_cal: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     t_start = time.perf_counter()
     jobs = [_SplitJob(split, len(splits), [pool[i] for i in split.train], [pool[i] for i in split.test],
                       families, cfg, first=k == 0) for k, split in enumerate(splits)]
@@ -222,11 +258,16 @@ def run_protocol(
             traj = out.trajectory
         for fam, sec in out.train_seconds.items():
             train_s[fam] += sec
+            calib_s[fam] += out.calibration_seconds.get(fam, 0.0)
         for name in names:
             per_utt[name].extend(out.rows[name])
             per_split[name].append(out.per_split[name])
             synth_s[name] += out.synth_seconds[name]
             synth_frames[name] += out.synth_frames[name]
+            for key, sc in out.calibration.get(name, {}).items():
+                cal_rows[name][key].extend(sc)
+            if name in out.band_calibration:
+                band_cal[name].append(out.band_calibration[name])
     result_methods: dict[str, Any] = {}
     for name in names:
         m = METHODS[name]
@@ -235,6 +276,12 @@ def run_protocol(
         for k in rows[0]:
             entry[k] = _summary([r[k] for r in rows])
         entry["headline"] = {lab: (entry[k]["mean"] if k in entry else None) for lab, k in protocol.headline}
+        for key, sc in cal_rows[name].items():
+            if sc:
+                entry[key] = CAL.summarise_calibration(sc)
+        if band_cal[name]:
+            entry["band_calibration"] = band_cal[name]
+            entry["calibration_seconds"] = calib_s[m.family]
         entry["train_seconds"] = train_s[m.family]
         entry["train_shared_with"] = [n for n in families[m.family] if n != name]
         entry["synth_seconds"] = synth_s[name]
@@ -265,6 +312,9 @@ def run_protocol(
         "methods": result_methods,
         "elapsed_seconds": time.perf_counter() - t_start,
     }
+    section = CAL.markdown_calibration(result_methods)
+    if section:
+        result["markdown_sections"] = [section]
     return _clean(result), traj
 
 
@@ -367,6 +417,16 @@ def evaluate(
     if figures:
         report.plot_trajectories(traj, png_path, title=f"{result['description']} — first AAM parameter, "
                                  f"utterance {traj.utterance}")
+        summaries = {f"{n}{tag}": e[k] for n, e in result["methods"].items()
+                     for k, tag in (("calibration", ""), ("calibration_raw", " (raw)")) if isinstance(e.get(k), dict)}
+        if summaries:
+            from bayes_talk.evaluation.calibration import plot_calibration
+
+            cal_png = out.with_name(out.stem + "_calibration.png")
+            plot_calibration(summaries, cal_png, title=result["description"])
+            result["outputs"]["calibration_figure"] = cal_png.name
+            result.setdefault("markdown_sections", []).append(
+                f"![PIT histogram and coverage diagram]({cal_png.name})\n")
     report.write_markdown(result, md_path)
     report.write_json(result, out)
     return result

@@ -23,7 +23,10 @@ usable dimension has CORR = nan and is skipped by ACC (with a warning).
 
 Calibration of Gaussian predictive bands (DESIGN §6), pooled over every scalar entry of
 every utterance: :func:`coverage`, :func:`crps_gaussian` (closed form),
-:func:`crps_ensemble` (samples), :func:`nlpd_gaussian`.
+:func:`crps_ensemble` (samples), :func:`nlpd_gaussian`. Entry-wise forms
+(:func:`crps_gaussian_entries`, :func:`crps_sample_entries`) feed the per-parameter
+calibration report of :mod:`bayes_talk.evaluation.calibration` (mixture predictives:
+coverage of the exact bands, PIT, mixture NLPD, sample CRPS).
 """
 from __future__ import annotations
 
@@ -40,6 +43,8 @@ __all__ = [
     "coverage",
     "crps_ensemble",
     "crps_gaussian",
+    "crps_gaussian_entries",
+    "crps_sample_entries",
     "l1",
     "linf",
     "mse",
@@ -211,31 +216,59 @@ def coverage(truth: ArrayList, lower: ArrayList, upper: ArrayList) -> float:
     return inside / total
 
 
-def crps_gaussian(truth: ArrayList, mean: ArrayList, std: ArrayList) -> float:
-    """Mean CRPS of Gaussian predictives N(μ, σ²), closed form (Gneiting & Raftery 2007):
+def crps_gaussian_entries(z: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Entry-wise CRPS of N(μ, σ²) at z, closed form (Gneiting & Raftery 2007, eq. 21):
 
-        CRPS = σ [ w (2Φ(w) − 1) + 2 φ(w) − 1/√π ],   w = (z − μ) / σ.
+        CRPS = σ [ w (2Φ(w) − 1) + 2 φ(w) − 1/√π ],   w = (z − μ) / σ   (σ > 0).
     """
+    z, mean, std = (np.asarray(a, dtype=np.float64) for a in (z, mean, std))
+    if np.any(std <= 0):
+        raise ValueError("crps_gaussian: std must be > 0")
+    w = (z - mean) / std
+    return std * (w * (2 * scipy.stats.norm.cdf(w) - 1) + 2 * scipy.stats.norm.pdf(w) - 1 / np.sqrt(np.pi))
+
+
+def crps_gaussian(truth: ArrayList, mean: ArrayList, std: ArrayList) -> float:
+    """Mean CRPS of Gaussian predictives N(μ, σ²), closed form (:func:`crps_gaussian_entries`),
+    pooled over every entry of every utterance."""
     pm, ps = _pairs(truth, mean, "mean"), _pairs(truth, std, "std")
     tot = n = 0.0
     for (t, m), (_, s) in zip(pm, ps):
-        if np.any(s <= 0):
-            raise ValueError("crps_gaussian: std must be > 0")
-        w = (t - m) / s
-        c = s * (w * (2 * scipy.stats.norm.cdf(w) - 1) + 2 * scipy.stats.norm.pdf(w) - 1 / np.sqrt(np.pi))
+        c = crps_gaussian_entries(t, m, s)
         tot += c.sum()
         n += c.size
     return float(tot / n)
 
 
-def crps_ensemble(truth: ArrayList, samples: ArrayList) -> float:
-    """Mean CRPS of the empirical distribution of m samples per entry:
+def crps_sample_entries(z: np.ndarray, samples: np.ndarray, fair: bool = False) -> np.ndarray:
+    """Entry-wise CRPS of a predictive given by m samples (m, *z.shape), energy form
+    (Gneiting & Raftery 2007, eq. 20):
 
         CRPS = (1/m) Σ_i |x_i − z| − (1 / 2m²) Σ_i Σ_j |x_i − x_j|
 
-    (the plain, not the "fair" m(m−1), estimator; exact CRPS of the sample distribution).
-    ``samples`` is a list of (m, T_i, D) arrays. The double sum uses the sorted-sample
-    identity Σ_i Σ_j |x_i − x_j| = 2 Σ_k (2k − m − 1) x_(k), k = 1..m.
+    (``fair=False``: the exact CRPS of the sample distribution; ``fair=True``: the second
+    term over m(m − 1) instead of m², unbiased for the CRPS of the distribution sampled;
+    Ferro 2014). The double sum uses the sorted-sample identity
+    Σ_i Σ_j |x_i − x_j| = 2 Σ_k (2k − m − 1) x_(k), k = 1..m, so the cost is O(m log m).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    s = np.asarray(samples, dtype=np.float64)
+    if s.shape[1:] != z.shape:
+        raise ValueError(f"samples have shape {s.shape}, expected (m, *{z.shape})")
+    m = s.shape[0]
+    if m < (2 if fair else 1):
+        raise ValueError(f"crps_sample_entries: need at least {2 if fair else 1} samples, got {m}")
+    term1 = np.mean(np.abs(s - z[None]), axis=0)
+    xs = np.sort(s, axis=0)
+    k = np.arange(1, m + 1, dtype=np.float64).reshape(-1, *([1] * z.ndim))
+    pair_sum = 2.0 * np.sum((2 * k - m - 1) * xs, axis=0)          # Σ_i Σ_j |x_i − x_j|
+    return term1 - pair_sum / (2.0 * m * (m - 1 if fair else m))
+
+
+def crps_ensemble(truth: ArrayList, samples: ArrayList) -> float:
+    """Mean CRPS of the empirical distribution of m samples per entry
+    (:func:`crps_sample_entries`, the plain estimator), pooled over every entry of every
+    utterance. ``samples`` is a list of (m, T_i, D) arrays.
     """
     t_list = _as_list(truth, "truth")
     s_list = _as_list(samples, "samples", ndim=3)
@@ -245,12 +278,7 @@ def crps_ensemble(truth: ArrayList, samples: ArrayList) -> float:
     for i, (t, s) in enumerate(zip(t_list, s_list)):
         if s.shape[1:] != t.shape:
             raise ValueError(f"utterance {i}: samples have shape {s.shape}, expected (m, *{t.shape})")
-        m = s.shape[0]
-        term1 = np.mean(np.abs(s - t[None]), axis=0)
-        xs = np.sort(s, axis=0)
-        k = np.arange(1, m + 1, dtype=np.float64).reshape(-1, *([1] * t.ndim))
-        term2 = np.sum((2 * k - m - 1) * xs, axis=0) / (m * m)
-        c = term1 - term2
+        c = crps_sample_entries(t, s)
         tot += c.sum()
         n += c.size
     return float(tot / n)

@@ -66,3 +66,18 @@ def _clean(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return _clean(obj.tolist())
     return obj
+
+
+def calibration_inputs(name: str, pred) -> dict[str, Any]:
+    """{"calibration": predictive, "calibration_raw": uncalibrated predictive} of a method
+    with a variance (a Gaussian SynthesisResult where the method gives mean and variance only)."""
+    from bayes_talk.synthesis.result import SynthesisResult
+
+    if pred.var is None:
+        return {}
+    res = pred.result if pred.result is not None else SynthesisResult.gaussian(
+        pred.mean, np.maximum(pred.var, VAR_FLOOR), method=name)
+    out = {"calibration": res}
+    if pred.raw is not None:
+        out["calibration_raw"] = pred.raw
+    return out

@@ -66,6 +66,7 @@ __all__ = [
     "Method",
     "Prediction",
     "SystemConfig",
+    "fit_band_calibration",
     "fit_family",
     "group_by_family",
     "log_likelihood",
@@ -128,9 +129,16 @@ class SystemConfig:
     torch_threads: int = 1
     #: generator draws per utterance of method ``oracle`` (>= 2)
     oracle_draws: int = 32
+    #: fraction of the training utterances held out to fit the band calibration of the
+    #: ``*-posterior`` methods (bayes_talk.synthesis.band_calibration); None: raw bands only
+    band_calibration: float | None = 0.2
 
     def __post_init__(self) -> None:
         for k, v in vars(self).items():
+            if k == "band_calibration":
+                if v is not None and not 0 < v < 1:
+                    raise ValueError(f"band_calibration must be a fraction in (0, 1) or None, got {v!r}")
+                continue
             if k == "lowpass_hz":
                 if v is not None and not v > 0:
                     raise ValueError(f"lowpass_hz must be > 0 or None, got {v!r}")
@@ -195,12 +203,15 @@ class Prediction:
     mse_bias: (T, D_z) known finite-sample excess of the squared error (``oracle``'s
     s^2 / K), subtracted in the ``*_corrected`` metrics; None for every other method;
     result: the method's :class:`~bayes_talk.synthesis.result.SynthesisResult` (its bands,
-    :meth:`interval`, are the ones scored, as ``synth`` writes them), or None."""
+    :meth:`interval`, are the ones scored, as ``synth`` writes them), or None; raw: when a
+    band calibration was applied to ``result``, the uncalibrated one."""
 
     mean: np.ndarray
     var: np.ndarray | None = None
     mse_bias: np.ndarray | None = None
     result: Any = None
+    #: the predictive before the band calibration, where one was applied
+    raw: Any = None
 
     def band(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """The central ``level`` band (lower, upper) of the predictive: the result's exact
@@ -298,8 +309,29 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
 
         smooth = lowpass(pred.mean, cfg.lowpass_hz)
         res = None if pred.result is None else pred.result.shift(smooth - pred.mean)
-        pred = Prediction(smooth, pred.var, result=res)
+        raw = None if pred.raw is None else pred.raw.shift(smooth - pred.mean)
+        pred = Prediction(smooth, pred.var, result=res, raw=raw)
     return pred
+
+
+def fit_band_calibration(family: str, model: Any, train: Sequence[Utterance], cfg: SystemConfig,
+                         executor=None, progress=None) -> Any:
+    """Fit the band calibration of ``family``'s posterior methods on held-out training
+    utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
+    extra fit on the other ``1 - cfg.band_calibration`` of ``train``) and attach it to
+    ``model`` as ``band_calibration_``; the ``*-posterior`` methods then return the
+    calibrated predictive with the raw one beside it. Returns the calibration."""
+    from bayes_talk.gp.threads import torch_threads
+    from bayes_talk.synthesis.band_calibration import fit_band_calibration as _fit
+
+    posterior = {m.options["posterior"] for m in METHODS.values() if m.family == family and "posterior" in m.options}
+    if not posterior or cfg.band_calibration is None:
+        raise ValueError(f"family {family!r} has no posterior method to calibrate (or band_calibration is off)")
+    with torch_threads(cfg.torch_threads):
+        cal = _fit(model, train, method=min(posterior), holdout=cfg.band_calibration,
+                   n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
+    model.band_calibration_ = cal
+    return cal
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
@@ -310,7 +342,10 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
 
         r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
                              n_draws=cfg.posterior_draws, seed=cfg.seed)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
+        cal, raw = getattr(model, "band_calibration_", None), None
+        if cal is not None and cal.method == r.method:
+            raw, r = r, cal.apply(r)
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r, raw=raw)
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
                              max_iter=cfg.synth_max_iter)
