@@ -45,7 +45,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -229,17 +229,17 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     ``SwitchingSGPDM.fit``), the held-out ones are synthesised with ``n_draws`` draws
     (seed ``seed``) and the factors fitted to their AAM parameters. ``fit(model, utterances)``
     replaces the training call (e.g. the CLI's, with its progress bar and process pool)."""
-    from bayes_talk.models.switching import SwitchingSGPDM
+    from bayes_talk.models.switching import SwitchingModel
     from bayes_talk.synthesis.posterior import sample_synthesis
 
-    if not isinstance(model, SwitchingSGPDM):
+    if not isinstance(model, SwitchingModel):
         raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
     seqs = list(train)
     fit_idx, held_idx = split_for_calibration(len(seqs), holdout, seed)
     say = progress or (lambda msg: log.info("%s", msg))
     say(f"band calibration: training a {model.name} model on {len(fit_idx)} utterances, "
         f"holding out {len(held_idx)}")
-    sub = SwitchingSGPDM(replace(model.config))
+    sub = type(model)(**asdict(model.config))
     rest = [seqs[i] for i in fit_idx]
     sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
     results, truths = [], []
