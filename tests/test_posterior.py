@@ -7,7 +7,7 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk.evaluation.diagnostics import DIAGNOSTIC_KEYS, chain_diagnostics
+from bayes_talk.synthesis.diagnostics import DIAGNOSTIC_KEYS, chain_diagnostics
 from bayes_talk.evaluation.metrics import coverage
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.switching import SwitchingSGPDM
