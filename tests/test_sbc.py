@@ -107,7 +107,7 @@ def test_posterior_predictive_check_accepts_simulated_audio_and_flags_shifted_au
     _, Y = prior_predictive(plan, 1, seed=3)
     y = Y[0]
     post = sample_synthesis(model, y, labels, method="laplace", n_draws=64, seed=0, smoothness="off")
-    rep = posterior_predictive(make_plan(model, y, labels, smoothness="off"), post.latents, seed=1)
+    rep = posterior_predictive(make_plan(model, y, labels, smoothness="off"), post.latent_draws, seed=1)
     assert rep.shape == (64,) + y.shape
     ok = predictive_check(y, rep)
     assert 0.75 <= ok.coverage[0.9] <= 1.0 and ok.coverage[0.5] < ok.coverage[0.9], ok.to_dict()

@@ -183,7 +183,7 @@ def sampler_posterior(method: str, n_draws: int | None = None, **kw) -> Synthesi
     def post(model, audio, labels, seed):
         r = sample_synthesis(model, audio, labels, method=method, n_draws=n_draws, seed=seed, smoothness="off",
                              log_warnings=False, **kw)
-        return r.latents.reshape(-1, r.latents.shape[-2] * r.latents.shape[-1]), r.diagnostics
+        return r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1]), r.diagnostics
 
     return post
 
@@ -196,7 +196,7 @@ def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
     def post(model, audio, labels, seed):
         r = sample_synthesis(model, audio, labels, method="laplace", n_draws=n_draws, seed=seed, smoothness="off",
                              log_warnings=False)
-        X = r.latents.reshape(-1, r.latents.shape[-2] * r.latents.shape[-1])
+        X = r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1])
         x_map = r.map_latents.reshape(-1)
         return x_map + np.sqrt(scale) * (X - x_map), r.diagnostics
 
