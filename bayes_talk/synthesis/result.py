@@ -229,22 +229,30 @@ class SynthesisResult:
         z = float(ndtri(q))
         if len(m) == 1:
             return m[0] + s[0] * z
+        K = len(m)
+        m, s = m.reshape(K, -1), s.reshape(K, -1)
         own = m + s * z                       # each component's own q-quantile
         lo, hi = own.min(0), own.max(0)
-        y = np.clip(self.mean + np.sqrt(self.var) * z, lo, hi)
+        y = np.clip(self.mean.reshape(-1) + np.sqrt(self.var.reshape(-1)) * z, lo, hi)
+        act = np.arange(y.size)               # entries not yet converged
+        c = 1.0 / math.sqrt(2 * math.pi)
         for _ in range(200):
-            r = (y[None] - m) / s
+            ma, sa, ya = m[:, act], s[:, act], y[act]
+            r = (ya[None] - ma) / sa
             F = ndtr(r).mean(0)
-            f = (np.exp(-0.5 * r * r) / (s * math.sqrt(2 * math.pi))).mean(0)
+            f = (np.exp(-0.5 * r * r) / sa).mean(0) * c
             below = F < q
-            lo, hi = np.where(below, y, lo), np.where(below, hi, y)
-            if np.all((np.abs(F - q) <= _Q_TOL) | (hi - lo <= 1e-13 * (1.0 + np.abs(y)))):
-                break
+            la, ha = np.where(below, ya, lo[act]), np.where(below, hi[act], ya)
+            lo[act], hi[act] = la, ha
+            done = (np.abs(F - q) <= _Q_TOL) | (ha - la <= 1e-13 * (1.0 + np.abs(ya)))
             with np.errstate(divide="ignore", invalid="ignore"):
-                newton = y - (F - q) / f
-            ok = np.isfinite(newton) & (newton > lo) & (newton < hi)
-            y = np.where(ok, newton, 0.5 * (lo + hi))
-        return y
+                newton = ya - (F - q) / f
+            ok = np.isfinite(newton) & (newton > la) & (newton < ha)
+            y[act] = np.where(done, ya, np.where(ok, newton, 0.5 * (la + ha)))
+            act = act[~done]
+            if act.size == 0:
+                break
+        return y.reshape(self.n_frames, self.n_dims)
 
     def interval(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """The central ``level`` band (lower, upper), each (T, D): F⁻¹((1 ∓ level)/2)."""
