@@ -13,7 +13,7 @@ their trained MAP values.
    density by L-BFGS in coordinates whitened by the Laplace precision at that start.
    Converged when max |∂ ln p/∂x| ≤ ``gtol`` (reported, with the iteration count).
 2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws. Judged by
-   the PSIS Pareto k̂ of the importance weights p/q (400 draws; k̂ ≤ 0.7 wanted), not by
+   the PSIS Pareto k̂ of the importance weights p/q (200 draws; k̂ ≤ 0.7 wanted), not by
    R-hat on independent draws.
 3. **nuts**: Pyro NUTS on z with X = X_MAP + L z, L the Cholesky factor of the Laplace
    covariance (an affine map: the target is unchanged and close to N(0, I) where the
@@ -65,7 +65,7 @@ MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
-LAPLACE_KHAT_DRAWS = 400
+LAPLACE_KHAT_DRAWS = 200
 #: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
                  "emcee": 320}
@@ -192,7 +192,7 @@ def sample_synthesis(
     map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
-        laplace: ``khat_draws`` (400)).
+        laplace: ``khat_draws`` (200)).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     """
     if method not in POSTERIOR_METHODS:

@@ -102,7 +102,8 @@ class _RecordingNUTS:
                 if self._t > self._warmup_steps:
                     n = self._t - self._warmup_steps   # the running mean restarts after warm-up
                     rec = self.records
-                    rec["acceptance_rate"].append(m_prev + n * (self._mean_accept_prob - m_prev))
+                    # undo Pyro's running mean m_n = m_{n-1} + (a_n − m_{n-1})/n (rounding: clip)
+                    rec["acceptance_rate"].append(min(1.0, max(0.0, m_prev + n * (self._mean_accept_prob - m_prev))))
                     steps = counter[0] - n_grad
                     rec["n_steps"].append(steps)
                     rec["tree_depth"].append(int(np.ceil(np.log2(steps + 1))))
