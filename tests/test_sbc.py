@@ -8,6 +8,7 @@ import pytest
 from toydata import make_utterances
 
 from bayes_talk.evaluation.sbc import (
+    default_bins,
     holm,
     ranks,
     run_sbc,
@@ -73,6 +74,9 @@ def test_sbc_fails_for_a_wrong_posterior_variance(scale):
 def test_uniformity_test_rejects_unequal_bins():
     with pytest.raises(ValueError, match="divide"):
         uniformity_test(np.zeros((50, 2), int), 19, bins=3)
+    assert default_bins(19, 400) == 20 and default_bins(19, 40) == 5
+    with pytest.raises(ValueError, match="3 or more"):
+        default_bins(9, 10)   # only 2 bins would fit: blind to a ∪-shaped histogram
 
 
 # ------------------------------------------------------------------ the synthesis model

@@ -69,12 +69,13 @@ def holm(p: np.ndarray) -> np.ndarray:
 
 
 def default_bins(n_draws: int, n_sims: int) -> int:
-    """The largest B dividing L + 1 with at least 5 expected ranks per bin (N / B ≥ 5), ≥ 2."""
+    """The largest B dividing L + 1 with at least 5 expected ranks per bin (N / B ≥ 5), ≥ 3
+    (two bins, lower and upper half, cannot see a ∪- or ∩-shaped histogram)."""
     L1 = n_draws + 1
-    ok = [b for b in range(2, L1 + 1) if L1 % b == 0 and n_sims / b >= 5]
+    ok = [b for b in range(3, L1 + 1) if L1 % b == 0 and n_sims / b >= 5]
     if not ok:
-        raise ValueError(f"{n_sims} simulations cannot fill 2 equal-probability bins of {L1} ranks "
-                         "with 5 each; use more simulations or an odd number of draws")
+        raise ValueError(f"{n_sims} simulations cannot fill 3 or more equal-probability bins of {L1} ranks "
+                         "with 5 each; use more simulations, or draws with n_draws + 1 divisible by 3, 4 or 5")
     return max(ok)
 
 
