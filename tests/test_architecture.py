@@ -55,9 +55,6 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 #: arrows tolerated for now, backward or closing a cycle: (importer, imported) -> reason.
 #: Keep it empty.
 ALLOWED: dict[tuple[str, str], str] = {
-    ("bayes_talk.synthesis.posterior", "bayes_talk.evaluation.diagnostics"):
-        "TEMPORARY: branch issue10b moves the ArviZ adapter into bayes_talk/synthesis/diagnostics.py; "
-        "the lead removes this entry after merging it",
 }
 
 
