@@ -118,7 +118,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method)
+                    transcript=args.transcript, align_method=args.align_method, truth=args.truth)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -187,7 +187,11 @@ outputs in --out (docs/outputs.md):
   landmarks.npy    (T, P, 2) landmark (x, y) pixels = AAM shape of trajectory + offset
   segments.json    the state segmentation (switching models) and fps
   face.mp4         rendered frames with the audio (unless --no-video)
-  bands.npz, diagnostics.json   with --posterior laplace|nuts|emcee
+  bands.npz        central 50 % / 90 % bands (lower50, upper50, lower90, upper90), mean-removed
+  posterior.nc     ArviZ InferenceData (az.from_netcdf; az.summary)
+  bands.png        the first AAM parameters over time: mean, 50 %/90 % bands (+ --truth)
+  uncertainty.mp4  mean face | per-pixel standard deviation of rendered draws (unless --no-video)
+  diagnostics.json with --posterior laplace|nuts|emcee
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -358,7 +362,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "write the posterior mean, variance, bands.npz and diagnostics.json")
     s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
-    s.add_argument("--no-video", action="store_true", help="skip the MP4")
+    s.add_argument("--truth", default=None,
+                   help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
+                        "drawn in bands.png and stored as observed_data in posterior.nc")
+    s.add_argument("--no-video", action="store_true", help="skip the MP4s")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

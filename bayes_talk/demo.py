@@ -13,7 +13,11 @@
    draws here to keep the demo short, 32 in ``evaluate``; its AMSE/NMSE are bias-corrected
    for the finite number of draws), and every method's fraction of the achievable gain
    ``(zero - method) / (zero - oracle)`` on AMSE and on NMSE;
-5. write ``OUT/side_by_side.mp4``: ground truth | synthesis (posterior mean), with the speech.
+5. write ``OUT/side_by_side.mp4``: ground truth | synthesis (posterior mean), with the speech;
+6. show the uncertainty of that utterance's posterior (bayes_talk.uncertainty_outputs):
+   ``OUT/bands.png`` (the first AAM parameters: mean, 50 %/90 % bands, ground truth),
+   ``OUT/uncertainty.mp4`` (mean face | per-pixel standard deviation of rendered draws) and
+   ``OUT/posterior.nc`` (ArviZ InferenceData with the truth as observed data).
 """
 from __future__ import annotations
 
@@ -109,15 +113,35 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     syn_frames = corpus.aam.render(r.mean + offset)
     video = write_video(out / "side_by_side.mp4", side_by_side(gt_frames, syn_frames), corpus.fps,
                         audio_path=s.audio_path, overwrite=True)
+    shown = _show_uncertainty(out, r, s, corpus, offset)
     summary = {"corpus": str(cdir), "n_train": len(train), "n_test": len(test), "train_seconds": train_s,
                "n_state_models": len(model.models_), "methods": rows, "video": str(video),
+               "uncertainty": {k: str(v) for k, v in shown.items()},
                "total_seconds": time.time() - t0}
     tmp = out / "metrics.json.tmp"
     tmp.write_text(json.dumps(summary, indent=1))
     tmp.replace(out / "metrics.json")
     print(f"\n[demo] wrote {video} (ground truth | synthesis) and {out / 'metrics.json'}; "
           f"total {time.time() - t0:.0f} s")
+    print(f"[demo] the uncertainty of {s.name}: {shown['plot']} (mean, 50 %/90 % bands, truth), "
+          f"{shown['uncertainty']} (mean face | per-pixel sd), {shown['posterior']} (az.from_netcdf)")
     return 0
+
+
+def _show_uncertainty(out: Path, r, s, corpus, offset: np.ndarray) -> dict[str, Path]:
+    """bands.png, uncertainty.mp4 and posterior.nc of the posterior ``r`` of utterance ``s``."""
+    from bayes_talk.uncertainty_outputs import (
+        plot_bands,
+        uncertainty_frames,
+        write_posterior_netcdf,
+    )
+    from bayes_talk.video import write_video
+
+    return {"plot": plot_bands(out / "bands.png", r, s.aam, fps=corpus.fps,
+                                    title=f"{s.name}: posterior ({r.method}) mean, 50 %/90 % bands, truth"),
+            "uncertainty": write_video(out / "uncertainty.mp4", uncertainty_frames(corpus.aam, r, offset),
+                                             corpus.fps, audio_path=s.audio_path, overwrite=True),
+            "posterior": write_posterior_netcdf(out / "posterior.nc", r, s.aam)}
 
 
 def _add_ceiling(rows: dict, kept: dict, train: list, test: list, seed: int) -> None:

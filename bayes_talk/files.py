@@ -94,3 +94,13 @@ def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compres
                 zf.writestr(info, buf.getvalue())
 
     return atomic_write(path, w)
+
+
+def write_figure(path: str | os.PathLike, fig, dpi: int = 100) -> Path:
+    """A matplotlib figure as PNG at ``path`` (atomically); the figure is closed after."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), suffix=".png")
+    finally:
+        plt.close(fig)

@@ -255,13 +255,15 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
 POSTERIORS = ("map", "laplace", "nuts", "emcee")
 #: every file name synth can write (docs/outputs.md)
 SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
-                      "bands.npz", "diagnostics.json", "labels.lab")
+                      "bands.npz", "diagnostics.json", "labels.lab", "posterior.nc", "bands.png",
+                      "uncertainty.mp4")
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
           force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
           seed: int = 0, tier: str | None = None, text: str | None = None,
-          transcript: str | os.PathLike | None = None, align_method: str | None = None) -> dict[str, Path]:
+          transcript: str | os.PathLike | None = None, align_method: str | None = None,
+          truth: str | os.PathLike | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -283,6 +285,14 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     Without ``labels`` (issue 13): the phone labels come from aligning ``text`` (or the
     ``transcript`` file) to the audio, or, with neither, from the phone recogniser (a
     warning says so); they are written to ``labels.lab`` in ``out_dir``.
+
+    Every run (issue 10) also writes, from the one synthesis result
+    (bayes_talk.synthesis.result.SynthesisResult, whatever the method): ``bands.npz`` (its
+    exact central 50 % / 90 % bands, the ones ``evaluate`` scores), ``posterior.nc`` (its
+    ArviZ InferenceData), ``bands.png`` (the first AAM parameters: mean, bands, and the
+    ``truth`` when given: a .npy (T, n_params) in the space of ``trajectory.npy``) and, with
+    a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
+    rendered predictive draws; bayes_talk.uncertainty_outputs).
     """
     from bayes_talk.bundle import OutputSet
     from bayes_talk.video import write_video
@@ -303,14 +313,21 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     front = {"sample_rate": tm.audio.sample_rate, "cmvn": tm.audio.cmvn, "fmax": tm.audio.fmax}
     utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
            else _utterance_from_intervals(wav, derived, tm.fps, **front))
+    if truth is not None:
+        from bayes_talk.uncertainty_outputs import read_truth
+
+        truth = read_truth(truth, (utt.mfcc.shape[0], len(tm.offset)))
     out = Path(out_dir)
     outputs = OutputSet(out, SYNTH_OUTPUT_NAMES)
     names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
              "segments": "segments.json", "video": "face.mp4"}
     if derived is not None:
         names["labels"] = "labels.lab"
+    names.update(bands="bands.npz", posterior="posterior.nc", plot="bands.png")
+    if video and tm.aam is not None:
+        names["uncertainty"] = "uncertainty.mp4"
     if posterior != "map":
-        names.update(bands="bands.npz", diagnostics="diagnostics.json")
+        names.update(diagnostics="diagnostics.json")
     existing = sorted({n for n in list(names.values()) + outputs.previous() if (out / n).exists()})
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
@@ -336,10 +353,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
 
         write_lab(out / names["labels"], derived)
         written["labels"] = out / names["labels"]
+    written.update(_write_uncertainty(out, names, res, truth, tm, wav, video, seed))
     if posterior != "map":
-        q = res.quantiles((0.5, 0.9))
-        write_npz(out / names["bands"], {"lower50": q[0.5][0], "upper50": q[0.5][1],
-                                         "lower90": q[0.9][0], "upper90": q[0.9][1]})
         problems = list(res.warnings)
         if problems:
             log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
@@ -348,7 +363,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
                                                 "diagnostics": res.diagnostics})
-        written.update(bands=out / names["bands"], diagnostics=out / names["diagnostics"])
+        written.update(diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)
         written[key] = out / names[key]
@@ -363,6 +378,33 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
             written["video"] = out / names["video"]
     outputs.commit(list(written.values()))
+    return written
+
+
+def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav, video: bool,
+                       seed: int) -> dict[str, Path]:
+    """bands.npz, posterior.nc, bands.png and (with a video and an AAM) uncertainty.mp4 of
+    the synthesis result ``res`` (see :func:`synth`)."""
+    from bayes_talk.uncertainty_outputs import (
+        BAND_LEVELS,
+        plot_bands,
+        uncertainty_frames,
+        write_posterior_netcdf,
+    )
+    from bayes_talk.video import write_video
+
+    written = {}
+    bands = {}
+    for q in BAND_LEVELS:
+        lo, hi = res.interval(q)
+        bands[f"lower{round(100 * q)}"], bands[f"upper{round(100 * q)}"] = lo, hi
+    written["bands"] = write_npz(out / names["bands"], bands)
+    written["posterior"] = write_posterior_netcdf(out / names["posterior"], res, truth)
+    written["plot"] = plot_bands(out / names["plot"], res, truth, fps=tm.fps)
+    if "uncertainty" in names:
+        frames = uncertainty_frames(tm.aam, res, tm.offset, seed=seed)
+        written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps,
+                                                   audio_path=wav, overwrite=True)
     return written
 
 

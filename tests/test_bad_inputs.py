@@ -243,13 +243,13 @@ def test_synth_force_replaces_the_whole_output_set(model_dir, corpus_dir, tmp_pa
     assert not (out / "face.mp4").exists()                      # the earlier run's video is gone
     assert (out / "mine.txt").read_text() == "keep me"          # not ours: kept
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [".bayes_talk_outputs.json", "landmarks.npy", "mine.txt", "segments.json", "trajectory.npy",
-         "variance.npy"])
+        [".bayes_talk_outputs.json", "bands.npz", "bands.png", "landmarks.npy", "mine.txt", "posterior.nc",
+         "segments.json", "trajectory.npy", "variance.npy"])
     # a run from before output records were kept: synth's own file names count as its
     (out / ".bayes_talk_outputs.json").unlink()
-    (out / "bands.npz").write_bytes(b"an old run's bands")
+    (out / "diagnostics.json").write_text("an old run's diagnostics")
     assert main(args + ["--no-video", "--force"]) == 0
-    assert not (out / "bands.npz").exists() and (out / "mine.txt").exists()
+    assert not (out / "diagnostics.json").exists() and (out / "mine.txt").exists()
 
 
 # --- row 9: a posterior that did not converge ------------------------------------------------

@@ -74,11 +74,59 @@ def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, co
     assert main(args + ["--out", str(ref), "--posterior", "map"]) == 0
     assert not np.allclose(traj, np.load(ref / "trajectory.npy"))
     assert var.shape == traj.shape and np.all(var > 0)
-    assert not (ref / "bands.npz").exists()
+    # the paper's path is one Gaussian per entry: its bands are the exact normal ones
+    z95 = 1.6448536269514722
+    traj_m, sd_m = np.load(ref / "trajectory.npy"), np.sqrt(np.load(ref / "variance.npy"))
+    with np.load(ref / "bands.npz") as b:
+        np.testing.assert_allclose(b["lower90"], traj_m - z95 * sd_m, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(b["upper90"], traj_m + z95 * sd_m, rtol=1e-9, atol=1e-12)
     # a sampler for a model that has none is refused by name
     from bayes_talk.pipeline import synth
     with pytest.raises(ValueError, match="posterior must be one of"):
         synth(model_dir, wav, lab, tmp_path / "bad", posterior="gibbs")
+
+
+def test_synth_writes_posterior_netcdf_bands_plot_and_uncertainty_video(model_dir, corpus_dir, tmp_path, capsys):
+    import arviz as az
+
+    from bayes_talk.data.corpus import load_corpus
+
+    wav, lab = _first_utterance(corpus_dir)
+    seq = next(s for s in load_corpus(corpus_dir).sequences if s.name == wav.stem)
+    truth = tmp_path / "truth.npy"
+    np.save(truth, seq.aam)
+    out = tmp_path / "u"
+    args = ["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--draws", "8"]
+    assert main(args + ["--out", str(out), "--truth", str(truth)]) == 0
+    idata = az.from_netcdf(out / "posterior.nc")
+    summ = az.summary(idata)
+    T, D = seq.aam.shape
+    assert len(summ) == 2 * T * D + T * 3 and np.isfinite(summ["mean"]).all()
+    assert idata.posterior["latents"].shape[1:] == (8, T, 3)
+    np.testing.assert_array_equal(idata.observed_data["aam"].values, seq.aam)
+    assert idata.posterior.attrs["bayes_talk_method"] == "laplace"
+    # the bands written are those of the stored mixture (rebuilt here from posterior.nc)
+    from bayes_talk.synthesis.result import SynthesisResult
+
+    res = SynthesisResult("laplace", idata.posterior["latents"].values, idata.posterior["aam_mean"].values,
+                          idata.posterior["aam_gp_var"].values)
+    with np.load(out / "bands.npz") as b:
+        lo, hi = res.interval(0.9)
+        np.testing.assert_allclose(b["lower90"], lo, rtol=1e-12)
+        np.testing.assert_allclose(b["upper90"], hi, rtol=1e-12)
+    np.testing.assert_allclose(np.load(out / "trajectory.npy"), res.mean, rtol=1e-12)
+    assert (out / "bands.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    import imageio.v3 as iio
+
+    frame = iio.imread(out / "uncertainty.mp4", index=T // 2)[..., 0]
+    face = iio.imread(out / "face.mp4", index=T // 2)[..., 0]
+    assert frame.shape[1] >= 2 * face.shape[1] and frame[:, face.shape[1] + 2:].max() > 20  # the sd panel
+    # a truth of the wrong shape is refused before anything is synthesised
+    bad = tmp_path / "bad.npy"
+    np.save(bad, seq.aam[:-1])
+    assert main(args + ["--out", str(tmp_path / "v"), "--truth", str(bad)]) == 2
+    assert f"expected AAM parameters of shape ({T}, {D})" in capsys.readouterr().err
+    assert not (tmp_path / "v").exists()
 
 
 def test_train_refuses_a_non_empty_directory(corpus_dir, tmp_path):

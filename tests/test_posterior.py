@@ -191,7 +191,7 @@ def test_joint_map_improves_algorithm_1_and_reports_convergence(toy):
             assert d["map_grad_norm"] <= MAP_GTOL or (d["hessian_modified"] == 0 and d["map_decrement"] <= 1e-6)
         else:
             assert r.warnings and "did not converge" in r.warnings[0]
-    assert r.latents.shape == (1, 1) + r.map_latents.shape
+    assert r.latent_draws.shape == (1, 1) + r.map_latents.shape
 
 
 def test_synthesis_does_not_depend_on_the_thread_count(toy):
@@ -214,14 +214,14 @@ def test_laplace_synthesis_mixture_and_reproducibility(toy):
     s = test[1]
     r = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=64, seed=1)
     T, Dz = s.aam.shape
-    assert r.mean.shape == (T, Dz) and r.var.shape == (T, Dz) and r.latents.shape == (1, 64, T, 3)
+    assert r.mean.shape == (T, Dz) and r.var.shape == (T, Dz) and r.latent_draws.shape == (1, 64, T, 3)
     # mixture variance = mean GP variance + spread of the means >= mean GP variance
     assert np.all(r.var >= r.gp_var - 1e-15) and np.mean(r.var - r.gp_var) > 0
     flat_m, flat_v = r.draw_mean.reshape(64, T, Dz), r.draw_var.reshape(64, T, Dz)
     np.testing.assert_allclose(r.var, flat_v.mean(0) + flat_m.var(0))
     r2 = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=64, seed=1)
     r3 = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=64, seed=2)
-    assert np.array_equal(r.latents, r2.latents) and not np.array_equal(r.latents, r3.latents)
+    assert np.array_equal(r.latent_draws, r2.latent_draws) and not np.array_equal(r.latent_draws, r3.latent_draws)
     q1, q2 = r.quantiles(), r2.quantiles()
     assert all(np.array_equal(q1[k][0], q2[k][0]) for k in q1)
 
@@ -232,7 +232,7 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     s = test[2]
     kw = dict(warmup=40, chains=2) if method == "nuts" else dict(warmup=60)
     r = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method=method, n_draws=16, seed=0, **kw)
-    assert r.n_draws >= 16 and r.latents.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
+    assert r.n_draws >= 16 and r.latent_draws.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
     d = r.diagnostics
     assert {"rhat_max", "ess_bulk_min", "ess_tail_min", "map_converged"} <= set(d)
     assert ("divergences" in d) if method == "nuts" else ("acceptance_fraction" in d)
@@ -240,7 +240,7 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     assert r.warnings and any(f"{method} did not converge" in w for w in r.warnings)
     assert np.all(r.var >= r.gp_var)
     r2 = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method=method, n_draws=16, seed=0, **kw)
-    assert np.array_equal(r.latents, r2.latents)
+    assert np.array_equal(r.latent_draws, r2.latent_draws)
 
 
 def test_band_coverage_on_held_out_toy_data_is_monotone(toy):

@@ -29,7 +29,9 @@ test utterances scored): ``mse`` (its mean is AMSE), ``rms``, ``l1``, ``linf``, 
 (MSE over the ground-truth variance of the split's test frames), ``corr`` (its mean is
 ACC), ``log_likelihood_per_frame`` where defined, and for methods with a predictive
 variance ``coverage_50``, ``coverage_90`` (fraction of entries inside the central 50 / 90 %
-Gaussian band), ``crps`` and ``nlpd`` (per entry); each as
+band of the method's predictive: the exact mixture interval of its
+:class:`~bayes_talk.synthesis.result.SynthesisResult`, the bands ``synth`` writes; a
+Gaussian one for a baseline's variance), ``crps`` and ``nlpd`` (per entry, Gaussian); each as
 :func:`~bayes_talk.evaluation.metrics.summarise` gives it ({"mean", "std", "ci95", "n"}).
 Also ``train_seconds`` (total over splits; methods sharing a family report the shared
 training time and name each other in ``train_shared_with``) and
@@ -49,7 +51,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.stats
 
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.evaluation import metrics as M
@@ -79,8 +80,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 SCHEMES = ("repeats", "holdout", "kfold")
-_Z50 = float(scipy.stats.norm.ppf(0.75))
-_Z90 = float(scipy.stats.norm.ppf(0.95))
 VAR_FLOOR = 1e-10
 
 
@@ -344,8 +343,9 @@ def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | No
         out["log_likelihood_per_frame"] = ll / z.shape[0]
     if pred.var is not None:
         sd = np.sqrt(np.maximum(pred.var, VAR_FLOOR))
-        out["coverage_50"] = M.coverage([z], [mean - _Z50 * sd], [mean + _Z50 * sd])
-        out["coverage_90"] = M.coverage([z], [mean - _Z90 * sd], [mean + _Z90 * sd])
+        for level in (50, 90):  # the bands synth writes (the result's exact interval)
+            lo, hi = pred.band(level / 100)
+            out[f"coverage_{level}"] = M.coverage([z], [lo], [hi])
         out["crps"] = M.crps_gaussian([z], [mean], [sd])
         out["nlpd"] = M.nlpd_gaussian([z], [mean], [sd * sd])
     if getattr(pred, "mse_bias", None) is not None:  # oracle: remove its finite-sample bias

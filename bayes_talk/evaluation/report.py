@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.files import atomic_write, write_text
+from bayes_talk.files import write_figure, write_text
 
 __all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
 
@@ -132,10 +132,9 @@ def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | No
     for ax, (name, p) in zip(axes[:, 0], preds.items()):
         ax.plot(t, truth[:, dim], color="k", lw=1.4, label="ground truth")
         ax.plot(t, p.mean[:, dim], color="tab:red", lw=1.2, label="synthesis")
-        if p.var is not None:
-            sd = np.sqrt(np.maximum(p.var[:, dim], 0))
-            ax.fill_between(t, p.mean[:, dim] - 2 * sd, p.mean[:, dim] + 2 * sd, color="tab:red", alpha=0.2,
-                            lw=0, label="±2σ")
+        if p.var is not None:  # the 90 % band evaluate scores (and synth writes)
+            lo, hi = p.band(0.9)
+            ax.fill_between(t, lo[:, dim], hi[:, dim], color="tab:red", alpha=0.2, lw=0, label="90 % band")
         ax.set_ylabel(f"AAM {dim + 1}")
         ax.set_title(name, fontsize=9, loc="left")
     axes[0, 0].legend(fontsize=7, loc="upper right", ncol=3)
@@ -143,8 +142,4 @@ def plot_trajectories(traj: Any, path: str | Path, dim: int = 0, title: str | No
     if title:
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), suffix=".png")
-    finally:
-        plt.close(fig)
-    return Path(path)
+    return write_figure(path, fig, dpi=110)

@@ -180,11 +180,26 @@ FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values
 class Prediction:
     """mean: (T, D_z); var: (T, D_z) predictive variance, or None for a point predictor;
     mse_bias: (T, D_z) known finite-sample excess of the squared error (``oracle``'s
-    s^2 / K), subtracted in the ``*_corrected`` metrics; None for every other method."""
+    s^2 / K), subtracted in the ``*_corrected`` metrics; None for every other method;
+    result: the method's :class:`~bayes_talk.synthesis.result.SynthesisResult` (its bands,
+    :meth:`interval`, are the ones scored, as ``synth`` writes them), or None."""
 
     mean: np.ndarray
     var: np.ndarray | None = None
     mse_bias: np.ndarray | None = None
+    result: Any = None
+
+    def band(self, level: float) -> tuple[np.ndarray, np.ndarray]:
+        """The central ``level`` band (lower, upper) of the predictive: the result's exact
+        :meth:`~bayes_talk.synthesis.result.SynthesisResult.interval`, or the Gaussian
+        N(mean, var) one for a prediction without a result."""
+        from bayes_talk.synthesis.result import SynthesisResult
+
+        if self.var is None:
+            raise ValueError("a point prediction has no bands")
+        res = self.result if self.result is not None else SynthesisResult.gaussian(self.mean, self.var,
+                                                                                   method="gaussian")
+        return res.interval(level)
 
 
 def resolve_methods(names: str | Iterable[str] | None, default: Sequence[str] = ()) -> list[str]:
@@ -279,7 +294,9 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
     if cfg.lowpass_hz is not None:
         from bayes_talk.synthesis.sequential import lowpass
 
-        pred = Prediction(lowpass(pred.mean, cfg.lowpass_hz), pred.var)
+        smooth = lowpass(pred.mean, cfg.lowpass_hz)
+        res = None if pred.result is None else pred.result.shift(smooth - pred.mean)
+        pred = Prediction(smooth, pred.var, result=res)
     return pred
 
 
@@ -291,14 +308,14 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
 
         r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
                              n_draws=cfg.posterior_draws, seed=cfg.seed)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
                              max_iter=cfg.synth_max_iter)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
     if m.family == "sgplvm":
         r = model.synthesize(seq.mfcc, seq.labels, init=m.options["init"], max_iter=cfg.sgplvm_synth_max_iter)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64))
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
     if m.has_variance and hasattr(model, "predict_var"):  # the context regressions
         return Prediction(np.asarray(model.predict(seq), np.float64),
                           np.asarray(model.predict_var(seq), np.float64))

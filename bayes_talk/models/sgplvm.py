@@ -21,20 +21,13 @@ early-stopped MAP fit reports noise levels far below its real error.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from bayes_talk.data.sequence import Sequence as Utterance
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
-
-
-@dataclass
-class SGPLVMResult:
-    mean: np.ndarray
-    var: np.ndarray
-    latents: np.ndarray
+from bayes_talk.synthesis.result import SynthesisResult
 
 
 class SGPLVM:
@@ -96,10 +89,12 @@ class SGPLVM:
             self.model_.calibrate_variance("visual", X_val, z_val)
         return self
 
-    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SGPLVMResult:
+    def synthesize(self, mfcc: np.ndarray, labels=None, init: str | None = None, max_iter: int = 100) -> SynthesisResult:
+        """Latents by sequence optimisation from ``init``, then the visual GP's Gaussian
+        predictive at them (a one-component :class:`~bayes_talk.synthesis.result.SynthesisResult`)."""
         X = self.model_.infer_latents("audio", mfcc, init or self.init, "sequence", max_iter=max_iter)
         mu, var = self.model_.predict_view("visual", X)
-        return SGPLVMResult(mu, var, X)
+        return SynthesisResult.gaussian(mu, var, X, method="sgplvm")
 
     def predict(self, seq: Utterance, **kw) -> np.ndarray:
         return self.synthesize(seq.mfcc, seq.labels, **kw).mean

@@ -20,16 +20,17 @@ their trained MAP values.
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
 
 The visual prediction of frame t is the mixture over draws s of
-N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²) under the frame's state model: :attr:`PosteriorSynthesis.mean`
-is its mean, :attr:`PosteriorSynthesis.var` its variance, :meth:`PosteriorSynthesis.quantiles`
-central bands from samples of it. ``method="map"`` gives the one-component "mixture" at
+N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²) under the frame's state model, returned as the one result
+type of every synthesis path, :class:`~bayes_talk.synthesis.result.SynthesisResult`: its mean,
+variance, exact mixture quantiles (:meth:`~bayes_talk.synthesis.result.SynthesisResult.interval`)
+and ArviZ InferenceData. ``method="map"`` gives the one-component "mixture" at
 the MAP path (the GP predictive only).
 """
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -37,8 +38,8 @@ import torch
 
 from bayes_talk.evaluation.diagnostics import chain_diagnostics, convergence_problems
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
+from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import Draws, run_emcee, run_nuts
 from bayes_talk.synthesis.sequential import _check_inputs, synthesize
 
@@ -47,7 +48,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
 POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee")
 #: Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
 MAP_MAX_ITER = 100
@@ -142,75 +142,8 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
                      decrement, n_mod)
 
 
-@dataclass
-class PosteriorSynthesis:
-    """Posterior synthesis of one utterance (the result type of every synthesis path).
-
-    latents: (C, S, T, d) latent draws (C chains of S draws; C = S = 1 for ``map``);
-    draw_mean / draw_var: (C, S, T, D_z) visual GP mean and per-dimension variance σ²_Z/w²
-    at each draw; map: the joint MAP; diagnostics: sampler and optimiser diagnostics of
-    the utterance (R-hat, ESS, divergences, Hessian, convergence); warnings: the failed
-    convergence checks, in words.
-    """
-
-    method: str
-    latents: np.ndarray
-    draw_mean: np.ndarray
-    draw_var: np.ndarray
-    map: MapResult
-    segments: list[Segment]
-    model_states: list[tuple[str, ...]]
-    diagnostics: dict
-    seed: int
-    seconds: float = 0.0
-    warnings: list[str] = field(default_factory=list)
-
-    @property
-    def n_draws(self) -> int:
-        return int(self.draw_mean.shape[0] * self.draw_mean.shape[1])
-
-    @property
-    def map_latents(self) -> np.ndarray:
-        return self.map.latents
-
-    def _flat(self, a: np.ndarray) -> np.ndarray:
-        return a.reshape((-1,) + a.shape[2:])
-
-    @property
-    def mean(self) -> np.ndarray:
-        """Mixture mean (T, D_z)."""
-        return self._flat(self.draw_mean).mean(0)
-
-    @property
-    def var(self) -> np.ndarray:
-        """Mixture variance (T, D_z) = mean of the GP variances + variance of the GP means."""
-        return self._flat(self.draw_var).mean(0) + self._flat(self.draw_mean).var(0)
-
-    @property
-    def gp_var(self) -> np.ndarray:
-        """Average GP variance over draws (T, D_z) (the mixture variance without the spread)."""
-        return self._flat(self.draw_var).mean(0)
-
-    @property
-    def summary(self) -> dict:
-        return self.diagnostics
-
-    def sample(self, n: int = 2000, seed: int | None = None) -> np.ndarray:
-        """n samples (n, T, D_z) of the visual mixture: component k mod S, then its Gaussian."""
-        rng = np.random.default_rng(self.seed + 1 if seed is None else seed)
-        dm, dv = self._flat(self.draw_mean), self._flat(self.draw_var)
-        comp = np.resize(rng.permutation(dm.shape[0]), n)
-        return dm[comp] + np.sqrt(dv[comp]) * rng.standard_normal((n,) + dm.shape[1:])
-
-    def quantiles(self, levels=DEFAULT_LEVELS, n_samples: int = 2000,
-                  seed: int | None = None) -> dict[float, tuple[np.ndarray, np.ndarray]]:
-        """Central bands {level: (lower, upper)} of each (T, D_z) entry's mixture, from
-        ``n_samples`` mixture samples (the same samples for every level, so nested)."""
-        levels = [float(q) for q in levels]
-        if any(not 0 < q < 1 for q in levels):
-            raise ValueError(f"levels must be in (0, 1), got {levels}")
-        s = self.sample(n_samples, seed)
-        return {q: tuple(np.quantile(s, [0.5 - q / 2, 0.5 + q / 2], axis=0)) for q in levels}
+#: the former name of :class:`~bayes_talk.synthesis.result.SynthesisResult` (the same type)
+PosteriorSynthesis = SynthesisResult
 
 
 def sample_synthesis(
@@ -227,7 +160,7 @@ def sample_synthesis(
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
     log_warnings: bool = True,
-) -> PosteriorSynthesis:
+) -> SynthesisResult:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
     n_draws: draws kept in all (pooled over chains; NUTS: ceil(n_draws / chains) per chain
@@ -379,4 +312,4 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
 
 
 __all__ = ["DEFAULT_LEVELS", "MAP_GTOL", "MAP_MAX_ITER", "MapResult", "POSTERIOR_METHODS", "PosteriorSynthesis",
-           "MAP_DTOL", "maximise_utterance", "sample_synthesis", "visual_predictive"]
+           "SynthesisResult", "MAP_DTOL", "maximise_utterance", "sample_synthesis", "visual_predictive"]

@@ -19,11 +19,12 @@
    frames, makes every segment's first frame copy the previous one; measurements in
    docs/switching.md. ``smoothness="off"`` makes segments independent.
 4. ẑ_t = μ_Z(x̂_t) with per-dimension variance σ²_Z(x̂_t)/w² (eq. 10), then an optional
-   zero-phase Butterworth low-pass (filtfilt) on the mean.
+   zero-phase Butterworth low-pass (filtfilt) on the mean. The result is a one-component
+   :class:`~bayes_talk.synthesis.result.SynthesisResult` (a Gaussian per entry; ``.latents``
+   the (T, d) path).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,9 +32,9 @@ import torch
 from scipy.signal import butter, filtfilt
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.initialisers import NearestNeighbour
 from bayes_talk.synthesis.optimise import optimise_sequence
+from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 if TYPE_CHECKING:
@@ -44,19 +45,6 @@ ALGORITHMS = ("optimise", "predict")
 SMOOTHNESS = ("frame", "off")
 DEFAULT_SMOOTHNESS = "frame"
 _NN = NearestNeighbour()
-
-
-@dataclass
-class SynthesisResult:
-    """mean, var: (T, D_z) visual prediction and its per-dimension GP predictive variance;
-    latents: (T, d) inferred latent points; segments: the segmentation used, with the
-    state whose model synthesised each (after back-off) in ``model_states``."""
-
-    mean: np.ndarray
-    var: np.ndarray
-    latents: np.ndarray
-    segments: list[Segment]
-    model_states: list[tuple[str, ...]]
 
 
 def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) -> np.ndarray:
@@ -128,7 +116,7 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
         mean[a:b], var[a:b] = m.predict_view("visual", Xs)
     if lowpass_hz is not None:
         mean = lowpass(mean, lowpass_hz)
-    return SynthesisResult(mean, var, X, segments, used)
+    return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used)
 
 
 def optimise_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,
