@@ -118,7 +118,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method, truth=args.truth)
+                    transcript=args.transcript, align_method=args.align_method, truth=args.truth,
+                    sampler_options={"chains": args.chains, "warmup": args.warmup,
+                                     "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth})
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -360,7 +362,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
                         "write the posterior mean, variance, bands.npz and diagnostics.json")
-    s.add_argument("--draws", type=int, default=64, help="posterior draws (pooled over chains)")
+    s.add_argument("--draws", type=_positive_int, default=None,
+                   help="posterior draws pooled over chains (default: laplace 64, nuts 4 x 250, emcee 320)")
+    s.add_argument("--chains", type=_positive_int, default=None, help="NUTS chains (default 4)")
+    s.add_argument("--warmup", type=_non_negative_int, default=None,
+                   help="NUTS warm-up iterations per chain (default 500) / emcee burn-in steps (default 500)")
+    s.add_argument("--target-accept", type=float, default=None,
+                   help="NUTS target acceptance statistic of the step-size adaptation (default 0.8)")
+    s.add_argument("--max-tree-depth", type=_positive_int, default=None, help="NUTS max tree depth (default 10)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "

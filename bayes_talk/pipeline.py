@@ -260,10 +260,10 @@ SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segmen
 
 
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
-          force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int = 64,
+          force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int | None = None,
           seed: int = 0, tier: str | None = None, text: str | None = None,
           transcript: str | os.PathLike | None = None, align_method: str | None = None,
-          truth: str | os.PathLike | None = None) -> dict[str, Path]:
+          truth: str | os.PathLike | None = None, sampler_options: dict | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -345,7 +345,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             from bayes_talk.synthesis.posterior import sample_synthesis
 
             res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
-                                   seed=seed, log_warnings=False)
+                                   seed=seed, log_warnings=False, **_sampler_args(sampler_options))
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if derived is not None:
@@ -406,6 +406,17 @@ def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav
         written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps,
                                                    audio_path=wav, overwrite=True)
     return written
+
+
+def _sampler_args(options: dict | None) -> dict:
+    """``sample_synthesis`` keywords from synth's sampler options (``chains``, ``warmup``,
+    ``target_accept``, ``max_tree_depth``; None entries keep the library defaults)."""
+    opts = {k: v for k, v in (options or {}).items() if v is not None}
+    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth"}
+    if unknown:
+        raise ValueError(f"unknown sampler options {sorted(unknown)}")
+    kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}
+    return {**kw, "sampler_kw": opts} if opts else kw
 
 
 def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:

@@ -256,7 +256,7 @@ def test_synth_force_replaces_the_whole_output_set(model_dir, corpus_dir, tmp_pa
 
 def test_unconverged_posterior_is_logged_and_marked(model_dir, corpus_dir, tmp_path, monkeypatch, caplog):
     import bayes_talk.synthesis.posterior as post
-    from bayes_talk.evaluation.diagnostics import convergence_problems
+    from bayes_talk.synthesis.diagnostics import convergence_problems
 
     assert convergence_problems({"rhat_max": 1.01, "ess_bulk_min": 400.0, "ess_tail_min": 500.0,
                                  "divergences": 0}) == []

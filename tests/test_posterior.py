@@ -7,7 +7,14 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk.evaluation.diagnostics import DIAGNOSTIC_KEYS, chain_diagnostics
+from bayes_talk.synthesis.diagnostics import (
+    DIAGNOSTIC_KEYS,
+    KHAT_MAX,
+    chain_diagnostics,
+    convergence_problems,
+    energy_bfmi,
+    psis_khat,
+)
 from bayes_talk.evaluation.metrics import coverage
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.switching import SwitchingSGPDM
@@ -69,6 +76,56 @@ def test_diagnostics_keys_and_rhat_near_one(gauss_draws):
         assert diag["ess_bulk_min"] > 50 and diag["ess_tail_min"] > 50, (method, diag)
     assert gauss_draws["nuts"].stats["divergences"] == [0, 0]
     assert 0.15 < gauss_draws["emcee"].stats["acceptance_fraction"] < 0.9
+
+
+def test_nuts_records_the_acceptance_statistic_tree_depth_and_energy(gauss_draws):
+    d = gauss_draws["nuts"]
+    ss = d.sample_stats
+    assert all(ss[k].shape == (2, 400) for k in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy",
+                                                 "lp", "step_size"))
+    # the dual-averaging adaptation targets the mean acceptance statistic (0.8), which the
+    # fraction of moved iterations (Pyro's "acceptance rate") is not
+    assert 0.65 < ss["acceptance_rate"].mean() < 0.95
+    assert np.all((ss["acceptance_rate"] >= 0) & (ss["acceptance_rate"] <= 1))
+    # tree depth j means 2^(j-1) <= leapfrog steps <= 2^j - 1
+    assert np.all(2.0 ** (ss["tree_depth"] - 1) <= ss["n_steps"]) and np.all(ss["n_steps"] <= 2.0 ** ss["tree_depth"] - 1)
+    assert d.stats["n_gradients"] >= ss["n_steps"].sum()
+    # lp is ln p at the draw (up to the constant of gauss_lp: none)
+    x = d.samples[0, :5]
+    np.testing.assert_allclose(ss["lp"][0, :5], [float(gauss_lp(torch.as_tensor(v))) for v in x], rtol=1e-10)
+    # energy = −ln p(draw of the previous iteration) + ½‖r‖² >= −ln p, and E-BFMI of a Gaussian is near 1
+    assert np.all(energy_bfmi(ss["energy"]) > 0.6)
+
+
+def test_sampler_arguments_are_validated():
+    with pytest.raises(ValueError, match="target_accept"):
+        run_nuts(gauss_lp, np.zeros(2), n_draws=5, warmup=5, target_accept=1.2)
+    with pytest.raises(ValueError, match="max_tree_depth"):
+        run_nuts(gauss_lp, np.zeros(2), n_draws=5, warmup=5, max_tree_depth=0)
+
+
+def test_emcee_checks_its_autocorrelation_time():
+    """A chain shorter than 50 autocorrelation times is run on (within max_steps) or flagged."""
+    short = run_emcee(gauss_lp, np.zeros(2), n_draws=20, warmup=20, thin=1, seed=1)
+    assert short.stats["autocorr_ok"] is False and short.stats["steps"] == 40
+    assert short.stats["autocorr_time_max"] > 0
+    assert any("autocorrelation time" in p for p in convergence_problems(
+        {k: short.stats[k] for k in ("autocorr_ok", "autocorr_steps", "autocorr_tol", "autocorr_time_max")}))
+    long = run_emcee(gauss_lp, np.zeros(2), n_draws=20, warmup=20, thin=1, seed=1, max_steps=4000)
+    st = long.stats
+    assert st["autocorr_ok"] is True and 40 < st["steps"] <= 4000
+    assert st["autocorr_steps"] >= 50 * st["autocorr_time_max"]
+    assert long.samples.shape[1] == 20
+
+
+def test_psis_khat_separates_good_and_bad_importance_proposals():
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal(400)
+    # q = N(0, 1); p = N(0, 0.8²) (q wider than p: bounded weights) vs p = Cauchy (heavier than q)
+    good = -0.5 * (z / 0.8) ** 2 + 0.5 * z ** 2
+    bad = -np.log1p(z ** 2) + 0.5 * z ** 2
+    assert psis_khat(good) < 0.5 < KHAT_MAX < psis_khat(bad)
+    assert convergence_problems({"khat": psis_khat(bad)}) and not convergence_problems({"khat": psis_khat(good)})
 
 
 def test_diagnostics_flag_chains_that_disagree():
@@ -215,6 +272,10 @@ def test_laplace_synthesis_mixture_and_reproducibility(toy):
     r = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=64, seed=1)
     T, Dz = s.aam.shape
     assert r.mean.shape == (T, Dz) and r.var.shape == (T, Dz) and r.latent_draws.shape == (1, 64, T, 3)
+    # Laplace is judged by PSIS k̂ on 200 draws, not by R-hat of independent draws
+    d = r.diagnostics
+    assert d["khat_draws"] == 200 and np.isfinite(d["khat"]) and "rhat_max" not in d
+    assert any("k̂" in w for w in r.warnings) == (d["khat"] > KHAT_MAX)
     # mixture variance = mean GP variance + spread of the means >= mean GP variance
     assert np.all(r.var >= r.gp_var - 1e-15) and np.mean(r.var - r.gp_var) > 0
     flat_m, flat_v = r.draw_mean.reshape(64, T, Dz), r.draw_var.reshape(64, T, Dz)
@@ -235,7 +296,12 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     assert r.n_draws >= 16 and r.latent_draws.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
     d = r.diagnostics
     assert {"rhat_max", "ess_bulk_min", "ess_tail_min", "map_converged"} <= set(d)
-    assert ("divergences" in d) if method == "nuts" else ("acceptance_fraction" in d)
+    if method == "nuts":
+        assert {"divergences", "step_size", "accept_stat_mean", "tree_depth_mean", "ebfmi_min", "mcse_mean_max"} <= set(d)
+        assert set(r.sample_stats) >= {"acceptance_rate", "tree_depth", "diverging", "energy"}
+        assert r.sample_stats["tree_depth"].shape == r.latent_draws.shape[:2]
+    else:
+        assert {"acceptance_fraction", "autocorr_time_max", "autocorr_ok"} <= set(d)
     # 16 draws cannot reach ESS 400: the result must say it did not converge
     assert r.warnings and any(f"{method} did not converge" in w for w in r.warnings)
     assert np.all(r.var >= r.gp_var)

@@ -12,12 +12,21 @@ their trained MAP values.
    block, :func:`bayes_talk.synthesis.sequential.synthesize`), then maximise the joint
    density by L-BFGS in coordinates whitened by the Laplace precision at that start.
    Converged when max |∂ ln p/∂x| ≤ ``gtol`` (reported, with the iteration count).
-2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws.
+2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws. Judged by
+   the PSIS Pareto k̂ of the importance weights p/q (200 draws; k̂ ≤ 0.7 wanted), not by
+   R-hat on independent draws.
 3. **nuts**: Pyro NUTS on z with X = X_MAP + L z, L the Cholesky factor of the Laplace
    covariance (an affine map: the target is unchanged and close to N(0, I) where the
-   Laplace approximation is good); chains start at z ~ N(0, 2²I), overdispersed.
-4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0.
+   Laplace approximation is good); 4 chains start at z ~ N(0, 2²I), overdispersed;
+   500 warm-up iterations, 250 draws per chain, target acceptance 0.8, tree depth ≤ 10
+   (:data:`~bayes_talk.synthesis.samplers.NUTS_DEFAULTS`).
+4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
+   run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
+
+Every run reports rank R-hat, bulk/tail ESS and MCSE (NUTS, emcee), divergences, step
+size, tree depth, the acceptance statistic and E-BFMI (NUTS), k̂ (Laplace), and one
+warning naming the failed thresholds (:func:`_convergence_warnings`).
 
 The visual prediction of frame t is the mixture over draws s of
 N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²) under the frame's state model, returned as the one result
@@ -36,11 +45,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from bayes_talk.evaluation.diagnostics import chain_diagnostics, convergence_problems
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.synthesis.diagnostics import chain_diagnostics, convergence_problems, energy_bfmi, psis_khat
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
-from bayes_talk.synthesis.samplers import Draws, run_emcee, run_nuts
+from bayes_talk.synthesis.samplers import INIT_SCALE, NUTS_DEFAULTS, Draws, run_emcee, run_nuts
 from bayes_talk.synthesis.sequential import _check_inputs, synthesize
 
 if TYPE_CHECKING:
@@ -55,6 +64,17 @@ MAP_MAX_ITER = 100
 MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
+#: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
+LAPLACE_KHAT_DRAWS = 200
+#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
+DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
+                 "emcee": 320}
+#: emcee: burn-in steps, walkers reported as chains, the chain may run on to this many
+#: times its first length to meet the autocorrelation rule, within this many stored floats
+EMCEE_WARMUP = 500
+EMCEE_REPORTED_WALKERS = 16
+EMCEE_MAX_STEPS_FACTOR = 10
+EMCEE_MAX_STORED_FLOATS = 1.25e8
 
 
 @dataclass
@@ -151,11 +171,11 @@ def sample_synthesis(
     mfcc: np.ndarray,
     labels,
     method: str = "laplace",
-    n_draws: int = 64,
+    n_draws: int | None = None,
     seed: int = 0,
     smoothness: str | bool = "frame",
     warmup: int | None = None,
-    chains: int = 4,
+    chains: int = NUTS_DEFAULTS["chains"],
     map_iter: int = MAP_MAX_ITER,
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
@@ -163,12 +183,16 @@ def sample_synthesis(
 ) -> SynthesisResult:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
-    n_draws: draws kept in all (pooled over chains; NUTS: ceil(n_draws / chains) per chain
-        after ``warmup`` adaptation steps, default 300; emcee: burn-in ``warmup`` steps,
-        default 500, then draws thinned by ``emcee_thin``).
+    n_draws: draws kept in all, pooled over chains (default :data:`DEFAULT_DRAWS`: Laplace
+        64, NUTS 4 × 250; NUTS: ceil(n_draws / chains) per chain after ``warmup``
+        adaptation steps, default 500; emcee: burn-in ``warmup`` steps, default 500, then
+        draws of 16 reported walkers thinned by ``emcee_thin`` or more).
+    chains: NUTS chains (default 4), started overdispersed at z ~ N(0, 2² I) in the
+        whitened coordinates (X = X_MAP + L z).
     map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
-    sampler_kw: extra keywords for the sampler (``target_accept``, ``max_tree_depth``,
-        ``n_walkers``, ...).
+    sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
+        ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
+        laplace: ``khat_draws`` (200)).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     """
     if method not in POSTERIOR_METHODS:
@@ -176,8 +200,13 @@ def sample_synthesis(
     smoothness = "frame" if smoothness is True else "off" if smoothness is False else smoothness
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
+    n_draws = DEFAULT_DRAWS[method] if n_draws is None else int(n_draws)
     if method != "map" and n_draws < 8:
         raise ValueError(f"n_draws must be >= 8, got {n_draws}")
+    if chains < 1:
+        raise ValueError(f"chains must be >= 1, got {chains}")
+    if warmup is not None and warmup < 0:
+        raise ValueError(f"warmup must be >= 0, got {warmup}")
     mfcc = _check_inputs(model, mfcc, labels)
     t0 = time.perf_counter()
     with torch_threads(1):
@@ -225,7 +254,7 @@ class _Whitened:
 
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
-            skw) -> PosteriorSynthesis:
+            skw) -> SynthesisResult:
     plan = make_plan(model, mfcc, labels, smoothness)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
@@ -244,34 +273,43 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                     f"after {mp.n_iter} iterations")
     x_map = mp.latents.reshape(-1)
     rng = np.random.default_rng(seed)
+    sample_stats: dict = {}
     if method == "map":
         Xs = x_map[None, None]
     elif method == "laplace":
-        Xs = (x_map[None] + rng.standard_normal((n_draws, T * d)) @ L.T)[None]
-    elif method == "nuts":
+        # extra draws (beyond n_draws) only to estimate k̂; the first n_draws are the result
+        Z = rng.standard_normal((max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS))), T * d))
+        Xall = x_map[None] + Z @ L.T
+        Xs = Xall[None, :n_draws]
+        diag.update(_laplace_diagnostics(dens, Xall, Z))
+    else:
         g = _Whitened(dens, x_map, L)
-        per_chain = -(-n_draws // chains)
-        z0 = 2.0 * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
-        kw = {"warmup": 300 if warmup is None else warmup, **skw}
-        draws = run_nuts(g, z0, n_draws=per_chain, chains=chains, seed=seed, **kw)
+        if method == "nuts":
+            per_chain = -(-n_draws // chains)
+            z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
+            kw = {"warmup": NUTS_DEFAULTS["warmup"] if warmup is None else warmup, **skw}
+            draws = run_nuts(g, z0, n_draws=per_chain, chains=chains, seed=seed, **kw)
+        else:  # emcee
+            W = skw.pop("n_walkers", None) or max(32, 2 * T * d)
+            W += W % 2
+            n_keep = min(W, EMCEE_REPORTED_WALKERS)
+            per_walker = max(20, -(-n_draws // n_keep))
+            kw = {"warmup": EMCEE_WARMUP if warmup is None else warmup, "thin": emcee_thin, **skw}
+            if "max_steps" not in kw:  # bound the stored chain (steps/thin × walkers × dim floats)
+                first = kw["warmup"] + per_walker * kw["thin"]
+                fits = int(EMCEE_MAX_STORED_FLOATS / (W * T * d)) * kw["thin"]
+                kw["max_steps"] = max(first, min(EMCEE_MAX_STEPS_FACTOR * first, fits))
+            draws = run_emcee(g, np.zeros(T * d), n_draws=per_walker, seed=seed, n_walkers=W, ball=0.1,
+                              n_keep=n_keep, **kw)
         Xs = g.to_x(draws.samples)
         diag.update(_sampler_diagnostics(draws))
-    else:  # emcee
-        g = _Whitened(dens, x_map, L)
-        W = skw.pop("n_walkers", None) or max(32, 2 * T * d)
-        W += W % 2
-        per_walker = max(20, -(-n_draws // W))
-        draws = run_emcee(g, np.zeros(T * d), n_draws=per_walker, seed=seed,
-                          warmup=500 if warmup is None else warmup, thin=emcee_thin,
-                          n_walkers=W, ball=0.1, n_keep=min(W, 16), **skw)
-        Xs = g.to_x(draws.samples)
-        diag.update(_sampler_diagnostics(draws))
+        sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
-    if method in ("nuts", "emcee"):
+    if method != "map":
         warn += _convergence_warnings(method, diag)
     zm, zv = visual_predictive(plan, Xs)
-    return PosteriorSynthesis(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
-                              warnings=warn)
+    return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
+                           warnings=warn, sample_stats=sample_stats)
 
 
 def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -288,27 +326,54 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return zm, zv
 
 
+def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -> dict:
+    """PSIS k̂ of the Laplace approximation q = N(x_MAP, L Lᵀ) to p from draws x_s = x_MAP + L z_s:
+    log weights ln p(x_s) − ln q(x_s) = ln p(x_s) + ½‖z_s‖² + const (Vehtari et al. 2024)."""
+    lp = np.array([dens(x)[0] for x in X])
+    lw = lp + 0.5 * np.sum(Z * Z, axis=1)
+    return {"khat": psis_khat(lw), "khat_draws": int(len(lw))}
+
+
 def _sampler_diagnostics(draws: Draws) -> dict:
+    """Summary diagnostics of a NUTS or emcee run (JSON-ready scalars and short lists)."""
     cd = chain_diagnostics(draws.samples)
-    out = {k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "n_chains", "n_draws")}
-    st = draws.stats
-    if "divergences" in st:
+    out = {k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max",
+                              "n_chains", "n_draws")}
+    st, ss = draws.stats, draws.sample_stats
+    if draws.method == "nuts":
         out["divergences"] = int(sum(st["divergences"]))
         out["step_size"] = [float(s) for s in st["step_size"]]
+        out["accept_stat_mean"] = float(np.mean(ss["acceptance_rate"]))
+        out["target_accept"] = st["target_accept"]
+        out["tree_depth_mean"] = float(np.mean(ss["tree_depth"]))
+        out["tree_depth_max"] = int(np.max(ss["tree_depth"]))
+        out["max_tree_depth"] = st["max_tree_depth"]
+        out["max_tree_depth_hits"] = st["max_tree_depth_hits"]
+        out["n_steps_mean"] = float(np.mean(ss["n_steps"]))
+        out["n_gradients"] = st["n_gradients"]
+        out["warmup"] = st["warmup"]
+        out["ebfmi"] = [float(b) for b in energy_bfmi(ss["energy"])]
+        out["ebfmi_min"] = min(out["ebfmi"])
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
+        for k in ("autocorr_time_max", "autocorr_time_mean", "autocorr_steps", "autocorr_tol", "autocorr_ok",
+                  "steps", "thin", "n_walkers"):
+            out[k] = st[k]
     out["sampler_seconds"] = float(draws.seconds)
     return out
 
 
 def _convergence_warnings(method: str, diag: dict) -> list[str]:
-    """The failed sampler checks (:func:`~bayes_talk.evaluation.diagnostics.convergence_problems`)
-    as one warning."""
+    """The failed sampler checks (:func:`~bayes_talk.synthesis.diagnostics.convergence_problems`:
+    R-hat ≤ 1.01, bulk and tail ESS ≥ 400, no divergences, k̂ ≤ 0.7, E-BFMI ≥ 0.3, emcee's
+    chain ≥ 50 τ) as one warning naming them."""
     fails = convergence_problems(diag)
     if not fails:
         return []
-    return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; "
-            "run more draws/warm-up or use the Laplace posterior"]
+    advice = {"laplace": "the Gaussian approximation is poor here; use --posterior nuts",
+              "nuts": "run more draws/warm-up (or raise the target acceptance for divergences)",
+              "emcee": "run it longer (max_steps) or use --posterior nuts"}.get(method, "")
+    return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; " + advice]
 
 
 __all__ = ["DEFAULT_LEVELS", "MAP_GTOL", "MAP_MAX_ITER", "MapResult", "POSTERIOR_METHODS", "PosteriorSynthesis",

@@ -3,17 +3,21 @@
 Every sampler here takes ``log_prob(x: torch.Tensor[n]) -> scalar tensor`` (float64,
 differentiable), a starting point (the MAP point of the synthesis posterior) and a seed,
 and returns a :class:`Draws`: ``samples`` of shape (chains, draws, n) plus sampler
-statistics for :mod:`bayes_talk.evaluation.diagnostics`. Same seed -> same draws.
+statistics for :mod:`bayes_talk.synthesis.diagnostics`. Same seed -> same draws.
 
 * :func:`run_nuts` - Pyro NUTS with ``potential_fn = -log_prob``, diagonal mass matrix
   adapted during warm-up; chains run one after another in this process (chain c seeded
-  ``seed + c``), so there is no multiprocessing and the draws are reproducible.
+  ``seed + c``), so there is no multiprocessing and the draws are reproducible. Every
+  post-warm-up iteration's acceptance statistic, leapfrog steps, tree depth, divergence,
+  energy and ln p are recorded (``Draws.sample_stats``).
 * :func:`run_emcee` - emcee's affine-invariant ensemble with a differential-evolution move
   mix (80 % ``DEMove``, 20 % ``DESnookerMove``: the default stretch move mixes badly on
   correlated, higher-dimensional targets, FACTS.md "Samplers"); walkers start in a small
   Gaussian ball around the MAP point; the log density is evaluated for all walkers at
   once (``torch.func.vmap`` over the torch function; a Python loop when vmap fails).
-  The chains reported are the walkers, thinned.
+  The chains reported are the walkers, thinned. The integrated autocorrelation time
+  (``get_autocorr_time``) is checked against emcee's rule (chain ≥ 50 τ) and the chain run
+  on up to ``max_steps`` to meet it; ``Draws.stats["autocorr_ok"]`` says whether it did.
 * :func:`run_laplace` - Gaussian N(x_MAP, (-∇²log p)⁻¹) with the Hessian from
   ``torch.autograd.functional.hessian``; a non-positive-definite negative Hessian (MAP not
   exactly at a maximum) has its eigenvalues floored, and that is recorded.
@@ -42,12 +46,16 @@ METHODS = ("nuts", "emcee", "laplace")
 @dataclass
 class Draws:
     """samples: (chains, draws, n). stats: sampler statistics (divergences per chain,
-    acceptance fraction, Hessian eigenvalue floor, ...). seconds: wall time."""
+    acceptance fraction, Hessian eigenvalue floor, ...). seconds: wall time.
+    sample_stats: per-draw statistics (chains, draws) under ArviZ's names (NUTS:
+    ``acceptance_rate``, ``n_steps``, ``tree_depth``, ``diverging``, ``energy``, ``lp``,
+    ``step_size``), for ``InferenceData.sample_stats``."""
 
     method: str
     samples: np.ndarray
     stats: dict = field(default_factory=dict)
     seconds: float = 0.0
+    sample_stats: dict = field(default_factory=dict)
 
     @property
     def flat(self) -> np.ndarray:
@@ -60,44 +68,117 @@ def _as_tensor(x) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------- NUTS
-def run_nuts(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 200, chains: int = 1,
-             seed: int = 0, target_accept: float = 0.8, max_tree_depth: int = 8) -> Draws:
-    """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
-    start per chain (overdispersed starts make R-hat meaningful)."""
-    import pyro
-    from pyro.infer.mcmc import MCMC, NUTS
+#: NUTS defaults of the library and the CLI (found on a 3-second held-out utterance,
+#: docs/uncertainty.md "Sampler options"): chains, warm-up iterations per chain, draws
+#: kept per chain, target acceptance statistic of the step-size adaptation, max tree depth
+NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10}
+#: spread of the overdispersed chain starts: z ~ N(0, INIT_SCALE² I) in whitened coordinates
+INIT_SCALE = 2.0
 
+
+class _RecordingNUTS:
+    """Builds a Pyro NUTS kernel that records, for every post-warm-up iteration, the
+    acceptance statistic (the mean Metropolis acceptance probability min(1, e^{−ΔH}) over
+    the trajectory's proposals, Hoffman & Gelman 2014 §3.2.1: what the step-size adaptation
+    targets; Pyro's ``diagnostics()["acceptance rate"]`` is the fraction of iterations that
+    moved, a different number), the number of leapfrog steps and the tree depth, whether
+    the iteration diverged, the Hamiltonian energy after the momentum draw (for E-BFMI)
+    and ln p at the draw."""
+
+    @staticmethod
+    def make(potential, counter: list, **kw):
+        from pyro.infer.mcmc import NUTS
+
+        class Kernel(NUTS):
+            def _sample_r(self, name):
+                r, r_unscaled = super()._sample_r(name)
+                if name.startswith("r_t="):
+                    self._energy_now = float(self._kinetic_energy(r_unscaled)) + float(self._potential_energy_last)
+                return r, r_unscaled
+
+            def sample(self, params):
+                m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
+                z = super().sample(params)
+                if self._t > self._warmup_steps:
+                    n = self._t - self._warmup_steps   # the running mean restarts after warm-up
+                    rec = self.records
+                    # undo Pyro's running mean m_n = m_{n-1} + (a_n − m_{n-1})/n (rounding: clip)
+                    rec["acceptance_rate"].append(min(1.0, max(0.0, m_prev + n * (self._mean_accept_prob - m_prev))))
+                    steps = counter[0] - n_grad
+                    rec["n_steps"].append(steps)
+                    rec["tree_depth"].append(int(np.ceil(np.log2(steps + 1))))
+                    rec["diverging"].append(len(self._divergences) > n_div)
+                    rec["energy"].append(self._energy_now)
+                    rec["lp"].append(-float(self._potential_energy_last))
+                return z
+
+        k = Kernel(potential_fn=potential, **kw)
+        k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp")}
+        return k
+
+
+def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chain"],
+             warmup: int = NUTS_DEFAULTS["warmup"], chains: int = 1, seed: int = 0,
+             target_accept: float = NUTS_DEFAULTS["target_accept"],
+             max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"]) -> Draws:
+    """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
+    start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
+    step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
+
+    ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
+    ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
+    per-chain totals (``divergences``, ``step_size``, ``max_tree_depth_hits``)."""
+    import pyro
+
+    from pyro.infer.mcmc import MCMC
+
+    if chains < 1 or n_draws < 1 or warmup < 0:
+        raise ValueError(f"NUTS needs chains >= 1, draws >= 1, warmup >= 0; got {chains}, {n_draws}, {warmup}")
+    if not 0 < target_accept < 1:
+        raise ValueError(f"target_accept must be in (0, 1), got {target_accept}")
+    if max_tree_depth < 1:
+        raise ValueError(f"max_tree_depth must be >= 1, got {max_tree_depth}")
     x0 = _as_tensor(x0)
     if x0.ndim == 2 and x0.shape[0] != chains:
         raise ValueError(f"x0 holds {x0.shape[0]} starts for {chains} chains")
+    counter = [0]
 
     def potential(params):
+        counter[0] += 1
         return -log_prob(params["x"])
 
-    out, divs, accept, steps = [], [], [], []
+    out, steps, recs = [], [], []
     t0 = time.perf_counter()
     with torch_threads(1):
         for c in range(chains):
             pyro.set_rng_seed(seed + c)
             start = (x0[c] if x0.ndim == 2 else x0).reshape(-1).clone()
-            kernel = NUTS(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=True,
-                          full_mass=False, target_accept_prob=target_accept, max_tree_depth=max_tree_depth)
+            kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
+                                         full_mass=False, target_accept_prob=target_accept,
+                                         max_tree_depth=max_tree_depth)
             mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": start},
                         num_chains=1, disable_progbar=not progress.enabled())
             log.info("NUTS chain %d/%d: %d warm-up + %d draws", c + 1, chains, warmup, n_draws)
             mcmc.run()
             out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
-            diag = mcmc.diagnostics()
-            d = diag.get("divergences", {})
-            divs.append(int(sum(len(v) for v in d.values())) if isinstance(d, dict) else len(d))
-            a = diag.get("acceptance rate", {})
-            accept.append(float(np.mean(list(a.values()))) if isinstance(a, dict) and a else float("nan"))
             steps.append(float(kernel.step_size))
-    return Draws("nuts", np.stack(out), {"divergences": divs, "accept_prob": accept, "step_size": steps},
-                 time.perf_counter() - t0)
+            recs.append(kernel.records)
+    ss = {k: np.array([r[k] for r in recs]) for k in recs[0]}
+    ss["step_size"] = np.repeat(np.array(steps)[:, None], n_draws, axis=1)
+    stats = {"divergences": [int(d.sum()) for d in ss["diverging"]], "step_size": steps,
+             "accept_prob": [float(a.mean()) for a in ss["acceptance_rate"]],
+             "max_tree_depth": int(max_tree_depth), "target_accept": float(target_accept),
+             "max_tree_depth_hits": int(np.sum(ss["tree_depth"] >= max_tree_depth)),
+             "warmup": int(warmup), "n_gradients": int(counter[0])}
+    return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
 
 
 # ---------------------------------------------------------------------------- emcee
+#: emcee's rule (Foreman-Mackey et al. 2013, ``emcee.autocorr.integrated_time``): the
+#: chain after burn-in should be at least this many integrated autocorrelation times long
+AUTOCORR_TOL = 50.0
+
+
 def batch_log_prob(log_prob: LogProb) -> Callable[[np.ndarray], np.ndarray]:
     """Vectorised log density for emcee: (W, n) numpy -> (W,) numpy, -inf where not finite."""
     vm = torch.func.vmap(log_prob)
@@ -121,14 +202,34 @@ def batch_log_prob(log_prob: LogProb) -> Callable[[np.ndarray], np.ndarray]:
     return f
 
 
+def _autocorr_time(sampler, discard: int) -> np.ndarray:
+    """emcee's integrated autocorrelation time per coordinate of the chain after ``discard``
+    (``get_autocorr_time(quiet=True)``: an estimate even when the chain is too short)."""
+    import emcee
+
+    emlog = logging.getLogger(emcee.autocorr.__name__)
+    level = emlog.level
+    emlog.setLevel(logging.ERROR)   # "the chain is shorter than 50 times ...": reported by us
+    try:
+        return np.asarray(sampler.get_autocorr_time(discard=discard, quiet=True), dtype=float)
+    finally:
+        emlog.setLevel(level)
+
+
 def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_walkers: int | None = None,
               seed: int = 0, ball: float = 1e-2, thin: int = 1, n_keep: int | None = None,
-              de_fraction: float = 0.8) -> Draws:
+              de_fraction: float = 0.8, max_steps: int | None = None, autocorr_tol: float = AUTOCORR_TOL) -> Draws:
     """emcee ensemble from a ball of radius ``ball`` around ``x0``.
 
-    Runs ``warmup + n_draws * thin`` steps and keeps the last ``n_draws * thin`` thinned by
-    ``thin``. ``n_keep`` (default: all) keeps that many walkers as the reported chains
+    Runs ``warmup + n_draws * thin`` steps, storing every ``thin``-th (``thin_by``); then, while the chain after the warm-up is
+    shorter than ``autocorr_tol`` × the largest integrated autocorrelation time τ_max
+    (``sampler.get_autocorr_time``) and ``max_steps`` (default: the first run's length, i.e.
+    no extension) allows, runs on to that length (at most doubling each round). Keeps
+    ``n_draws`` evenly thinned steps of the chain after the warm-up (at least ``thin``
+    apart). ``n_keep`` (default: all) keeps that many walkers as the reported chains
     (evenly spaced) to bound memory. Walkers default to max(32, 4 n) rounded up to even.
+    ``Draws.stats``: acceptance, ``autocorr_time_max`` / ``_mean``, ``autocorr_steps`` (after
+    warm-up), ``autocorr_ok`` (length ≥ ``autocorr_tol`` · τ_max), ``steps``.
     """
     import emcee
 
@@ -136,6 +237,11 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     n = x0.size
     W = n_walkers if n_walkers is not None else max(32, 4 * n)
     W += W % 2
+    # every count below is in stored steps (emcee keeps every `thin`-th step: thin_by)
+    k = max(1, int(thin))
+    w_st = -(-int(warmup) // k)
+    first = w_st + n_draws
+    max_st = first if max_steps is None else max(int(max_steps) // k, first)
     rng = np.random.default_rng(seed)
     p0 = x0[None, :] + ball * rng.standard_normal((W, n))
     moves = [(emcee.moves.DEMove(), de_fraction), (emcee.moves.DESnookerMove(), 1.0 - de_fraction)]
@@ -144,16 +250,29 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
         f = batch_log_prob(log_prob)
         sampler = emcee.EnsembleSampler(W, n, f, moves=moves, vectorize=True)
         sampler.random_state = np.random.RandomState(seed).get_state()
-        log.info("emcee: %d walkers, %d steps", W, warmup + n_draws * thin)
-        sampler.run_mcmc(p0, warmup + n_draws * thin, progress=progress.enabled())
-    chain = sampler.get_chain(discard=warmup, thin=thin)  # (steps, W, n)
+        log.info("emcee: %d walkers, %d steps", W, first * k)
+        sampler.run_mcmc(p0, first, thin_by=k, progress=progress.enabled())
+        tau = _autocorr_time(sampler, w_st)
+        while sampler.iteration - w_st < autocorr_tol * np.nanmax(tau) and sampler.iteration < max_st:
+            want = int(np.ceil(autocorr_tol * np.nanmax(tau))) + w_st
+            more = max(1, min(want - sampler.iteration, sampler.iteration, max_st - sampler.iteration))
+            log.info("emcee: autocorrelation time %.1f steps; %d more steps", np.nanmax(tau) * k, more * k)
+            sampler.run_mcmc(None, more, thin_by=k, progress=progress.enabled())
+            tau = _autocorr_time(sampler, w_st)
+    after = sampler.iteration - w_st
+    step = max(1, after // n_draws)
+    chain = sampler.get_chain()[w_st:][::-1][::step][:n_draws][::-1]  # the last n_draws, `step` apart
     chain = np.transpose(chain, (1, 0, 2))
     if n_keep is not None and n_keep < W:
         chain = chain[np.linspace(0, W - 1, n_keep).round().astype(int)]
     acc = sampler.acceptance_fraction
+    tau_max = float(np.nanmax(tau))
     return Draws("emcee", np.ascontiguousarray(chain),
                  {"acceptance_fraction": float(np.mean(acc)), "acceptance_min": float(np.min(acc)),
-                  "n_walkers": int(W), "steps": int(warmup + n_draws * thin)},
+                  "n_walkers": int(W), "steps": int(sampler.iteration * k), "thin": int(step * k),
+                  "autocorr_time_max": tau_max * k, "autocorr_time_mean": float(np.nanmean(tau)) * k,
+                  "autocorr_steps": int(after * k), "autocorr_tol": float(autocorr_tol),
+                  "autocorr_ok": bool(after >= autocorr_tol * tau_max)},
                  time.perf_counter() - t0)
 
 

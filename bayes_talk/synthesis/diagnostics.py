@@ -1,0 +1,169 @@
+"""Sampler diagnostics through ArviZ (DESIGN.md §6) - the only synthesis module that imports arviz.
+
+ArviZ is pinned below 0.24 (ArviZ 1.x needs Python >= 3.12); every call to it that synthesis
+makes is here (``bayes_talk.evaluation.diagnostics`` re-exports this module for older callers).
+
+* :func:`chain_diagnostics` - draws (chains, draws, n): rank-normalised split R-hat
+  (``arviz.rhat(method="rank")``, Vehtari et al. 2021), bulk and tail ESS
+  (``arviz.ess(method="bulk"|"tail")``) and the Monte-Carlo standard errors of the mean and
+  of the standard deviation (``arviz.mcse(method="mean"|"sd")``), per coordinate and worst case.
+* :func:`energy_bfmi` - the energy Bayesian fraction of missing information per chain
+  (``arviz.bfmi``, Betancourt 2016): Σ(E_n − E_{n−1})² / Σ(E_n − Ē)² of the Hamiltonian at
+  each NUTS iteration; below 0.3 the momentum resampling does not explore the energy levels.
+* :func:`psis_khat` - the Pareto shape k̂ of importance weights (``arviz.psislw``,
+  Vehtari et al. 2024): for draws x_s of an approximation q (Laplace, VI) of p, the log
+  weights ln p(x_s) − ln q(x_s); k̂ ≤ 0.7 means importance sampling from q, and so q
+  itself for expectations of moderate functions, is reliable; above 0.7 it is not.
+* :func:`convergence_problems` - the failed checks against :data:`THRESHOLDS`, in words.
+* :func:`inference_data` - ``arviz.from_dict`` for the synthesis result type.
+
+With a single chain (Laplace draws) the chain is split in two halves before ArviZ sees it
+(ArviZ returns nan R-hat for one chain); ``n_chains`` reports the chains given.
+"""
+from __future__ import annotations
+
+import warnings
+from contextlib import contextmanager
+
+import numpy as np
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", FutureWarning)  # arviz 0.2x announces its 1.0 refactor
+    import arviz as az
+
+DIAGNOSTIC_KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max", "n_chains",
+                   "n_draws", "rhat", "ess_bulk", "ess_tail", "mcse_mean", "mcse_sd")
+
+#: rank R-hat at most this (Vehtari et al. 2021)
+RHAT_MAX = 1.01
+#: bulk and tail ESS at least this (Vehtari et al. 2021: 100 per chain for 4 chains)
+ESS_MIN = 400.0
+#: PSIS Pareto k̂ at most this (Vehtari et al. 2024)
+KHAT_MAX = 0.7
+#: energy BFMI at least this in every chain (Betancourt 2016)
+EBFMI_MIN = 0.3
+THRESHOLDS = {"rhat_max": RHAT_MAX, "ess_min": ESS_MIN, "divergences": 0, "khat_max": KHAT_MAX,
+              "ebfmi_min": EBFMI_MIN}
+
+
+@contextmanager
+def _numba_off():
+    was = bool(az.Numba.numba_flag)
+    if was:
+        az.Numba.disable_numba()
+    try:
+        yield
+    finally:
+        if was:
+            az.Numba.enable_numba()
+
+
+def _idata(samples: np.ndarray):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "more chains than draws": emcee walkers
+        return az.from_dict(posterior={"x": samples})
+
+
+def chain_diagnostics(samples: np.ndarray) -> dict:
+    """Rank R-hat, bulk/tail ESS and MCSE of (chains, draws, n) samples via ArviZ."""
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 3:
+        raise ValueError(f"samples: expected (chains, draws, n), got shape {s.shape}")
+    C, S, n = s.shape
+    if S < 4:
+        raise ValueError(f"need at least 4 draws per chain for split R-hat, got {S}")
+    if C == 1:  # ArviZ gives nan R-hat for one chain: split it explicitly (what split R-hat does)
+        h = S // 2
+        s = np.stack([s[0, :h], s[0, h:2 * h]])
+    idata = _idata(s)
+
+    def per_coord(fn, **kw) -> np.ndarray:
+        return np.asarray(fn(idata, var_names=["x"], **kw)["x"].values, dtype=float).reshape(n)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rhat = per_coord(az.rhat, method="rank")
+        bulk = per_coord(az.ess, method="bulk")
+        tail = per_coord(az.ess, method="tail")
+        mcse_mean = per_coord(az.mcse, method="mean")
+        with _numba_off():  # arviz 0.23's numba path of mcse(method="sd") fails on numpy >= 2.3
+            mcse_sd = per_coord(az.mcse, method="sd")
+    return {
+        "rhat_max": float(np.nanmax(rhat)),
+        "ess_bulk_min": float(np.nanmin(bulk)),
+        "ess_tail_min": float(np.nanmin(tail)),
+        "mcse_mean_max": float(np.nanmax(mcse_mean)),
+        "mcse_sd_max": float(np.nanmax(mcse_sd)),
+        "n_chains": int(C),
+        "n_draws": int(S),
+        "rhat": rhat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+        "mcse_mean": mcse_mean,
+        "mcse_sd": mcse_sd,
+    }
+
+
+def energy_bfmi(energy: np.ndarray) -> np.ndarray:
+    """E-BFMI of each chain from the Hamiltonian energy (chains, draws) of NUTS iterations."""
+    e = np.asarray(energy, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] < 2:
+        raise ValueError(f"energy: expected (chains, draws >= 2), got shape {e.shape}")
+    return np.asarray(az.bfmi(e), dtype=float).reshape(e.shape[0])
+
+
+def psis_khat(log_weights: np.ndarray) -> float:
+    """Pareto k̂ of the importance log weights (n,) = ln p(x_s) − ln q(x_s) (constants free)."""
+    lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
+    if lw.size < 10:
+        raise ValueError(f"need at least 10 importance weights for PSIS, got {lw.size}")
+    if not np.all(np.isfinite(lw)):
+        return float("inf")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ArviZ warns when k̂ > 0.7: the caller reports it
+        _, k = az.psislw(lw)
+    return float(np.asarray(k).reshape(()))
+
+
+def convergence_problems(diag: dict) -> list[str]:
+    """The failed checks of a sampler run's diagnostics, in words: R-hat above
+    :data:`RHAT_MAX`, bulk or tail ESS below :data:`ESS_MIN`, any divergent transition,
+    PSIS k̂ above :data:`KHAT_MAX`, an E-BFMI below :data:`EBFMI_MIN`, an emcee chain
+    shorter than the autocorrelation-time rule. Only the keys present are checked
+    ([] for the MAP)."""
+    out = []
+    r = diag.get("rhat_max")
+    if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
+        out.append(f"R-hat {r:.3g} > {RHAT_MAX}")
+    for key, what in (("ess_bulk_min", "bulk"), ("ess_tail_min", "tail")):
+        e = diag.get(key)
+        if e is not None and (not np.isfinite(e) or e < ESS_MIN):
+            out.append(f"{what} ESS {e:.3g} < {ESS_MIN:g}")
+    dv = diag.get("divergences")
+    if dv:
+        out.append(f"{int(dv)} divergent transitions (want 0)")
+    k = diag.get("khat")
+    if k is not None and (not np.isfinite(k) or k > KHAT_MAX):
+        out.append(f"PSIS k̂ {k:.3g} > {KHAT_MAX}")
+    b = diag.get("ebfmi_min")
+    if b is not None and np.isfinite(b) and b < EBFMI_MIN:
+        out.append(f"E-BFMI {b:.3g} < {EBFMI_MIN}")
+    if diag.get("autocorr_ok") is False:
+        out.append(f"emcee chain of {diag['autocorr_steps']} steps < {diag['autocorr_tol']:g} × "
+                   f"autocorrelation time {diag['autocorr_time_max']:.3g}")
+    return out
+
+
+def inference_data(posterior: dict, sample_stats: dict | None = None, observed_data: dict | None = None,
+                   dims: dict | None = None, coords: dict | None = None, **groups):
+    """``arviz.from_dict``: arrays (chains, draws, ...) of ``posterior`` and ``sample_stats``
+    (ArviZ names: ``lp``, ``acceptance_rate``, ``step_size``, ``tree_depth``, ``n_steps``,
+    ``diverging``, ``energy``), ``observed_data`` without chain/draw dimensions."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return az.from_dict(posterior=posterior, sample_stats=sample_stats, observed_data=observed_data,
+                            dims=dims, coords=coords, **groups)
+
+
+__all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
+           "convergence_problems", "energy_bfmi", "inference_data", "psis_khat"]

@@ -1,0 +1,125 @@
+"""Simulation-based calibration of the synthesis samplers (Talts et al. 2018; DESIGN.md §6).
+
+For a trained switching model and a short stretch of frame labels (``--frames`` frames
+from ``--start`` of one utterance's labels), ``bayes_talk.evaluation.sbc.synthesis_sbc``
+simulates ``--sims`` latent trajectories and audio from the synthesis model
+(``pyro.infer.Predictive``, smoothness factors off), runs each sampler on every simulated
+audio, ranks the true latents among ``--rank-draws`` thinned posterior draws, and tests
+rank uniformity per latent coordinate (χ², Holm-corrected, family-wise α = 0.05).
+
+Samplers: ``nuts`` (``--nuts-chains`` chains, ``--nuts-warmup`` warm-up, ``--nuts-draws``
+draws per chain), ``laplace`` (200 draws), ``emcee`` (library defaults), and the control
+``laplace-halved`` (Laplace with its covariance halved: SBC must reject it).
+
+    PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
+        [--start 10] [--frames 4] [--sims 50] [--nuts-sims N] [--emcee-sims N] [--rank-draws 19]
+        [--methods nuts,laplace,laplace-halved,emcee] [--out benchmarks/results/sbc.json]
+
+Without ``--model``: a toy switching model (tests/toydata.py, the test configuration) and
+the labels of a toy utterance. Writes JSON after each sampler (atomic replace).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "tests"))
+
+from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc  # noqa: E402
+
+SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+
+
+def load(args):
+    if args.model:
+        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.pipeline import load_trained
+
+        model = load_trained(args.model).model
+        seqs = {s.name: s for s in load_corpus(args.corpus, cache=False).sequences}
+        name = args.utterance or sorted(seqs)[0]
+        return model, list(seqs[name].labels), {"model": str(args.model), "corpus": str(args.corpus),
+                                                 "utterance": name}
+    from toydata import make_utterances
+
+    from bayes_talk.models.switching import SwitchingSGPDM
+
+    model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
+    return model, list(make_utterances(1, seed=1, mean_len=20)[0].labels), {
+        "model": "toy: SwitchingSGPDM(vlmm, test configuration) on make_utterances(24, seed=0)",
+        "utterance": "make_utterances(1, seed=1, mean_len=20)[0]"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", type=Path, default=None, help="directory written by `bayes-talk train`")
+    ap.add_argument("--corpus", type=Path, default=None, help="corpus holding --utterance (for its labels)")
+    ap.add_argument("--utterance", default=None)
+    ap.add_argument("--start", type=int, default=10)
+    ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--sims", type=int, default=50)
+    ap.add_argument("--nuts-sims", type=int, default=None, help="simulations for NUTS (default --sims)")
+    ap.add_argument("--emcee-sims", type=int, default=None, help="simulations for emcee (default --sims)")
+    ap.add_argument("--rank-draws", type=int, default=19)
+    ap.add_argument("--nuts-chains", type=int, default=2)
+    ap.add_argument("--nuts-warmup", type=int, default=200)
+    ap.add_argument("--nuts-draws", type=int, default=100, help="NUTS draws per chain")
+    ap.add_argument("--methods", default="nuts,laplace,laplace-halved,emcee")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "sbc.json")
+    args = ap.parse_args()
+    if args.model and not args.corpus:
+        ap.error("--model needs --corpus (the labels of --utterance)")
+    warnings.filterwarnings("ignore", category=FutureWarning)
+
+    model, labels, src = load(args)
+    labels = labels[args.start:args.start + args.frames]
+    if len(labels) != args.frames:
+        raise SystemExit(f"the utterance has fewer than {args.start + args.frames} frames")
+    res = {"command": "benchmarks/sbc.py " + " ".join(sys.argv[1:]), "source": src, "labels": labels,
+           "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+           "settings": {k: v for k, v in vars(args).items() if k not in ("out", "model", "corpus")},
+           "samplers": {}}
+
+    def save():
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(res, indent=1, default=str))
+        tmp.replace(args.out)
+
+    posteriors = {
+        "nuts": lambda: sampler_posterior("nuts", n_draws=args.nuts_chains * args.nuts_draws, chains=args.nuts_chains,
+                                          warmup=args.nuts_warmup),
+        "laplace": lambda: sampler_posterior("laplace", n_draws=200),
+        "laplace-halved": lambda: scaled_laplace(0.5, n_draws=200),
+        "emcee": lambda: sampler_posterior("emcee"),
+    }
+    for method in args.methods.split(","):
+        if method not in posteriors:
+            raise SystemExit(f"unknown method {method!r}; choose from {sorted(posteriors)}")
+        n = {"nuts": args.nuts_sims, "emcee": args.emcee_sims}.get(method) or args.sims
+        print(f"{method}: {n} simulations ...", flush=True)
+        t0 = time.perf_counter()
+        load0 = os.getloadavg()[0]
+        r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed)
+        out = r.to_dict()
+        out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
+        res["samplers"][method] = out
+        print(json.dumps({k: v for k, v in out.items() if k != "p_values"}, default=str), flush=True)
+        save()
+    res["complete"] = True
+    save()
+
+
+if __name__ == "__main__":
+    main()

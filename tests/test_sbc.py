@@ -1,0 +1,116 @@
+"""Simulation-based calibration and predictive checks (DESIGN.md §6): SBC passes for an exact
+posterior and fails for a deliberately wrong one; prior/posterior predictive checks through
+pyro.infer.Predictive on the synthesis model."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from toydata import make_utterances
+
+from bayes_talk.evaluation.sbc import holm, ranks, run_sbc, scaled_laplace, synthesis_sbc, uniformity_test
+from bayes_talk.models.switching import SwitchingSGPDM
+from bayes_talk.synthesis.joint import make_plan
+from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.synthesis.predictive_checks import posterior_predictive, predictive_check, prior_predictive
+
+SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+
+# conjugate Gaussian: θ ~ N(0, I_K), y = θ + N(0, s² I): posterior N(y/(1+s²), s²/(1+s²) I)
+K, S2 = 4, 0.5
+
+
+def _simulate(rng):
+    theta = rng.standard_normal(K)
+    return theta, theta + np.sqrt(S2) * rng.standard_normal(K)
+
+
+def _posterior(var_scale):
+    def post(y, seed):
+        rng = np.random.default_rng(seed)
+        m, v = y / (1 + S2), S2 / (1 + S2) * var_scale
+        return m + np.sqrt(v) * rng.standard_normal((99, K))
+    return post
+
+
+def test_holm_matches_its_definition():
+    p = np.array([0.01, 0.04, 0.03, 0.2])
+    # sorted 0.01, 0.03, 0.04, 0.2 -> 4·0.01, max(·, 3·0.03), max(·, 2·0.04), max(·, 0.2)
+    np.testing.assert_allclose(holm(p), [0.04, 0.09, 0.09, 0.2])
+
+
+def test_ranks_count_draws_below_the_truth():
+    draws = np.array([[[0.0], [1.0], [2.0], [3.0]]])
+    assert ranks(np.array([[2.5]]), draws).tolist() == [[3]]
+    assert ranks(np.array([[-1.0]]), draws).tolist() == [[0]]
+
+
+def test_sbc_passes_for_the_exact_posterior_of_a_gaussian():
+    res = run_sbc(_simulate, _posterior(1.0), n_sims=400, n_draws=19, seed=0)
+    assert res.ranks.shape == (400, K) and res.ranks.min() >= 0 and res.ranks.max() <= 19
+    assert res.passed, res.to_dict()
+    assert abs(res.extreme_fraction - res.extreme_expected) < 0.03
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0])
+def test_sbc_fails_for_a_wrong_posterior_variance(scale):
+    res = run_sbc(_simulate, _posterior(scale), n_sims=400, n_draws=19, seed=0)
+    assert not res.passed and res.n_rejected == K, res.to_dict()
+    # too narrow: the truth falls at the extremes; too wide: in the middle
+    assert (res.extreme_fraction > 2 * res.extreme_expected) == (scale < 1)
+
+
+def test_uniformity_test_rejects_unequal_bins():
+    with pytest.raises(ValueError, match="divide"):
+        uniformity_test(np.zeros((50, 2), int), 19, bins=3)
+
+
+# ------------------------------------------------------------------ the synthesis model
+@pytest.fixture(scope="module")
+def toy():
+    train = make_utterances(24, seed=0)
+    test = make_utterances(2, seed=1, mean_len=20)
+    return SwitchingSGPDM(states="vlmm", **SMALL).fit(train), test
+
+
+def test_sbc_rejects_laplace_with_halved_variance_on_the_synthesis_model(toy):
+    model, test = toy
+    labels = test[0].labels[2:7]   # 5 frames across a phone change: 15 latent coordinates
+    res = synthesis_sbc(model, labels, scaled_laplace(0.5, n_draws=40), n_sims=40, n_draws=19, seed=0)
+    assert res.ranks.shape == (40, 15)
+    assert not res.passed, res.to_dict()
+    assert res.extreme_fraction > 2 * res.extreme_expected
+
+
+def test_prior_predictive_simulates_the_synthesis_model(toy):
+    model, test = toy
+    labels = test[0].labels[:8]
+    plan = make_plan(model, test[0].mfcc[:8], labels)
+    X, Y = prior_predictive(plan, 6, seed=0)
+    assert X.shape == (6, 8, 3) and Y.shape == (6, 8, model.dims_[0])
+    X2, Y2 = prior_predictive(plan, 6, seed=0)
+    assert np.array_equal(X, X2) and np.array_equal(Y, Y2)
+    # the audio is the audio GP predictive at the simulated latents: standardised residuals ~ N(0, 1)
+    z = []
+    for b in plan.blocks:
+        p = b.model.predictors_["audio"]
+        for s in range(6):
+            mu, var = b.model.predict_view("audio", X[s, b.start:b.stop])
+            z.append((Y[s, b.start:b.stop] - mu) / np.sqrt(var))
+    z = np.concatenate([a.ravel() for a in z])
+    assert p is not None and abs(z.mean()) < 0.3 and 0.7 < z.std() < 1.3, (z.mean(), z.std())
+
+
+def test_posterior_predictive_check_accepts_simulated_audio_and_flags_shifted_audio(toy):
+    model, test = toy
+    labels = test[1].labels[:10]
+    plan = make_plan(model, test[1].mfcc[:10], labels, smoothness="off")
+    _, Y = prior_predictive(plan, 1, seed=3)
+    y = Y[0]
+    post = sample_synthesis(model, y, labels, method="laplace", n_draws=64, seed=0, smoothness="off")
+    rep = posterior_predictive(make_plan(model, y, labels, smoothness="off"), post.latent_draws, seed=1)
+    assert rep.shape == (64,) + y.shape
+    ok = predictive_check(y, rep)
+    assert 0.75 <= ok.coverage[0.9] <= 1.0 and ok.coverage[0.5] < ok.coverage[0.9], ok.to_dict()
+    shifted = y + 5 * rep.std(0).mean()
+    bad = predictive_check(shifted, rep)
+    assert bad.coverage[0.9] < 0.2 and bad.extreme()["mean"] == y.shape[1], bad.to_dict()
