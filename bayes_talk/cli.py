@@ -361,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default=None,
                    help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
-                        "write the posterior mean, variance, bands.npz and diagnostics.json")
+                        "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
+                        "posterior.nc, bands.png)")
     s.add_argument("--draws", type=_positive_int, default=None,
                    help="posterior draws pooled over chains (default: laplace 64, nuts 4 x 250, emcee 320)")
     s.add_argument("--chains", type=_positive_int, default=None, help="NUTS chains (default 4)")
