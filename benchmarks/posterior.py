@@ -23,6 +23,20 @@ utterances whose joint MAP converged).
     .venv/bin/python benchmarks/posterior.py [--corpus DIR] [--n-test 3] [--draws 200]
         [--nuts-warmup 150] [--emcee-warmup 500] [--methods map,laplace,nuts,emcee]
         [--out benchmarks/results/posterior.json]
+
+Sampler efficiency (``--efficiency``, issue 10): NUTS and emcee with their library
+defaults, side by side in one run, on one held-out utterance of a trained model
+(``--model DIR --test-corpus DIR --utterance NAME``, its first ``--frames`` frames; the
+corpus is projected through the training AAM given by ``--aam``). Per sampler: wall
+time (MAP + sampler), warm-up and sampling seconds, the smallest bulk and tail ESS over the
+T·d latent coordinates, rank R-hat, ESS per second, and the wall time to bulk ESS 400
+= warm-up seconds + sampling seconds × 400 / (smallest bulk ESS) (ESS grows linearly
+with the draws of a converged chain; measured, not extrapolated, when the run reached
+400). Writes ``benchmarks/results/posterior_efficiency.json``:
+
+    PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
+        --test-corpus /work/data/v2/heldout40 --aam /work/data/v2/train250/aam.npz \
+        --utterance utt0001 [--frames 75] [--methods nuts,emcee] [--emcee-max-steps N]
 """
 from __future__ import annotations
 
@@ -86,8 +100,61 @@ def evaluate(truth, means, vars_, bands, samples) -> dict:
     return out
 
 
+def efficiency(args) -> None:
+    """NUTS vs emcee: wall time to bulk ESS 400 and ESS per second (see the module docstring)."""
+    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.pipeline import load_trained
+
+    model = load_trained(args.model).model
+    seqs = {s.name: s for s in load_corpus(args.test_corpus, aam=args.aam, cache=False).sequences}
+    s = seqs[args.utterance]
+    T = min(args.frames, s.n_frames) if args.frames else s.n_frames
+    res = {"command": "benchmarks/posterior.py " + " ".join(sys.argv[1:]), "model": str(args.model),
+           "test_corpus": str(args.test_corpus), "aam": str(args.aam), "utterance": s.name, "frames": T,
+           "seconds_of_speech": T / 25.0, "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+           "ess_target": 400, "samplers": {}}
+    out_path = args.out if args.out != HERE / "results" / "posterior.json" else HERE / "results" / "posterior_efficiency.json"
+    for method in args.methods.split(","):
+        if method not in ("nuts", "emcee"):
+            raise SystemExit(f"--efficiency compares nuts and emcee, got {method!r}")
+        print(f"{method} ...", flush=True)
+        load0 = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        skw = {"max_steps": args.emcee_max_steps} if method == "emcee" and args.emcee_max_steps else None
+        p = sample_synthesis(model, s.mfcc[:T], s.labels[:T], method=method, seed=args.seed, log_warnings=False,
+                             sampler_kw=skw)
+        wall = time.perf_counter() - t0
+        d = p.diagnostics
+        sampler_s = d["sampler_seconds"]
+        warm_s = d["warmup_seconds"] if method == "nuts" else sampler_s * d["warmup"] / d["steps"]
+        draw_s = sampler_s - warm_s
+        ess = d["ess_bulk_min"]
+        to_400 = warm_s + draw_s * 400.0 / ess if ess > 0 else float("inf")
+        row = {k: d[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "n_chains", "n_draws")}
+        row.update(wall_seconds=wall, setup_seconds=wall - sampler_s, sampler_seconds=sampler_s,
+                   warmup_seconds=warm_s, sampling_seconds=draw_s, ess_bulk_per_second=ess / sampler_s,
+                   ess_bulk_per_sampling_second=ess / draw_s if draw_s > 0 else None,
+                   seconds_to_ess_400=to_400 + (wall - sampler_s), reached_ess_400=bool(ess >= 400),
+                   warnings=p.warnings, loadavg_start_end=[load0, os.getloadavg()[0]],
+                   diagnostics={k: v for k, v in d.items() if np.ndim(v) == 0 or isinstance(v, list)})
+        res["samplers"][method] = row
+        print(json.dumps({k: v for k, v in row.items() if k != "diagnostics"}, default=str), flush=True)
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(res, indent=1, default=str))
+        tmp.replace(out_path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--efficiency", action="store_true", help="NUTS vs emcee: time to bulk ESS 400, ESS/s")
+    ap.add_argument("--model", type=Path, default=None, help="--efficiency: directory written by `train`")
+    ap.add_argument("--test-corpus", type=Path, default=None, help="--efficiency: held-out corpus")
+    ap.add_argument("--aam", type=Path, default=None, help="--efficiency: the training corpus's AAM")
+    ap.add_argument("--utterance", default=None, help="--efficiency: utterance name in --test-corpus")
+    ap.add_argument("--frames", type=int, default=None, help="--efficiency: first frames (default all)")
+    ap.add_argument("--emcee-max-steps", type=int, default=None,
+                    help="--efficiency: bound emcee's run-on for the autocorrelation rule (default: the library's)")
     ap.add_argument("--corpus", type=Path, default=None)
     ap.add_argument("--n-train", type=int, default=50)
     ap.add_argument("--n-test", type=int, default=3)
@@ -100,6 +167,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "results" / "posterior.json")
     args = ap.parse_args()
     warnings.filterwarnings("ignore", category=FutureWarning)
+    if args.efficiency:
+        if not (args.model and args.test_corpus and args.utterance):
+            ap.error("--efficiency needs --model, --test-corpus and --utterance")
+        if args.methods == "map,laplace,nuts,emcee":
+            args.methods = "nuts,emcee"
+        return efficiency(args)
 
     train, test, data_info, cfg = load_data(args)
     res = {"command": "benchmarks/posterior.py " + " ".join(sys.argv[1:]), "data": data_info,

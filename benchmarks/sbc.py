@@ -29,15 +29,13 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc  # noqa: E402
+from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
 def load(args):
@@ -47,7 +45,7 @@ def load(args):
 
         model = load_trained(args.model).model
         seqs = {s.name: s for s in load_corpus(args.corpus, cache=False).sequences}
-        name = args.utterance or sorted(seqs)[0]
+        name = args.utterance or min(seqs)
         return model, list(seqs[name].labels), {"model": str(args.model), "corpus": str(args.corpus),
                                                  "utterance": name}
     from toydata import make_utterances

@@ -291,7 +291,8 @@ def test_laplace_synthesis_mixture_and_reproducibility(toy):
 def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     model, test = toy
     s = test[2]
-    kw = dict(warmup=40, chains=2) if method == "nuts" else dict(warmup=60)
+    # emcee: no run-on for the autocorrelation rule here (max_steps 0), tested on the Gaussian above
+    kw = dict(warmup=40, chains=2) if method == "nuts" else dict(warmup=60, sampler_kw={"max_steps": 0})
     r = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method=method, n_draws=16, seed=0, **kw)
     assert r.n_draws >= 16 and r.latent_draws.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
     d = r.diagnostics
@@ -327,3 +328,22 @@ def test_band_coverage_on_held_out_toy_data_is_monotone(toy):
     assert all(a <= b for a, b in zip(cov, cov[1:])) and cov[-1] > cov[0]
     widths = [np.mean([np.mean(hi - lo) for lo, hi in zip(*bands[k])]) for k in levels]
     assert all(a < b for a, b in zip(widths, widths[1:]))
+
+
+def test_synth_cli_sampler_options_reach_sample_synthesis():
+    from bayes_talk.cli import build_parser
+    from bayes_talk.pipeline import _sampler_args
+
+    a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "nuts",
+                                   "--chains", "2", "--warmup", "30", "--target-accept", "0.9",
+                                   "--max-tree-depth", "6"])
+    assert (a.chains, a.warmup, a.target_accept, a.max_tree_depth, a.draws) == (2, 30, 0.9, 6, None)
+    opts = {"chains": a.chains, "warmup": a.warmup, "target_accept": a.target_accept,
+            "max_tree_depth": a.max_tree_depth}
+    assert _sampler_args(opts) == {"chains": 2, "warmup": 30,
+                                   "sampler_kw": {"target_accept": 0.9, "max_tree_depth": 6}}
+    assert _sampler_args({"chains": None, "warmup": None}) == {}
+    with pytest.raises(ValueError, match="unknown sampler options"):
+        _sampler_args({"step": 1})
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--chains", "0"])

@@ -7,13 +7,24 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.evaluation.sbc import holm, ranks, run_sbc, scaled_laplace, synthesis_sbc, uniformity_test
+from bayes_talk.evaluation.sbc import (
+    holm,
+    ranks,
+    run_sbc,
+    scaled_laplace,
+    synthesis_sbc,
+    uniformity_test,
+)
 from bayes_talk.models.switching import SwitchingSGPDM
 from bayes_talk.synthesis.joint import make_plan
 from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.predictive_checks import posterior_predictive, predictive_check, prior_predictive
+from bayes_talk.synthesis.predictive_checks import (
+    posterior_predictive,
+    predictive_check,
+    prior_predictive,
+)
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 # conjugate Gaussian: θ ~ N(0, I_K), y = θ + N(0, s² I): posterior N(y/(1+s²), s²/(1+s²) I)
 K, S2 = 4, 0.5

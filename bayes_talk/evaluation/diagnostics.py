@@ -2,7 +2,7 @@
 that synthesis never imports evaluation). Import from ``bayes_talk.synthesis.diagnostics``."""
 from __future__ import annotations
 
-from bayes_talk.synthesis.diagnostics import (  # noqa: F401
+from bayes_talk.synthesis.diagnostics import (
     DIAGNOSTIC_KEYS,
     ESS_MIN,
     KHAT_MAX,

@@ -46,7 +46,12 @@ import numpy as np
 import torch
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.diagnostics import chain_diagnostics, convergence_problems, energy_bfmi, psis_khat
+from bayes_talk.synthesis.diagnostics import (
+    chain_diagnostics,
+    convergence_problems,
+    energy_bfmi,
+    psis_khat,
+)
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import INIT_SCALE, NUTS_DEFAULTS, Draws, run_emcee, run_nuts
@@ -331,7 +336,7 @@ def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -
     log weights ln p(x_s) − ln q(x_s) = ln p(x_s) + ½‖z_s‖² + const (Vehtari et al. 2024)."""
     lp = np.array([dens(x)[0] for x in X])
     lw = lp + 0.5 * np.sum(Z * Z, axis=1)
-    return {"khat": psis_khat(lw), "khat_draws": int(len(lw))}
+    return {"khat": psis_khat(lw), "khat_draws": len(lw)}
 
 
 def _sampler_diagnostics(draws: Draws) -> dict:
@@ -352,12 +357,13 @@ def _sampler_diagnostics(draws: Draws) -> dict:
         out["n_steps_mean"] = float(np.mean(ss["n_steps"]))
         out["n_gradients"] = st["n_gradients"]
         out["warmup"] = st["warmup"]
+        out["warmup_seconds"] = st["warmup_seconds"]
         out["ebfmi"] = [float(b) for b in energy_bfmi(ss["energy"])]
         out["ebfmi_min"] = min(out["ebfmi"])
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
         for k in ("autocorr_time_max", "autocorr_time_mean", "autocorr_steps", "autocorr_tol", "autocorr_ok",
-                  "steps", "thin", "n_walkers"):
+                  "steps", "thin", "n_walkers", "warmup"):
             out[k] = st[k]
     out["sampler_seconds"] = float(draws.seconds)
     return out
@@ -376,5 +382,16 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
     return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; " + advice]
 
 
-__all__ = ["DEFAULT_LEVELS", "MAP_GTOL", "MAP_MAX_ITER", "MapResult", "POSTERIOR_METHODS", "PosteriorSynthesis",
-           "SynthesisResult", "MAP_DTOL", "maximise_utterance", "sample_synthesis", "visual_predictive"]
+__all__ = [
+    "DEFAULT_LEVELS",
+    "MAP_DTOL",
+    "MAP_GTOL",
+    "MAP_MAX_ITER",
+    "POSTERIOR_METHODS",
+    "MapResult",
+    "PosteriorSynthesis",
+    "SynthesisResult",
+    "maximise_utterance",
+    "sample_synthesis",
+    "visual_predictive",
+]

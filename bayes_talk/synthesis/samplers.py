@@ -99,6 +99,8 @@ class _RecordingNUTS:
             def sample(self, params):
                 m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
                 z = super().sample(params)
+                if self._t == self._warmup_steps:
+                    self.warmup_end = time.perf_counter()
                 if self._t > self._warmup_steps:
                     n = self._t - self._warmup_steps   # the running mean restarts after warm-up
                     rec = self.records
@@ -113,6 +115,7 @@ class _RecordingNUTS:
                 return z
 
         k = Kernel(potential_fn=potential, **kw)
+        k.warmup_end = None
         k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp")}
         return k
 
@@ -129,7 +132,6 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
     per-chain totals (``divergences``, ``step_size``, ``max_tree_depth_hits``)."""
     import pyro
-
     from pyro.infer.mcmc import MCMC
 
     if chains < 1 or n_draws < 1 or warmup < 0:
@@ -147,7 +149,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
         counter[0] += 1
         return -log_prob(params["x"])
 
-    out, steps, recs = [], [], []
+    out, steps, recs, warm_s = [], [], [], 0.0
     t0 = time.perf_counter()
     with torch_threads(1):
         for c in range(chains):
@@ -159,7 +161,9 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": start},
                         num_chains=1, disable_progbar=not progress.enabled())
             log.info("NUTS chain %d/%d: %d warm-up + %d draws", c + 1, chains, warmup, n_draws)
+            t_chain = time.perf_counter()
             mcmc.run()
+            warm_s += (kernel.warmup_end or t_chain) - t_chain
             out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
             steps.append(float(kernel.step_size))
             recs.append(kernel.records)
@@ -169,7 +173,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              "accept_prob": [float(a.mean()) for a in ss["acceptance_rate"]],
              "max_tree_depth": int(max_tree_depth), "target_accept": float(target_accept),
              "max_tree_depth_hits": int(np.sum(ss["tree_depth"] >= max_tree_depth)),
-             "warmup": int(warmup), "n_gradients": int(counter[0])}
+             "warmup": int(warmup), "n_gradients": int(counter[0]), "warmup_seconds": float(warm_s)}
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
 
 
@@ -270,6 +274,7 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     return Draws("emcee", np.ascontiguousarray(chain),
                  {"acceptance_fraction": float(np.mean(acc)), "acceptance_min": float(np.min(acc)),
                   "n_walkers": int(W), "steps": int(sampler.iteration * k), "thin": int(step * k),
+                  "warmup": int(w_st * k),
                   "autocorr_time_max": tau_max * k, "autocorr_time_mean": float(np.nanmean(tau)) * k,
                   "autocorr_steps": int(after * k), "autocorr_tol": float(autocorr_tol),
                   "autocorr_ok": bool(after >= autocorr_tol * tau_max)},
