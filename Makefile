@@ -19,6 +19,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --nbmake --nbmake-timeout=600 notebooks   # executes every notebook
 
 bench: $(STAMP)
 	mkdir -p benchmarks/results
