@@ -168,10 +168,15 @@ class FitHistory:
 class SGPDM:
     """Shared GPDM with any number of observed views; scikit-learn-like ``fit``."""
 
+    #: saved-model format written by :meth:`state` (subclasses with more arrays change it)
+    format_name = FORMAT_NAME
+    format_version = FORMAT_VERSION
+    config_class = SGPDMConfig
+
     def __init__(self, config: SGPDMConfig | None = None, **kwargs):
         if config is not None and kwargs:
             raise ValueError("give either a config or keyword settings, not both")
-        self.config = config if config is not None else SGPDMConfig(**kwargs)
+        self.config = config if config is not None else self.config_class(**kwargs)
         self.view_names: list[str] = []
         self.history = FitHistory()
         self._fitted = False
@@ -524,8 +529,8 @@ class SGPDM:
         """(JSON-able metadata, arrays) that fully describe the fitted model."""
         self._require_fitted()
         meta = {
-            "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
+            "format": self.format_name,
+            "version": self.format_version,
             "config": asdict(self.config),
             "views": self.view_names,
             "seq_lengths": self.seq_lengths_,
@@ -548,15 +553,16 @@ class SGPDM:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
-        if meta.get("format") != FORMAT_NAME:
-            raise ValueError(f"not an SGPDM model (format {meta.get('format')!r})")
-        if meta.get("version") != FORMAT_VERSION:
+        if meta.get("format") != cls.format_name:
+            raise ValueError(f"not a {cls.__name__} model (format {meta.get('format')!r}, "
+                             f"expected {cls.format_name!r})")
+        if meta.get("version") != cls.format_version:
             raise ValueError(
-                f"SGPDM model format version {meta.get('version')!r}; this bayes_talk reads version "
-                f"{FORMAT_VERSION}"
+                f"{cls.__name__} model format version {meta.get('version')!r}; this bayes_talk reads version "
+                f"{cls.format_version}"
             )
         try:
-            obj = cls(SGPDMConfig(**meta["config"]))
+            obj = cls(cls.config_class(**meta["config"]))
             obj.view_names = list(meta["views"])
             obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
             obj.history = FitHistory(list(meta.get("history", [])), list(meta.get("history_monitor", [])),
@@ -575,10 +581,14 @@ class SGPDM:
         obj._X = torch.as_tensor(obj.X_)
         obj._log = {}
         obj._fixed = hyper
+        obj._restore_extra(arrays)
         obj._finalise()
         obj.var_scale_ = {k[len("varscale/"):]: np.asarray(a, dtype=np.float64)
                           for k, a in arrays.items() if k.startswith("varscale/")}
         return obj
+
+    def _restore_extra(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Hook for subclasses: restore their own arrays before :meth:`_finalise` runs."""
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write ``<path>.json`` (metadata) and ``<path>.npz`` (arrays), atomically."""
