@@ -20,17 +20,17 @@ Run:  PYTHONPATH=. .venv/bin/python benchmarks/sparse.py [--corpus DIR] [--sizes
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
 import resource
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bayes_talk.files import write_json
 
 SIZES = (1000, 2000, 4000, 8000, 15000)
 
@@ -124,19 +124,6 @@ def measure(n_frames: int, corpus: str | os.PathLike | None = None, n_inducing: 
     return out
 
 
-def write_atomic(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
 def main(argv=None) -> int:
     here = Path(__file__).resolve().parent
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -160,9 +147,9 @@ def main(argv=None) -> int:
         s, e = r["sparse"], r["exact"]
         ex = f"{e['wall_s']:>8.1f} {e['s_per_iter']:>7.2f} {e['peak_rss_mb']:>7.0f}" if e else f"{'-':>8} {'-':>7} {'-':>7}"
         print(f"{n:>6} {s['wall_s']:>9.1f} {s['s_per_iter']:>7.2f} {s['peak_rss_mb']:>7.0f} | {ex}", flush=True)
-        write_atomic(args.out, res)
+        write_json(args.out, res)
     res["machine"]["loadavg_at_end"] = os.getloadavg()
-    write_atomic(args.out, res)
+    write_json(args.out, res)
     print(f"wrote {args.out}")
     return 0
 

@@ -11,16 +11,9 @@ from bayes_talk.gp.sparse import fitc_loglik, sparse_predictor, titsias_bound
 from bayes_talk.gp.terms import matrix_normal_loglik
 from bayes_talk.models.sgpdm import SGPDM
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM
+from test_gp_core import _toy
 
 f64 = torch.float64
-
-
-def _toy(N=40, seed=0):
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0, 2 * np.pi, N)[:, None]
-    audio = np.hstack([np.sin(t), np.cos(t), np.sin(2 * t), np.cos(3 * t)]) + 0.02 * rng.normal(size=(N, 4))
-    video = np.hstack([np.cos(t) ** 2, np.sin(t) * np.cos(t), np.sin(3 * t)]) + 0.02 * rng.normal(size=(N, 3))
-    return audio, video
 
 
 def _points(N=25, M=7, D=3, seed=1):
