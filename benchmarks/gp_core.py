@@ -342,10 +342,16 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-profile", action="store_true")
+    p.add_argument("--fused", action="store_true",
+                   help="our terms through bayes_talk/gp/fused.py (also BAYES_TALK_FUSED=1)")
     p.add_argument("--sizes", default=None, help="comma-separated N (default: 500,1000,2000)")
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
+    if args.fused:
+        import bayes_talk.gp.fused
+
+        bayes_talk.gp.fused.ENABLED = True
     limiter = None
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -362,7 +368,8 @@ def main(argv=None) -> int:
         "machine": machine_info(),
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
                      "warmup": 1, "sizes": list(sizes),
-                     "threads_limit": args.threads},
+                     "threads_limit": args.threads,
+                     "fused": bool(__import__("bayes_talk.gp.fused", fromlist=["ENABLED"]).ENABLED)},
         "correctness": correctness(CHECK_N),
         "sizes": [],
     }

@@ -27,6 +27,7 @@ jitter and logs it (:mod:`bayes_talk.gp.linalg`).
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
@@ -139,7 +140,15 @@ def rbf_matrix_normal(X: torch.Tensor, alpha, gamma, beta, V: torch.Tensor) -> t
     return _RBFMatrixNormal.apply(X, alpha, gamma, beta, V, state)
 
 
+#: switch for the fused path in :mod:`bayes_talk.gp.terms` (off by default; on with the
+#: environment variable BAYES_TALK_FUSED=1 or by setting it). It is exact to round-off, but
+#: round-off changes long L-BFGS trajectories in degenerate regimes: with it on,
+#: tests/test_sgplvm.py's 300-iteration fit collapsed to latent std 0.0036 instead of
+#: 0.0029, above that test's 0.003 threshold. Until that test is made robust it stays opt-in.
+ENABLED = os.environ.get("BAYES_TALK_FUSED", "0") == "1"
+
+
 def fused_ok(*tensors) -> bool:
-    """Whether the fused path applies: float64 CPU tensors (or plain numbers)."""
-    return all(not isinstance(t, torch.Tensor) or (t.dtype == torch.float64 and t.device.type == "cpu")
+    """Whether the fused path applies: enabled, float64 CPU tensors (or plain numbers)."""
+    return ENABLED and all(not isinstance(t, torch.Tensor) or (t.dtype == torch.float64 and t.device.type == "cpu")
                for t in tensors)
