@@ -152,10 +152,12 @@ class Full:
 
 
 # ---------------------------------------------------------------------------- timing
-def timed(fn) -> float:
-    t0 = time.perf_counter()
+def timed(fn) -> tuple[float, float]:
+    """(wall, CPU) seconds of one call; CPU time (all threads of this process) is robust to
+    other processes on a shared machine, and with ``--threads 1`` it is the work done."""
+    t0, c0 = time.perf_counter(), time.process_time()
     fn()
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def bench_size(N: int, repeats: int) -> dict:
@@ -168,17 +170,23 @@ def bench_size(N: int, repeats: int) -> dict:
     for f in fns.values():  # warm-up
         f()
     times: dict[str, list[float]] = {k: [] for k in fns}
+    cpu: dict[str, list[float]] = {k: [] for k in fns}
     order = list(fns)
     for r in range(repeats):
         # interleave, rotating the order so no variant always runs first
         for k in order[r % len(order):] + order[: r % len(order)]:
-            times[k].append(timed(fns[k]))
+            w, c = timed(fns[k])
+            times[k].append(w)
+            cpu[k].append(c)
     med = {k: statistics.median(v) for k, v in times.items()}
+    cmed = {k: statistics.median(v) for k, v in cpu.items()}
     return {
         "N": N,
         "setup_s": setup,
         "seconds": {k: {"median": med[k], "all": times[k]} for k in fns},
+        "cpu_seconds": {k: {"median": cmed[k], "all": cpu[k]} for k in fns},
         "ratio_to_gpy": {k: med[k] / med["gpy"] for k in ("ours_pyro", "ours_raw", "sgpdm_full")},
+        "cpu_ratio_to_gpy": {k: cmed[k] / cmed["gpy"] for k in ("ours_pyro", "ours_raw", "sgpdm_full")},
     }
 
 
@@ -334,9 +342,16 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-profile", action="store_true")
+    p.add_argument("--fused", action="store_true",
+                   help="our terms through bayes_talk/gp/fused.py (also BAYES_TALK_FUSED=1)")
+    p.add_argument("--sizes", default=None, help="comma-separated N (default: 500,1000,2000)")
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
+    if args.fused:
+        import bayes_talk.gp.fused
+
+        bayes_talk.gp.fused.ENABLED = True
     limiter = None
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -344,6 +359,8 @@ def main(argv=None) -> int:
 
         limiter = threadpool_limits(limits=args.threads)  # noqa: F841 (kept alive for the run)
     sizes = QUICK_SIZES if args.quick else FULL_SIZES
+    if args.sizes:
+        sizes = tuple(int(s) for s in args.sizes.split(",") if s.strip())
     t_start = time.perf_counter()
     result = {
         "benchmark": "gp_core",
@@ -351,7 +368,8 @@ def main(argv=None) -> int:
         "machine": machine_info(),
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
                      "warmup": 1, "sizes": list(sizes),
-                     "threads_limit": args.threads},
+                     "threads_limit": args.threads,
+                     "fused": bool(__import__("bayes_talk.gp.fused", fromlist=["ENABLED"]).ENABLED)},
         "correctness": correctness(CHECK_N),
         "sizes": [],
     }
@@ -364,6 +382,9 @@ def main(argv=None) -> int:
         print(f"{N:>5} {s['gpy']['median']:>9.4f} {s['ours_pyro']['median']:>10.4f} "
               f"{s['ours_raw']['median']:>9.4f} {s['sgpdm_full']['median']:>10.4f}  "
               f"{q['ours_pyro']:>8.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f}", flush=True)
+        c = r["cpu_ratio_to_gpy"]
+        print(f"{'':>5} CPU-time ratios: pyro/gpy {c['ours_pyro']:.2f}  raw/gpy {c['ours_raw']:.2f}  "
+              f"full/gpy {c['sgpdm_full']:.2f}", flush=True)
     if not args.no_profile:
         result["profile"] = profile(max(sizes), args.repeats)
         print(f"profile at N={max(sizes)} (median s):")

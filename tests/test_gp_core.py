@@ -300,3 +300,35 @@ def test_hmm_initialiser_emissions_and_path():
     start = np.log([0.5, 0.5])
     assert viterbi(start, free, emit).tolist() == [0, 1, 0]
     assert viterbi(start, sticky, emit).tolist() == [0, 0, 0]
+
+
+def test_fused_rbf_term_matches_torch_path_and_passes_gradcheck():
+    """The fused RBF pass (gp/fused.py) against autograd through train_cov + Cholesky."""
+    from bayes_talk.gp.fused import rbf_matrix_normal
+
+    rng = np.random.default_rng(11)
+    X = torch.as_tensor(rng.normal(size=(60, 3))).requires_grad_(True)
+    V = torch.as_tensor(rng.normal(size=(60, 5))).requires_grad_(True)
+    lg = torch.tensor([0.3, -0.8, 2.5], dtype=f64, requires_grad=True)
+    fused = lambda X, V, lg: rbf_matrix_normal(X, lg[0].exp(), lg[1].exp(), lg[2].exp(), V)  # noqa: E731
+    ref = lambda X, V, lg: matrix_normal_loglik(train_cov(X, lg[0].exp(), lg[1].exp(), lg[2].exp()), V)  # noqa: E731
+    a, b = fused(X, V, lg), ref(X, V, lg)
+    assert float(a) == pytest.approx(float(b), rel=1e-12)
+    for ga, gb in zip(torch.autograd.grad(a, (X, V, lg)), torch.autograd.grad(b, (X, V, lg))):
+        np.testing.assert_allclose(ga.numpy(), gb.numpy(), rtol=1e-9, atol=1e-9)
+    small = (X[:8].detach().clone().requires_grad_(True), V[:8].detach().clone().requires_grad_(True), lg)
+    assert torch.autograd.gradcheck(fused, small, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_fused_path_falls_back_to_jitter_when_kernel_is_singular(caplog):
+    """Duplicate latent points with almost no noise: dpotrf fails, the fused pass declines
+    (None) and observation_loglik takes the torch path, whose Cholesky adds logged jitter."""
+    from bayes_talk.gp.fused import rbf_matrix_normal
+
+    X = torch.zeros(6, 2, dtype=f64)
+    Y = torch.as_tensor(np.random.default_rng(0).normal(size=(6, 2)))
+    one = torch.tensor(1.0, dtype=f64)
+    assert rbf_matrix_normal(X, one, one, torch.tensor(1e30, dtype=f64), Y) is None
+    with caplog.at_level(logging.WARNING, logger="bayes_talk.gp.linalg"):
+        ll = observation_loglik(Y, X, one, one, torch.tensor(1e30, dtype=f64), torch.ones(2, dtype=f64))
+    assert torch.isfinite(ll) and "jitter" in caplog.text

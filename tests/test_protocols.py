@@ -27,7 +27,8 @@ from bayes_talk.evaluation import systems as S
 TINY_GP = S.SystemConfig(
     latent_dim=2, ssgpdm_max_frames_per_state=30, ssgpdm_min_frames_per_state=50, ssgpdm_min_count=5,
     ssgpdm_max_iter=5, ssgpdm_fallback_frames=40, synth_max_iter=3, sgplvm_max_frames=40,
-    sgplvm_max_iter=5, sgplvm_synth_max_iter=3, vp_n_states=4, vp_n_iter=5, slds_n_iter=5, dpds_max_iter=20)
+    sgplvm_max_iter=5, sgplvm_synth_max_iter=3, vp_n_states=4, vp_n_iter=5, slds_n_iter=5, dpds_max_iter=20,
+    sparse_inducing=8, sparse_max_iter=5, sparse_synth_max_iter=3)
 METRIC_KEYS = ("mse", "rms", "l1", "linf", "nmse", "corr")
 CAL_KEYS = ("coverage_50", "coverage_90", "crps", "nlpd")
 CEILING = ("zero", "oracle")  # bayes_talk.evaluation.ceiling, tested in tests/test_ceiling.py
@@ -51,7 +52,7 @@ def test_method_registry_complete_and_families_shared():
         "ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
         "ssgpdm-vlmm-posterior", "ssgpdm-phone-posterior",
         "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean",
-        "context-ridge", "context-mlp", "zero", "oracle"}
+        "context-ridge", "context-mlp", "zero", "oracle", "sparse-sgpdm"}
     fam = S.group_by_family(["sgplvm-a", "hmm-mean", "sgplvm-b", "ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"])
     assert fam == {"sgplvm": ["sgplvm-a", "sgplvm-b"], "hmm-mean": ["hmm-mean"],
                    "ssgpdm-vlmm": ["ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"]}
@@ -237,7 +238,7 @@ def gp_run(utts):
 
 def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     res, traj, calls = gp_run
-    assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "ssgpdm-phone",
+    assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "sparse-sgpdm", "ssgpdm-phone",
                              "ssgpdm-vlmm"]                                    # shared training
     m = res["methods"]
     assert set(m) == {k for k, v in S.METHODS.items() if v.has_variance and k not in CEILING}

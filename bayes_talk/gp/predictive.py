@@ -44,6 +44,30 @@ class GPPredictor:
         self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin), what)
         self.A = cho_solve(self.L, self.Y)
 
+    @classmethod
+    def from_factors(
+        cls,
+        X: torch.Tensor,
+        Y: torch.Tensor,
+        L: torch.Tensor,
+        A: torch.Tensor,
+        alpha: float,
+        gamma: float,
+        beta: float,
+        w: torch.Tensor | None = None,
+        mean: torch.Tensor | None = None,
+    ) -> GPPredictor:
+        """A predictor from precomputed factors: μ(x) = k(x, X) A + ȳ and
+        σ²(x) = α − ‖L⁻¹k(X, x)‖² + β⁻¹ (e.g. a sparse GP's, :mod:`bayes_talk.gp.sparse`,
+        with X the inducing inputs); ``Y`` only gives the training frames and output size."""
+        obj = cls.__new__(cls)
+        D = Y.shape[1]
+        obj.X, obj.Y, obj.L, obj.A = X.detach(), Y.detach(), L.detach(), A.detach()
+        obj.alpha, obj.gamma, obj.beta, obj.alpha_lin = alpha, gamma, beta, None
+        obj.w = w.detach() if w is not None else torch.ones(D, dtype=torch.float64)
+        obj.mean = mean.detach() if mean is not None else torch.zeros(D, dtype=torch.float64)
+        return obj
+
     @property
     def out_dim(self) -> int:
         """Output dimension D."""

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 
 import torch
 
+from bayes_talk.gp.fused import fused_ok, rbf_matrix_normal
 from bayes_talk.gp.kernels import train_cov
 from bayes_talk.gp.linalg import cho_solve, cholesky, logdet
 
@@ -71,11 +72,18 @@ def observation_loglik(
         ln p(Y | X) = N·Σ_m ln w_m − (N·D/2)·ln 2π − (D/2)·ln|K| − ½·tr(K⁻¹ Y W² Yᵀ),
         K = k(X, X) + β⁻¹ I.
 
-    The factor N on ln|W| is the paper's |W|^N (DESIGN.md §3).
+    The factor N on ln|W| is the paper's |W|^N (DESIGN.md §3). Evaluated by the fused
+    RBF pass of :mod:`bayes_talk.gp.fused` (closed-form backward), or through
+    :func:`matrix_normal_loglik` with a linear kernel term or when K needs jitter.
     """
-    K = train_cov(X, alpha, gamma, beta, alpha_lin)
     N = Y.shape[0]
-    return N * torch.log(w).sum() + matrix_normal_loglik(K, Y * w, what)
+    V = Y * w
+    if alpha_lin is None and fused_ok(X, V, alpha, gamma, beta):
+        ll = rbf_matrix_normal(X, alpha, gamma, beta, V)
+        if ll is not None:
+            return N * torch.log(w).sum() + ll
+    K = train_cov(X, alpha, gamma, beta, alpha_lin)
+    return N * torch.log(w).sum() + matrix_normal_loglik(K, V, what)
 
 
 def dynamics_split(seq_lengths: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -116,6 +124,10 @@ def dynamics_loglik(
     if len(i_in) == 0:
         return ll
     beta_t = torch.as_tensor(beta, dtype=X.dtype)
+    if alpha_lin is None and fused_ok(X, alpha, gamma, beta_t):
+        lx = rbf_matrix_normal(X[i_in], alpha, gamma, beta_t, X[i_out])
+        if lx is not None:
+            return ll + lx
     K = train_cov(X[i_in], alpha, gamma, beta_t, alpha_lin)
     return ll + matrix_normal_loglik(K, X[i_out], "dynamics kernel")
 
