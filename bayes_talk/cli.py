@@ -1,5 +1,9 @@
 """The ``bayes-talk`` command line.
 
+This module is above ~400 lines because it is the one place where every sub-command's
+flags and defaults are declared (argparse), next to the small functions that call the
+library; the work itself is in the modules those functions import.
+
 Sub-commands::
 
     bayes-talk corpus build OUT_DIR [--n-utterances N] [--seed S] [--sentences FILE]

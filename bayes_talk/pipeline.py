@@ -1,5 +1,9 @@
 """From a corpus to a trained model directory, and from WAV + labels to a talking face.
 
+This module is above ~400 lines because ``train`` and ``synth`` share the model bundle
+(descriptor, audio settings, calibration, aligner) and its checks; splitting them would
+split one file format across modules.
+
 The data flow of the command line (``bayes-talk train`` / ``bayes-talk synth``):
 
     corpus dir ──load_corpus──▶ Sequences (MFCC, AAM params, frame labels)
