@@ -20,7 +20,7 @@ __version__ = "0.1.0"
 #: public name -> module that defines it
 _EXPORTS: dict[str, str] = {
     # data
-    "Sequence": "bayes_talk.data.sequence",
+    "Utterance": "bayes_talk.data.utterance",
     "load_corpus": "bayes_talk.data.corpus",
     # features
     "AAM": "bayes_talk.features.aam",
@@ -50,7 +50,7 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = [  # noqa: RUF022 - grouped by layer, as _EXPORTS
-    "__version__", "Sequence", "load_corpus", "AAM", "SGPDM", "VLMM", "SwitchingModel", "sample_synthesis",
+    "__version__", "Utterance", "load_corpus", "AAM", "SGPDM", "VLMM", "SwitchingModel", "sample_synthesis",
     "ESTIMATORS", "make_estimator", "SwitchingSGPDM", "SGPLVM", "VoicePuppetry", "SLDS", "DPDS", "HMMMean",
     "ContextRidge", "ContextMLP", "NotFittedError", "train", "synth", "load_trained", "read_utterance",
 ]

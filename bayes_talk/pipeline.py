@@ -6,9 +6,9 @@ split one file format across modules.
 
 The data flow of the command line (``bayes-talk train`` / ``bayes-talk synth``):
 
-    corpus dir ──load_corpus──▶ Sequences (MFCC, AAM params, frame labels)
+    corpus dir ──load_corpus──▶ Utterances (MFCC, AAM params, frame labels)
               ──fit──▶ model (switching SGPDM with VLMM or phone states, or the 2009 SGPLVM)
-    WAV + .lab/.TextGrid ──read_utterance──▶ Sequence without visual features
+    WAV + .lab/.TextGrid ──read_utterance──▶ Utterance without visual features
               ──synthesize──▶ AAM trajectory + predictive variance ──AAM.render──▶ frames ──▶ MP4
 
 A model directory holds ``bayes_talk_model.json`` (what kind of model, feature settings,
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ _DEFAULT = object()
 
 def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float = 25.0, *,
                    sample_rate: int | None = None, cmvn: str = "off", tier: str | None = None,
-                   fmax: float | None = None) -> Sequence:
+                   fmax: float | None = None) -> Utterance:
     """MFCCs and frame labels of a WAV and its HTK .lab or Praat TextGrid.
 
     ``sample_rate``: resample the audio to it (the model's training rate; one log line);
@@ -58,7 +58,7 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     check_audio_vs_labels(wav, labels, y.size / sr, intervals[-1][1])
     T = frame_count(y.size, sr, fps)
     feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn)
-    return Sequence(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
+    return Utterance(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
 
 
 def new_model(kind: str, **overrides):
@@ -70,7 +70,7 @@ def new_model(kind: str, **overrides):
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
-def fit_model(model, train: list[Sequence], workers: int = 2, executor=None, scheduler: str | None = None):
+def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, scheduler: str | None = None):
     """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
     "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
     or this process when ``workers`` is 1; ``scheduler``: a running dask scheduler), with a
@@ -170,9 +170,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     return out
 
 
-def select_holdout(sequences: list[Sequence], holdout: int | None = None,
+def select_holdout(sequences: list[Utterance], holdout: int | None = None,
                    holdout_list: str | os.PathLike | None = None,
-                   where: str = "corpus") -> tuple[list[Sequence], list[str]]:
+                   where: str = "corpus") -> tuple[list[Utterance], list[str]]:
     """(training sequences, held-out names): the last ``holdout`` utterances, or those
     named in the file ``holdout_list`` (one name a line; blank lines and ``#`` comments
     skipped). ValueError naming the problem: both given, N outside [0, n - 1], an unknown
@@ -450,7 +450,7 @@ def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tupl
 
 
 def _utterance_from_intervals(wav, intervals, fps: float = 25.0, *, sample_rate: int | None = None,
-                              cmvn: str = "off", fmax: float | None = None) -> Sequence:
+                              cmvn: str = "off", fmax: float | None = None) -> Utterance:
     """MFCCs (the model's front end, as :func:`read_utterance`) and frame labels of a WAV
     whose phone intervals were derived from its audio."""
     from bayes_talk.audio import cmvn as _cmvn
@@ -460,5 +460,5 @@ def _utterance_from_intervals(wav, intervals, fps: float = 25.0, *, sample_rate:
     wav = Path(wav)
     y, sr = load_wav(wav, sample_rate)
     T = frame_count(y.size, sr, fps)
-    return Sequence(wav.stem, _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn), None,
+    return Utterance(wav.stem, _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn), None,
                     frame_labels(intervals, T, fps), audio_path=wav)

@@ -1,4 +1,4 @@
-"""Baselines (bayes_talk.baselines) on small synthetic Sequence objects."""
+"""Baselines (bayes_talk.baselines) on small synthetic Utterance objects."""
 from __future__ import annotations
 
 import numpy as np
@@ -18,7 +18,7 @@ from bayes_talk.baselines.dpds import (
 from bayes_talk.baselines.lds import make_batch, mean_trajectory
 from bayes_talk.baselines.slds import kalman_smoother
 from bayes_talk.baselines.voice_puppetry import delta_features, delta_matrix, trajectory_solve
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError
 
 PH = ["aa", "m", "sil", "iy"]  # sorted by LabelEncoder to aa, iy, m, sil
@@ -41,7 +41,7 @@ def lds_sequences(rng, S, T, a, nu, q, r, mu0, first=None):
             x[t] = a[labs[t]] * x[t - 1] + nu[labs[t]] + np.sqrt(q[labs[t]]) * rng.normal(size=D)
         z = x + np.sqrt(r) * rng.normal(size=(T, D))
         mfcc = z @ rng.normal(size=(D, 4)) + 0.1 * rng.normal(size=(T, 4))
-        out.append(Sequence(f"lds{s}", mfcc, z, [PH[i] for i in labs]))
+        out.append(Utterance(f"lds{s}", mfcc, z, [PH[i] for i in labs]))
     return out
 
 
@@ -115,7 +115,7 @@ def hmm_sequences(rng, S, T, mz, my, trans, noise_z=0.3, noise_y=0.5):
         st = np.array(st)
         z = mz[st] + noise_z * rng.normal(size=(T, mz.shape[1]))
         y = my[st] + noise_y * rng.normal(size=(T, my.shape[1]))
-        seqs.append(Sequence(f"hmm{s}", y, z, ["sil"] * T))
+        seqs.append(Utterance(f"hmm{s}", y, z, ["sil"] * T))
         states.append(st)
     return seqs, states
 
@@ -161,7 +161,7 @@ def test_voice_puppetry_seeded_and_full_covariances(hmm_world):
     assert np.all(np.isfinite(f.predict(train[1])))
     with pytest.raises(NotImplementedError):
         a.log_likelihood(train[0])
-    bad = Sequence("bad", np.zeros((6, 4)), None, ["sil"] * 6)
+    bad = Utterance("bad", np.zeros((6, 4)), None, ["sil"] * 6)
     with pytest.raises(ValueError, match=r"expected \(T, 5\)"):
         a.predict(bad)
 
@@ -315,7 +315,7 @@ def test_dpds_recovers_known_system_and_generates_without_reset():
     assert np.max(np.abs(model.mu_[model.encoder_.index_["sil"]] - mu0[2])) < 0.2
     np.testing.assert_allclose(model.R_, r, rtol=0.25)
     # generation: a new phone continues the state (x_t = A x_{t-1} + ν), no reset to μ
-    seq = Sequence("gen", np.zeros((6, 4)), None, ["sil"] * 3 + ["aa"] * 3)
+    seq = Utterance("gen", np.zeros((6, 4)), None, ["sil"] * 3 + ["aa"] * 3)
     z = model.predict(seq)
     i_sil, i_aa = model.encoder_.index_["sil"], model.encoder_.index_["aa"]
     x = model.mu_[i_sil]
@@ -333,10 +333,10 @@ def test_dpds_recovers_known_system_and_generates_without_reset():
 # ----------------------------------------------------------------------------- HMM mean
 def test_hmm_mean_by_hand():
     z = np.array([[0.0, 1.0], [2.0, 3.0], [4.0, 5.0], [10.0, 10.0]])
-    train = [Sequence("a", np.zeros((4, 2)), z, ["sil", "sil", "aa", "aa"]),
-             Sequence("b", np.zeros((2, 2)), np.array([[6.0, 7.0], [1.0, 1.0]]), ["aa", "sil"])]
+    train = [Utterance("a", np.zeros((4, 2)), z, ["sil", "sil", "aa", "aa"]),
+             Utterance("b", np.zeros((2, 2)), np.array([[6.0, 7.0], [1.0, 1.0]]), ["aa", "sil"])]
     m = HMMMean().fit(train)
-    test = Sequence("t", np.zeros((3, 2)), np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]),
+    test = Utterance("t", np.zeros((3, 2)), np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]),
                     ["aa", "sil", "m"])
     # 'm' unseen, no phone of its viseme seen: the most frequent phone (sil and aa tie at 3
     # frames; the alphabetically first wins), the package's one unseen-phone policy
@@ -348,7 +348,7 @@ def test_hmm_mean_by_hand():
     want = scipy.stats.norm(sil.mean(0), sil.std(0)).logpdf([1.0, 1.0]).sum()
     aa = np.array([[4.0, 5.0], [10.0, 10.0], [6.0, 7.0]])
     want += scipy.stats.norm(aa.mean(0), aa.std(0)).logpdf([0.0, 0.0]).sum()
-    one = Sequence("t2", np.zeros((2, 2)), np.array([[0.0, 0.0], [1.0, 1.0]]), ["aa", "sil"])
+    one = Utterance("t2", np.zeros((2, 2)), np.array([[0.0, 0.0], [1.0, 1.0]]), ["aa", "sil"])
     assert m.log_likelihood(one) == pytest.approx(want, abs=1e-12)
 
 
@@ -357,8 +357,8 @@ def test_registry_and_bad_inputs(slds_fit):
     assert set(REGISTRY) == {"voice-puppetry", "slds", "dpds", "hmm-mean", "context-ridge", "context-mlp"}
     assert all(cls.name == key for key, cls in REGISTRY.items())
     good = slds_fit[3][:2]
-    no_aam = Sequence("x", np.zeros((5, 4)), None, ["sil"] * 5)
-    bad_label = Sequence("y", np.zeros((5, 4)), np.zeros((5, 2)), ["sil", "sil", "qq", "sil", "sil"])
+    no_aam = Utterance("x", np.zeros((5, 4)), None, ["sil"] * 5)
+    bad_label = Utterance("y", np.zeros((5, 4)), np.zeros((5, 2)), ["sil", "sil", "qq", "sil", "sil"])
     for cls in (SLDS, DPDS, HMMMean):
         with pytest.raises(ValueError, match="at least 1"):
             cls().fit([])
@@ -366,7 +366,7 @@ def test_registry_and_bad_inputs(slds_fit):
             cls().fit(good + [no_aam])
         with pytest.raises(ValueError, match="unknown phone label 'qq'"):
             cls().fit(good + [bad_label])
-    wide = Sequence("w", np.zeros((5, 4)), np.zeros((5, 3)), ["sil"] * 5)
+    wide = Utterance("w", np.zeros((5, 4)), np.zeros((5, 3)), ["sil"] * 5)
     with pytest.raises(ValueError, match="aam has 3 columns, expected 2"):
         HMMMean().fit(good + [wide])
     model = slds_fit[0]
@@ -382,8 +382,8 @@ def test_registry_and_bad_inputs(slds_fit):
 
 def test_unseen_phone_replaced_by_viseme_mate(slds_fit):
     model = slds_fit[0]
-    seq = Sequence("u", np.zeros((3, 4)), None, ["b", "b", "aa"])  # b ~ m (viseme p_b_m)
+    seq = Utterance("u", np.zeros((3, 4)), None, ["b", "b", "aa"])  # b ~ m (viseme p_b_m)
     with pytest.warns(UserWarning, match="'b'->'m'"):
         z = model.predict(seq)
-    same = Sequence("v", np.zeros((3, 4)), None, ["m", "m", "aa"])
+    same = Utterance("v", np.zeros((3, 4)), None, ["m", "m", "aa"])
     np.testing.assert_allclose(z, model.predict(same))

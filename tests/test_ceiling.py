@@ -10,7 +10,7 @@ from bayes_talk.data.corpus import FORMAT_VERSION, renderer_settings
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONES
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel, add_gain_fractions, gain_fraction
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
@@ -39,7 +39,7 @@ def built(tmp_path_factory):
         z = aam.project(fr, lm)
         meta = {"corpus_kind": "built", "intervals": iv, "aam_path": str(path), "image_size": SIZE,
                 "renderer": cam, "mean_removed": True}
-        seqs.append(Sequence(f"utt{i:04d}", np.zeros((T, 20)), z - z.mean(axis=0), frame_labels(iv, T),
+        seqs.append(Utterance(f"utt{i:04d}", np.zeros((T, 20)), z - z.mean(axis=0), frame_labels(iv, T),
                              landmarks=lm, meta=meta))
     return seqs
 
@@ -55,7 +55,7 @@ def test_zero_predicts_zeros_with_the_training_variance(built):
 
 def test_oracle_is_refused_on_a_user_corpus(built):
     s = built[0]
-    user = Sequence(s.name, s.mfcc, s.aam, s.labels, meta=dict(s.meta, corpus_kind="user"))
+    user = Utterance(s.name, s.mfcc, s.aam, s.labels, meta=dict(s.meta, corpus_kind="user"))
     with pytest.raises(ValueError, match="oracle.*built by `bayes-talk corpus build`.*'user' corpus"):
         predict("oracle", OracleModel(n_draws=2), user, SystemConfig())
 

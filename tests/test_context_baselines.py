@@ -15,7 +15,7 @@ from bayes_talk.baselines import REGISTRY
 from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
 from bayes_talk.baselines.context_features import ContextFeatures, stack_context
 from bayes_talk.baselines.context_mlp import ContextMLP
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError
 from bayes_talk.evaluation import systems as S
 
@@ -58,7 +58,7 @@ def linear_world():
         for i in range(n):
             labs = random_labels(r, int(r.integers(30, 50)))
             z = one_hot_window(labs, L) @ W.T + b + NOISE * r.normal(size=(len(labs), D))
-            out.append(Sequence(f"{prefix}{i}", r.normal(size=(len(labs), 3)), z, labs))
+            out.append(Utterance(f"{prefix}{i}", r.normal(size=(len(labs), 3)), z, labs))
         return out
 
     return W, b, utts(60, "tr", 1), utts(20, "te", 2)
@@ -132,7 +132,7 @@ def test_cv_never_sees_a_test_utterance(linear_world, monkeypatch):
     planted = test[0]
     labels = list(planted.labels)
     labels[10:14] = ["zh"] * 4                  # "zh" occurs in no training utterance
-    planted = Sequence("planted", planted.mfcc, planted.aam, labels)
+    planted = Utterance("planted", planted.mfcc, planted.aam, labels)
     train = train[:20]
     m = ContextRidge(label_window=(1, 2), mfcc_window=None).fit(train)
     assert seen and all(g == {s.name for s in train} for g in seen)
@@ -141,7 +141,7 @@ def test_cv_never_sees_a_test_utterance(linear_world, monkeypatch):
     assert sub_phone in PH
     with pytest.warns(UserWarning, match=f"'zh'->'{sub_phone}'"):
         pred = m.predict(planted)
-    sub = Sequence("sub", planted.mfcc, None, [sub_phone if p == "zh" else p for p in labels])
+    sub = Utterance("sub", planted.mfcc, None, [sub_phone if p == "zh" else p for p in labels])
     np.testing.assert_array_equal(pred, m.predict(sub))
 
 
@@ -234,10 +234,10 @@ def test_bad_input_errors(linear_world, ridge_fit):
         ContextRidge().predict(test[0])
     s = test[0]
     with pytest.raises(ValueError, match="mfcc has shape"):
-        ridge_fit.predict(Sequence("wide", np.zeros((s.n_frames, 7)), None, s.labels))
+        ridge_fit.predict(Utterance("wide", np.zeros((s.n_frames, 7)), None, s.labels))
     with pytest.raises(ValueError, match="qq"):
-        ridge_fit.predict(Sequence("bad", s.mfcc, None, ["qq"] + s.labels[1:]))
-    dup = [Sequence("same", u.mfcc, u.aam, u.labels) for u in train[:3]]
+        ridge_fit.predict(Utterance("bad", s.mfcc, None, ["qq"] + s.labels[1:]))
+    dup = [Utterance("same", u.mfcc, u.aam, u.labels) for u in train[:3]]
     with pytest.raises(ValueError, match="distinct names"):
         ContextRidge().fit(dup)
 

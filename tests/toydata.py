@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 PHONES = ("sil", "aa", "m", "iy", "uw", "s")
 
 
-def make_utterances(n: int, seed: int = 0, Dy: int = 8, Dz: int = 5, mean_len: int = 40) -> list[Sequence]:
+def make_utterances(n: int, seed: int = 0, Dy: int = 8, Dz: int = 5, mean_len: int = 40) -> list[Utterance]:
     rng = np.random.default_rng(seed)
     top = np.random.default_rng(1234)  # the world: same maps and targets for every seed
     targets = {p: top.normal(size=3) for p in PHONES}
@@ -32,5 +32,5 @@ def make_utterances(n: int, seed: int = 0, Dy: int = 8, Dz: int = 5, mean_len: i
             a[t] = a[t - 1] + 0.45 * (targets[labels[t]] - a[t - 1]) + 0.02 * rng.normal(size=3)
         z = np.tanh(a @ Wz) + 0.01 * rng.normal(size=(T, Dz))
         y = np.sin(a @ Wy) + np.array([offsets[lab] for lab in labels]) + 0.05 * rng.normal(size=(T, Dy))
-        out.append(Sequence(f"utt{k:03d}", y, z, labels))
+        out.append(Utterance(f"utt{k:03d}", y, z, labels))
     return out

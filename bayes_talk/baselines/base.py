@@ -2,7 +2,7 @@
 
 Every baseline is a small estimator with scikit-learn-like ergonomics:
 
-* ``fit(train: list[Sequence]) -> self`` learns from the audio (``mfcc``), the visual
+* ``fit(train: list[Utterance]) -> self`` learns from the audio (``mfcc``), the visual
   features (``aam``) and/or the frame labels of the training sequences;
 * ``predict(seq) -> (T, D_z) ndarray`` generates visual features from ``seq.mfcc``
   and/or ``seq.labels`` only -- never from ``seq.aam``;
@@ -24,7 +24,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from bayes_talk.data.phones import check_phone, substitute_unseen
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import not_fitted
 from bayes_talk.estimators.base import Estimator
 
@@ -54,14 +54,14 @@ class Baseline(Estimator, ABC):
     n_audio_: int
 
     @abstractmethod
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Learn the model from training sequences (with ``aam``); returns ``self``."""
 
     @abstractmethod
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """Generate the (T, D_z) visual trajectory of ``seq`` (``seq.aam`` is not used)."""
 
-    def log_likelihood(self, seq: Sequence) -> float:
+    def log_likelihood(self, seq: Utterance) -> float:
         """Test log-likelihood of ``seq.aam``; not defined for this model."""
         raise NotImplementedError(f"{type(self).__name__} ({self.name}) defines no test log-likelihood")
 
@@ -107,21 +107,21 @@ class Baseline(Estimator, ABC):
         """Recompute the ``_derived`` attributes after loading (nothing by default)."""
 
 
-def check_train(train: list[Sequence], *, min_sequences: int = 1) -> tuple[int, int]:
+def check_train(train: list[Utterance], *, min_sequences: int = 1) -> tuple[int, int]:
     """Validate a training set; return (D_y, D_z).
 
-    Raises ValueError if the list is empty, an item is not a :class:`Sequence`, a sequence
+    Raises ValueError if the list is empty, an item is not a :class:`Utterance`, a sequence
     has no ``aam``, is empty, or the feature dimensions differ between sequences.
     """
-    if isinstance(train, Sequence):
-        raise ValueError("train must be a list of Sequence objects, got a single Sequence")  # noqa: TRY004
+    if isinstance(train, Utterance):
+        raise ValueError("train must be a list of Utterance objects, got a single Utterance")  # noqa: TRY004
     train = list(train)
     if len(train) < min_sequences:
         raise ValueError(f"need at least {min_sequences} training sequence(s), got {len(train)}")
     d_y = d_z = None
     for s in train:
-        if not isinstance(s, Sequence):
-            raise ValueError(f"train must contain Sequence objects, got {type(s).__name__}")  # noqa: TRY004
+        if not isinstance(s, Utterance):
+            raise ValueError(f"train must contain Utterance objects, got {type(s).__name__}")  # noqa: TRY004
         if s.aam is None:
             raise ValueError(f"training sequence {s.name!r} has no visual features (aam is None)")
         if s.n_frames < 1:
@@ -135,11 +135,11 @@ def check_train(train: list[Sequence], *, min_sequences: int = 1) -> tuple[int, 
     return int(d_y), int(d_z)
 
 
-def check_test(seq: Sequence, *, n_audio: int | None = None, n_visual: int | None = None,
+def check_test(seq: Utterance, *, n_audio: int | None = None, n_visual: int | None = None,
                need_aam: bool = False) -> None:
     """Validate a test sequence against the fitted dimensions (ValueError on mismatch)."""
-    if not isinstance(seq, Sequence):
-        raise ValueError(f"expected a Sequence, got {type(seq).__name__}")  # noqa: TRY004
+    if not isinstance(seq, Utterance):
+        raise ValueError(f"expected a Utterance, got {type(seq).__name__}")  # noqa: TRY004
     if seq.n_frames < 1:
         raise ValueError(f"sequence {seq.name!r} has no frames")
     if n_audio is not None and seq.mfcc.shape[1] != n_audio:
@@ -164,7 +164,7 @@ class LabelEncoder:
     training phone). Labels outside the phone set raise ValueError.
     """
 
-    def fit(self, sequences: list[Sequence]) -> Self:
+    def fit(self, sequences: list[Utterance]) -> Self:
         """Learn the label set and each label's count from ``sequences``; returns ``self``."""
         counts: Counter[str] = Counter()
         for s in sequences:

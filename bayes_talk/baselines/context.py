@@ -66,7 +66,7 @@ from bayes_talk.baselines.context_features import (
     tupled,
     window_grid,
 )
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.files import check_format, read_model_files, write_model_files
 
 __all__ = [
@@ -174,7 +174,7 @@ def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[
 
 
 # --------------------------------------------------------------------------- the model
-def select_context(train: list[Sequence], label_window: Window | Seq[Window], mfcc_window: Window | Seq[Window],
+def select_context(train: list[Utterance], label_window: Window | Seq[Window], mfcc_window: Window | Seq[Window],
                    alphas: Seq[float], n_splits: int) -> dict[str, Any]:
     """Grouped-CV choice of the windows and the per-dimension penalties (module docstring).
 
@@ -230,13 +230,13 @@ class ContextBaseline(Baseline):
         self._check_fitted()
         return self.features_.label_window, self.features_.mfcc_window
 
-    def predict_var(self, seq: Sequence) -> np.ndarray:
+    def predict_var(self, seq: Utterance) -> np.ndarray:
         """(T, D_z) predictive variance: the residual variance σ²_d on every frame."""
         self._check_fitted()
         self.features_.check(seq)
         return np.broadcast_to(self.residual_var_, (seq.n_frames, self.n_visual_)).copy()
 
-    def log_likelihood(self, seq: Sequence) -> float:
+    def log_likelihood(self, seq: Utterance) -> float:
         """Σ_t Σ_d log N(z_td; ẑ_td, σ²_d) of the ground truth (labels and audio given)."""
         self._check_fitted()
         check_test(seq, n_visual=self.n_visual_, need_aam=True)
@@ -275,7 +275,7 @@ class ContextRidge(ContextBaseline):
         self.n_splits = n_splits
         self.blas_threads = blas_threads
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Grouped CV on ``train`` (windows, α_d, σ²_d), then (RIDGE) on all of ``train``."""
         from threadpoolctl import threadpool_limits
 
@@ -296,7 +296,7 @@ class ContextRidge(ContextBaseline):
         self.n_audio_, self.n_visual_ = d_y, d_z
         return self
 
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """ẑ_t = W x_t + b for every frame of ``seq`` (labels and mfcc; never ``seq.aam``)."""
         self._check_fitted()
         self.features_.check(seq)

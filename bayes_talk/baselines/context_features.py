@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 from bayes_talk.baselines.base import LabelEncoder, check_test
 from bayes_talk.data.phones import SILENCE
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["LABEL_WINDOWS", "MFCC_WINDOWS", "ContextFeatures", "Window", "listed", "stack_context", "tupled",
            "window_grid"]
@@ -55,7 +55,7 @@ class ContextFeatures:
     mfcc_scale: np.ndarray
 
     @classmethod
-    def fit(cls, train: list[Sequence], label_window: int | None, mfcc_window: int | None) -> ContextFeatures:
+    def fit(cls, train: list[Utterance], label_window: int | None, mfcc_window: int | None) -> ContextFeatures:
         """Encoder and MFCC statistics from the training utterances only."""
         if label_window is None and mfcc_window is None:
             raise ValueError("label_window and mfcc_window cannot both be None (no inputs)")
@@ -90,7 +90,7 @@ class ContextFeatures:
                 cols.append(base + np.arange(Dy) + (k + self.mfcc_window) * Dy)
         return np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64)
 
-    def transform(self, seq: Sequence, sparse: bool = False) -> np.ndarray | sp.csr_matrix:
+    def transform(self, seq: Utterance, sparse: bool = False) -> np.ndarray | sp.csr_matrix:
         """(T, F) context matrix (CTX) of ``seq`` (labels and mfcc; never ``aam``)."""
         T = seq.n_frames
         blocks: list[Any] = []
@@ -115,7 +115,7 @@ class ContextFeatures:
         X = sp.hstack(blocks, format="csr") if len(blocks) > 1 else blocks[0].tocsr()
         return X if sparse else X.toarray()
 
-    def check(self, seq: Sequence) -> None:
+    def check(self, seq: Utterance) -> None:
         """Validate a test utterance against the training audio dimension."""
         check_test(seq, n_audio=self.mfcc_mean.shape[0])
 
@@ -143,7 +143,7 @@ class ContextFeatures:
         return cls(enc, lw, mw, mean, scale)
 
 
-def stack_context(feats: ContextFeatures, train: list[Sequence]) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+def stack_context(feats: ContextFeatures, train: list[Utterance]) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """(X sparse (N, F), Z (N, D_z), groups (N,) utterance names) of the training frames."""
     X = sp.vstack([feats.transform(s, sparse=True) for s in train], format="csr")
     Z = np.concatenate([s.aam for s in train])

@@ -51,7 +51,7 @@ from bayes_talk.baselines.context_features import (
     tupled,
     window_grid,
 )
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["ContextMLP", "mlp_forward"]
 
@@ -118,7 +118,7 @@ class ContextMLP(ContextBaseline):
         self.seed = seed
         self.blas_threads = blas_threads
 
-    def _features(self, train: list[Sequence]) -> ContextFeatures:
+    def _features(self, train: list[Utterance]) -> ContextFeatures:
         lw = window_grid(self.label_window, "label_window")
         mw = window_grid(self.mfcc_window, "mfcc_window")
         if len(lw) == 1 and len(mw) == 1:
@@ -126,7 +126,7 @@ class ContextMLP(ContextBaseline):
         return select_context(train, lw, mw, (1e-2, 1e-1, 1.0, 1e1, 1e2, 1e3, 1e4, 1e5),
                               self.n_splits)["features"]
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Windows (fixed or by grouped CV), then the MLP with utterance-held-out early stopping."""
         from threadpoolctl import threadpool_limits
 
@@ -170,7 +170,7 @@ class ContextMLP(ContextBaseline):
         self.n_audio_, self.n_visual_ = d_y, d_z
         return self
 
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """ẑ_t of every frame of ``seq`` (labels and mfcc; never ``seq.aam``)."""
         self._check_fitted()
         self.features_.check(seq)

@@ -18,7 +18,7 @@ from bayes_talk.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["DPDS", "dpds_forward", "dpds_grad_A", "dpds_loglik", "dpds_profile", "dpds_solve_mu_nu"]
 
@@ -176,7 +176,7 @@ class DPDS(LabelSwitchedLDS):
         self.var_floor = var_floor
         self.gtol = gtol
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Maximise the likelihood over A by L-BFGS-B, μ and ν profiled out (class docstring); returns ``self``."""
         d_y, d_z, P, b, data_var = prepare_fit(self, train)
         floor = self.var_floor * data_var
@@ -213,7 +213,7 @@ class DPDS(LabelSwitchedLDS):
     def _start_means(self) -> np.ndarray:
         return self.mu_
 
-    def log_likelihood(self, seq: Sequence) -> float:
+    def log_likelihood(self, seq: Utterance) -> float:
         """Σ_t log N(z_t; x̂_t, R) with x̂ from (GEN) (labels only, no audio)."""
         self._check_fitted()
         check_test(seq, n_visual=self.n_visual_, need_aam=True)

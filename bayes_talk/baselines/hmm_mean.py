@@ -27,7 +27,7 @@ import numpy as np
 
 from bayes_talk.baselines.base import Baseline, check_test, check_train
 from bayes_talk.data.phones import check_phone, replace_unseen
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["HMMMean"]
 
@@ -48,7 +48,7 @@ class HMMMean(Baseline):
             raise ValueError(f"var_floor must be > 0, got {var_floor}")
         self.var_floor = var_floor
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Per-phone mean and variance of the visual features (global ones for the fallback); returns ``self``."""
         d_y, d_z = check_train(train)
         z = np.concatenate([s.aam for s in train])
@@ -75,27 +75,27 @@ class HMMMean(Baseline):
         self.n_audio_, self.n_visual_ = d_y, d_z
         return self
 
-    def _params(self, seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    def _params(self, seq: Utterance) -> tuple[np.ndarray, np.ndarray]:
         index = {p: i for i, p in enumerate(self.classes_)}
         counts = dict(zip(self.classes_, self.counts_.tolist(), strict=True))
         labels = replace_unseen(seq.labels, counts, where=f"sequence {seq.name!r}", stacklevel=4)
         idx = np.array([index[lab] for lab in labels], dtype=np.int64)
         return self.means_[idx], self.vars_[idx]
 
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """ẑ_t = m_{π_t} (unseen phones: :func:`bayes_talk.data.phones.substitute_unseen`)."""
         self._check_fitted()
         check_test(seq)
         return self._params(seq)[0]
 
-    def predict_var(self, seq: Sequence) -> np.ndarray:
+    def predict_var(self, seq: Utterance) -> np.ndarray:
         """Per-frame variance: the training variance of each frame's phone (unseen phones as
         in :meth:`predict`)."""
         self._check_fitted()
         check_test(seq)
         return self._params(seq)[1]
 
-    def log_likelihood(self, seq: Sequence) -> float:
+    def log_likelihood(self, seq: Utterance) -> float:
         """Σ_t log N(z_t; m_{π_t}, diag s²_{π_t}) -- conditioned on the labels only."""
         self._check_fitted()
         check_test(seq, n_visual=self.n_visual_, need_aam=True)

@@ -8,7 +8,7 @@ observation = state convention B = I of englebienne2008 §3:
 
     x_1 = μ_{π_1} (+ noise),   x_t = A_{π_t} x_{t−1} + ν_{π_t} (+ w_t),   y_t = x_t + v_t,
 
-where y_t is the visual feature vector z_t (``Sequence.aam``), A_π is diagonal and all
+where y_t is the visual feature vector z_t (``Utterance.aam``), A_π is diagonal and all
 covariances are diagonal. With diagonal A and covariances every visual dimension is an
 independent scalar system, which is how both models are computed (vectorised over the
 dimensions and over sequences, which are padded to a common length and masked).
@@ -22,7 +22,7 @@ training sequence μ_π is not identifiable; it is set to the mean of that phone
 frames (used only if a test sequence starts with it). Unseen phones: see
 :class:`bayes_talk.baselines.base.LabelEncoder`.
 
-Generation (englebienne2008 §3, "Sequence generation"), both models:
+Generation (englebienne2008 §3, "Utterance generation"), both models:
 
     ŷ_1 = μ_{π_1},   ŷ_t = A_{π_t} ŷ_{t−1} + ν_{π_t}                       (GEN)
 
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = [
     "LOG2PI",
@@ -146,13 +146,13 @@ def first_frame_means(batch: Batch, n_labels: int, values: np.ndarray,
     return out, cnt > 0
 
 
-def label_batch(encoder: LabelEncoder, seqs: list[Sequence]) -> Batch:
+def label_batch(encoder: LabelEncoder, seqs: list[Utterance]) -> Batch:
     """:func:`make_batch` of the sequences' encoded frame labels and visual features."""
     return make_batch([encoder.encode(s.labels, where=f"sequence {s.name!r}") for s in seqs],
                       [s.aam for s in seqs])
 
 
-def prepare_fit(model, train: list[Sequence]) -> tuple[int, int, int, Batch, np.ndarray]:
+def prepare_fit(model, train: list[Utterance]) -> tuple[int, int, int, Batch, np.ndarray]:
     """Shared start of SLDS/DPDS ``fit``: check the data, fit the label encoder on
     ``model``, batch the sequences, and the per-dimension data variance (1 where zero).
     Returns (D_y, D_z, number of labels, batch, data variance)."""
@@ -170,14 +170,14 @@ class LabelSwitchedLDS(Baseline):
 
     encoder_: LabelEncoder
 
-    def _batch(self, seqs: list[Sequence]) -> Batch:
+    def _batch(self, seqs: list[Utterance]) -> Batch:
         return label_batch(self.encoder_, seqs)
 
     def _start_means(self) -> np.ndarray:
         """μ_π of the first frame, per label (fitted)."""
         raise NotImplementedError
 
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """(GEN) the mean trajectory for ``seq.labels`` (module docstring)."""
         self._check_fitted()
         check_test(seq)

@@ -16,7 +16,7 @@ from bayes_talk.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["SLDS", "kalman_smoother"]
 
@@ -119,7 +119,7 @@ class SLDS(LabelSwitchedLDS):
         self.var_floor = var_floor
         self.a_init_max = a_init_max
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """EM from the deterministic AR(1) start (class docstring); returns ``self``."""
         d_y, d_z, P, b, data_var = prepare_fit(self, train)
         floor = self.var_floor * data_var
@@ -172,7 +172,7 @@ class SLDS(LabelSwitchedLDS):
     def _start_means(self) -> np.ndarray:
         return self.mu0_
 
-    def log_likelihood(self, seq: Sequence) -> float:
+    def log_likelihood(self, seq: Utterance) -> float:
         """log p(z_{1:T} | π_{1:T}) by the Kalman filter (labels only, no audio)."""
         self._check_fitted()
         check_test(seq, n_visual=self.n_visual_, need_aam=True)

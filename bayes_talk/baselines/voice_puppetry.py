@@ -49,7 +49,7 @@ from hmmlearn.hmm import GaussianHMM
 from sklearn.cluster import KMeans
 
 from bayes_talk.baselines.base import Baseline, check_test, check_train
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 
 __all__ = [
     "VoicePuppetry",
@@ -194,7 +194,7 @@ class VoicePuppetry(Baseline):
     def _audio(self, y: np.ndarray) -> np.ndarray:
         return delta_features(y) if self.audio_deltas else np.asarray(y, dtype=np.float64)
 
-    def fit(self, train: list[Sequence]) -> Self:
+    def fit(self, train: list[Utterance]) -> Self:
         """Train the facial HMM on visual features, then remap its states to audio (Brand 1999); returns ``self``."""
         d_y, d_z = check_train(train)
         lengths = np.array([s.n_frames for s in train])
@@ -258,14 +258,14 @@ class VoicePuppetry(Baseline):
         aud.covars_ = self.audio_covars_
         self.audio_hmm_ = aud
 
-    def decode_states(self, seq: Sequence) -> np.ndarray:
+    def decode_states(self, seq: Utterance) -> np.ndarray:
         """Viterbi state path s*_{1:T} (int array) of the audio HMM for ``seq.mfcc``."""
         self._check_fitted()
         check_test(seq, n_audio=self.n_audio_)
         _, path = self.audio_hmm_.decode(self._audio(seq.mfcc), algorithm="viterbi")
         return np.asarray(path, dtype=np.int64)
 
-    def predict(self, seq: Sequence) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """Most likely visual trajectory given the Viterbi path of the audio, eq. (VP)."""
         path = self.decode_states(seq)
         return trajectory_solve(self.visual_means_[path], self.visual_covars_[path])

@@ -31,7 +31,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from bayes_talk.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, write_bundle_manifest
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError, not_fitted
 from bayes_talk.files import check_format, read_model_files, write_json, write_npz
 from bayes_talk.synthesis.result import SynthesisResult

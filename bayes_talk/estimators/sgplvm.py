@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.files import read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads

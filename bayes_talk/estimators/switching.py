@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
 from bayes_talk.synthesis.result import SynthesisResult

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.ceiling import add_gain_fractions
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol

@@ -25,7 +25,7 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 
 __all__ = ["LABEL_SOURCES", "parse_label_sources", "relabel", "run_label_sources"]
 

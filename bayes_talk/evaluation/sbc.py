@@ -115,6 +115,7 @@ class SBCResult:
 
     @property
     def n_rejected(self) -> int:
+        """Coordinates whose uniformity test rejects at the family-wise level (Holm-adjusted p < alpha)."""
         return int(np.sum(self.p_adjusted < self.alpha))
 
     @property
@@ -126,10 +127,12 @@ class SBCResult:
 
     @property
     def extreme_width(self) -> int:
+        """Ranks counted as extreme at each end (about 2.5 % of the L + 1 possible ranks, at least 1)."""
         return max(1, -(-(self.n_draws + 1) // 40))
 
     @property
     def extreme_expected(self) -> float:
+        """Fraction of ranks expected in the extremes under uniformity."""
         return 2 * self.extreme_width / (self.n_draws + 1)
 
     def histogram(self) -> np.ndarray:

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 
 if TYPE_CHECKING:
     from bayes_talk.evaluation.protocols import Protocol

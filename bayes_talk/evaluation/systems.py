@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.baselines import DPDS, SLDS, VoicePuppetry
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.models.switching import SwitchingConfig
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER

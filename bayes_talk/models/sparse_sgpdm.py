@@ -185,6 +185,7 @@ class SparseSGPDM(SGPDM):
 
     # ------------------------------------------------------------------ persistence
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """The exact SGPDM's state plus the inducing inputs ``Z``."""
         meta, arrays = super().state()
         arrays["Z"] = self.Z_
         return meta, arrays

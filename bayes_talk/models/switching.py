@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.phones import replace_unseen
-from bayes_talk.data.sequence import Sequence as Utterance
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.files import check_format, read_model_files, write_model_files

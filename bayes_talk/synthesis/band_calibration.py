@@ -167,6 +167,7 @@ class BandCalibration:
 
     # ------------------------------------------------------------------ persistence
     def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (format, version, method, levels, factors, fit information)."""
         return {"format": _FORMAT, "version": _VERSION, "method": self.method, "levels": list(self.levels),
                 "scale": self.scale.tolist(), "n_utterances": self.n_utterances, "n_frames": self.n_frames,
                 "coverage_raw": self.coverage_raw, "coverage_calibrated": self.coverage_calibrated,
@@ -174,6 +175,7 @@ class BandCalibration:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "band calibration") -> BandCalibration:
+        """The calibration saved by :meth:`to_dict` (ValueError naming ``where`` if malformed)."""
         if not isinstance(d, dict) or d.get("format") != _FORMAT:
             raise ValueError(f"{where}: expected format {_FORMAT!r}, found "
                              f"{d.get('format') if isinstance(d, dict) else type(d).__name__!r}")

@@ -77,6 +77,7 @@ class PredictiveCheck:
         return {k: int(np.sum((p < alpha) | (p > 1 - alpha))) for k, p in self.p_values.items()}
 
     def to_dict(self) -> dict:
+        """JSON-able form of the check (p-values, coverage, PIT)."""
         return {"p_values": {k: v.tolist() for k, v in self.p_values.items()},
                 "coverage": {str(k): v for k, v in self.coverage.items()}, "n_rep": self.n_rep,
                 "extreme_p_values": self.extreme(), "pit_mean": float(self.pit.mean())}

@@ -1,4 +1,4 @@
-"""Load a built or user corpus as :class:`~bayes_talk.data.sequence.Sequence` objects,
+"""Load a built or user corpus as :class:`~bayes_talk.data.utterance.Utterance` objects,
 with derived features (MFCC, AAM parameters) cached by a SHA-256 of every input."""
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ from bayes_talk.data.corpus.workers import (
 )
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
-from bayes_talk.data.sequence import Sequence
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.executor import Executor
 from bayes_talk.executor import single_thread as _single_thread_blas
 from bayes_talk.features.mfcc import FMAX_HZ
@@ -49,17 +49,17 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Corpus:
-    """A loaded corpus: :class:`Sequence` objects plus where they came from.
+    """A loaded corpus: :class:`Utterance` objects plus where they came from.
 
     ``kind`` is ``"built"`` or ``"user"``; ``aam`` is the AAM (None when the user gave
     precomputed visual features); ``manifest`` the parsed manifest (built) or a summary.
-    ``Sequence.meta["aam_mean"]`` holds the per-sequence mean removed from ``aam`` (zeros
+    ``Utterance.meta["aam_mean"]`` holds the per-sequence mean removed from ``aam`` (zeros
     when mean removal is off): add it back before reconstructing or rendering.
     """
 
     path: Path
     kind: str
-    sequences: list[Sequence]
+    sequences: list[Utterance]
     manifest: dict = field(default_factory=dict)
     aam: object | None = None
     fps: float = FPS
@@ -70,10 +70,10 @@ class Corpus:
     def __len__(self) -> int:
         return len(self.sequences)
 
-    def __iter__(self) -> Iterator[Sequence]:
+    def __iter__(self) -> Iterator[Utterance]:
         return iter(self.sequences)
 
-    def __getitem__(self, key: int | str) -> Sequence:
+    def __getitem__(self, key: int | str) -> Utterance:
         if isinstance(key, str):
             for s in self.sequences:
                 if s.name == key:
@@ -159,7 +159,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                 fmax: float | None = FMAX_HZ) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
-    Each :class:`Sequence` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
+    Each :class:`Utterance` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
     the frames (or the user's precomputed visual features), 25 Hz majority-vote
     ``labels``, ``landmarks`` (T, P, 2) when available, ``audio_path`` and ``meta``
     (sentence text etc., ``intervals``, ``aam_mean``).
@@ -294,7 +294,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   else np.load(it.landmarks, allow_pickle=False))[: it.n_frames].astype(np.float64)
         meta = dict(it.meta, intervals=list(it.intervals), aam_mean=mean,
                     label_path=str(it.labels), mean_removed=bool(mean_removal), cmvn=cmvn, **gen)
-        seqs.append(Sequence(name=it.name, mfcc=_cmvn(mf, cmvn), aam=vis - mean,
+        seqs.append(Utterance(name=it.name, mfcc=_cmvn(mf, cmvn), aam=vis - mean,
                              labels=[PHONES[i] for i in lab], landmarks=lm, audio_path=it.wav,
                              meta=meta))
     summary = manifest if kind == "built" else {"kind": "user", "audio_rate": rate, "fps": FPS,

@@ -1,7 +1,7 @@
 """One audio-visual utterance as the models see it.
 
 Every model in the package (the SGPDM family and the baselines) consumes a list of
-:class:`Sequence` objects: frame-synchronous audio features, visual features and
+:class:`Utterance` objects: frame-synchronous audio features, visual features and
 phone labels at 25 Hz.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 
 
 @dataclass
-class Sequence:
+class Utterance:
     """A frame-synchronous utterance.
 
     Attributes
