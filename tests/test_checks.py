@@ -3,14 +3,14 @@ from __future__ import annotations
 
 import pytest
 
-from bayes_talk.data import corpus
+from bayes_talk.data.corpus import format as corpus_format
 from bayes_talk.data.checks import LABEL_TOLERANCE_S, check_audio_vs_labels
 from bayes_talk.data.phones import replace_unseen, substitute_unseen
 
 
 def test_tolerance_is_two_frames_and_shared_by_the_corpus_loader():
     assert LABEL_TOLERANCE_S == pytest.approx(2 / 25)
-    assert corpus._LABEL_TOL_S == LABEL_TOLERANCE_S
+    assert corpus_format._LABEL_TOL_S == LABEL_TOLERANCE_S
 
 
 def test_within_tolerance_passes_beyond_it_names_both_files():
