@@ -50,7 +50,6 @@ class _NumpyGP:
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
         self.w2 = (p.w * p.w).numpy()
         self.mean = p.mean.numpy()
-        self.X2 = (self.X * self.X).sum(1)
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
@@ -62,10 +61,11 @@ class _NumpyGP:
         return x
 
     def kernel(self, Xs: np.ndarray) -> np.ndarray:
-        """k(Xs, X) (T×N), with ‖x − X_i‖² = ‖x‖² + ‖X_i‖² − 2xᵀX_i (one matrix product;
-        clipped at 0; its rounding, ~1e-16·‖x‖², is far below what the predictive resolves)."""
-        d2 = (Xs * Xs).sum(1)[:, None] + self.X2[None, :] - 2.0 * (Xs @ self.X.T)
-        return self.alpha * np.exp(-0.5 * self.gamma * np.maximum(d2, 0.0))
+        """k(Xs, X) (T×N), from the differences x − X_i (exact; the expansion
+        ‖x‖² + ‖X_i‖² − 2xᵀX_i is faster but its rounding changed Algorithm 2's paths enough
+        to fail the resampling robustness test)."""
+        diff = Xs[:, None, :] - self.X[None, :, :]
+        return self.alpha * np.exp(-0.5 * self.gamma * (diff * diff).sum(-1))
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
