@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import pickle
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, Self
@@ -83,6 +84,17 @@ def run_task(fn: Callable[[Any], Any], item: Any) -> Any:
     """``fn(item)`` with one thread (:func:`single_thread`): what every engine runs."""
     with single_thread():
         return fn(item)
+
+
+def _run_pickled(payload: bytes) -> bytes:
+    """:func:`run_task` on ``pickle.loads(payload)``; the result pickled the same way.
+
+    A process pool pickles with multiprocessing's ForkingPickler, for which torch moves
+    every tensor it sends into shared memory (``Tensor.share_memory_``): the caller's
+    model would change storage under any NumPy view of it and stay tied to the workers.
+    The standard pickler copies tensors instead."""
+    fn, item = pickle.loads(payload)
+    return pickle.dumps(run_task(fn, item), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def _init_process_worker() -> None:
@@ -169,11 +181,12 @@ class ProcessExecutor(Executor):
         from concurrent.futures import as_completed
 
         items = list(items)
-        futures = [self._pool.submit(run_task, fn, x) for x in items]
+        futures = [self._pool.submit(_run_pickled, pickle.dumps((fn, x), protocol=pickle.HIGHEST_PROTOCOL))
+                   for x in items]
         try:
             for f in _bar(as_completed(futures), len(futures), desc, unit):
                 f.result()  # raises the first failure at once
-            return [f.result() for f in futures]
+            return [pickle.loads(f.result()) for f in futures]
         except BaseException:
             for f in futures:
                 f.cancel()

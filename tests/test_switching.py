@@ -143,9 +143,16 @@ def test_synthesize_many_in_processes_equals_one_process(vlmm_model, data):
     from bayes_talk.synthesis.sequential import synthesize_many
 
     utts = [(s.mfcc, s.labels) for s in data[1][:2]]
+    before = [vlmm_model.synthesize(mfcc, labels, algorithm="predict").mean for mfcc, labels in utts]
     par = synthesize_many(vlmm_model, utts, workers=2, algorithm="predict")
-    for (mfcc, labels), r in zip(utts, par, strict=True):
-        np.testing.assert_array_equal(r.mean, vlmm_model.synthesize(mfcc, labels, algorithm="predict").mean)
+    for b, r in zip(before, par, strict=True):
+        np.testing.assert_array_equal(r.mean, b)
+    # sending the model to the workers leaves it as it was (torch's shared-memory
+    # pickling once swapped its storage under the cached NumPy views: garbage latents)
+    for (mfcc, labels), b in zip(utts, before, strict=True):
+        np.testing.assert_array_equal(vlmm_model.synthesize(mfcc, labels, algorithm="predict").mean, b)
+    key = next(iter(vlmm_model.models_))
+    assert not vlmm_model.models_[key].predictors_["audio"].X.is_shared()
 
 
 def test_closed_form_segment_objective_equals_the_torch_reference(vlmm_model):

@@ -44,12 +44,14 @@ class _NumpyGP:
     """
 
     def __init__(self, p: GPPredictor):
-        self.X = p.X.numpy()
-        self.A = p.A.numpy()
-        self.L = np.asfortranarray(p.L.numpy())
+        # copies, never views: a view dangles when torch swaps a tensor's storage (it
+        # does when a process pool pickles the model: Tensor.share_memory_)
+        self.X = p.X.numpy().copy()
+        self.A = p.A.numpy().copy()
+        self.L = np.asfortranarray(p.L.numpy().copy())
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
         self.w2 = (p.w * p.w).numpy()
-        self.mean = p.mean.numpy()
+        self.mean = p.mean.numpy().copy()
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
