@@ -31,7 +31,7 @@ from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
-MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-ridge", "sgplvm")
+MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "sgplvm")
 _DEFAULT = object()
 
 

@@ -24,8 +24,6 @@ FAST: dict[str, dict] = {
     "ssgpdm-vlmm": {"latent_dim": 2, "max_iter": 15, "min_count": 4, "max_frames_per_state": 60,
                     "fallback_frames": 80},
     "ssgpdm-phone": {"latent_dim": 2, "max_iter": 15, "max_frames_per_state": 60, "fallback_frames": 80},
-    "ssgpdm-vlmm-ridge": {"latent_dim": 2, "max_iter": 15, "min_count": 4, "max_frames_per_state": 60,
-                          "fallback_frames": 80},
     "sgplvm": {"latent_dim": 2, "max_frames": 150, "max_iter": 15, "validation_frames": 50},
     "voice-puppetry": {"n_states": 4, "n_iter": 5},
     "slds": {"n_iter": 5},

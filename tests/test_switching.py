@@ -216,31 +216,3 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     assert p.mean.shape == r.mean.shape and np.all(np.isfinite(p.mean))
     with pytest.raises(ValueError, match="audio context"):
         AudioContext(-1)
-
-
-def test_context_ridge_mean_function_is_added_to_every_synthesis(data):
-    from bayes_talk.baselines.context import ContextRidge
-    from bayes_talk.models.switching import SwitchingModel
-    from bayes_talk.synthesis.posterior import sample_synthesis
-
-    train, test = data[0][:12], data[1][0]
-    with pytest.raises(ValueError, match="mean_function must be one of"):
-        SwitchingSGPDM(mean_function="mlp")
-    with pytest.raises(ValueError, match="estimator"):
-        SwitchingModel(mean_function="context-ridge", **SMALL).fit(train)
-    m = SwitchingSGPDM(mean_function="context-ridge", **SMALL).fit(train)
-    ridge = ContextRidge().fit(train)   # the same fit: its windows and penalties by the same CV
-    h = m.visual_offset(test.mfcc, test.labels)
-    np.testing.assert_allclose(h, ridge.predict(test), rtol=0, atol=1e-10)
-    # the state models were trained on residuals: their own synthesis is a residual, the
-    # model's is that residual plus the ridge (MAP and posterior alike)
-    r = m.synthesize(test.mfcc, test.labels, algorithm="predict")
-    m.mean_model_, saved = None, m.mean_model_
-    r0 = m.synthesize(test.mfcc, test.labels, algorithm="predict")
-    p0 = sample_synthesis(m, test.mfcc, test.labels, method="laplace", n_draws=8)
-    m.mean_model_ = saved
-    np.testing.assert_allclose(r.mean, r0.mean + h, rtol=0, atol=1e-10)
-    p = sample_synthesis(m, test.mfcc, test.labels, method="laplace", n_draws=8)
-    np.testing.assert_allclose(p.mean, p0.mean + h, rtol=0, atol=1e-8)
-    np.testing.assert_allclose(p.var, p0.var, rtol=1e-8)
-    # (save / load: tests/test_estimators.py, family ssgpdm-vlmm-ridge)

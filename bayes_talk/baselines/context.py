@@ -74,7 +74,6 @@ __all__ = [
     "ContextBaseline",
     "ContextRidge",
     "grouped_ridge_cv",
-    "out_of_fold",
     "read_saved",
     "select_context",
     "write_saved",
@@ -338,21 +337,3 @@ class ContextRidge(ContextBaseline):
             raise ValueError(f"model file {path}: mfcc_mean has shape {obj.features_.mfcc_mean.shape}, "
                              f"expected ({obj.n_audio_},)")
         return obj
-
-
-def out_of_fold(train: list[Utterance], label_window: Window, mfcc_window: Window, n_splits: int = 5,
-                ) -> list[np.ndarray]:
-    """ẑ^{(−k)} of every training utterance: the (RIDGE) prediction of a model fitted, with
-    the windows fixed at (``label_window``, ``mfcc_window``), on the folds that do not hold
-    it (``GroupKFold`` by utterance, like the model selection). Its residuals z − ẑ^{(−k)}
-    have the size the residuals of new audio will have; in-sample ones are too small."""
-    n = len(train)
-    if n < 2:
-        raise ValueError(f"out-of-fold predictions need >= 2 utterances, got {n}")
-    out: list[np.ndarray | None] = [None] * n
-    for fit_idx, held in GroupKFold(min(n_splits, n)).split(np.arange(n), groups=np.arange(n)):
-        model = ContextRidge(label_window=label_window, mfcc_window=mfcc_window).fit([train[i] for i in fit_idx])
-        for i in held:
-            out[i] = model.predict(train[i])
-    return out  # type: ignore[return-value]
-

@@ -18,8 +18,6 @@ __all__ = ["ESTIMATORS", "make_estimator"]
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-vlmm": (SwitchingSGPDM, {"states": "vlmm"}),
     "ssgpdm-phone": (SwitchingSGPDM, {"states": "phone"}),
-    # ours: the VLMM switching model on the residual of a label/MFCC context ridge
-    "ssgpdm-vlmm-ridge": (SwitchingSGPDM, {"states": "vlmm", "mean_function": "context-ridge"}),
     "sgplvm": (SGPLVM, {}),
     **{name: (cls, {}) for name, cls in _BASELINES.items()},
 }

@@ -14,10 +14,6 @@ ssgpdm-phone-predict        ssgpdm-phone        Algorithm 2, phone states
 ssgpdm-vlmm-posterior       ssgpdm-vlmm         ours: mean and variance of the whole-utterance
                                                 synthesis posterior (Laplace), VLMM states
 ssgpdm-phone-posterior      ssgpdm-phone        the same with phone states
-ssgpdm-vlmm-ridge-posterior ssgpdm-vlmm-ridge   ours: the posterior of a VLMM switching model
-                                                trained on the residual of a context ridge
-                                                (its explicit visual mean)
-ssgpdm-vlmm-ridge-optimise  ssgpdm-vlmm-ridge   the same model, Algorithm 1
 sgplvm-a                    sgplvm              deena2009, back-constraint initialiser
 sgplvm-b                    sgplvm              deena2009, HMM/Viterbi initialiser
 voice-puppetry              voice-puppetry      Brand (1999)
@@ -190,11 +186,6 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            {"algorithm": "predict"}),
     Method("ssgpdm-vlmm-posterior", "ssgpdm-vlmm", "SSGPDM-VLMM utterance posterior (Laplace, ours)", True,
            {"posterior": "laplace"}),
-    Method("ssgpdm-vlmm-ridge-posterior", "ssgpdm-vlmm-ridge",
-           "SSGPDM-VLMM on a context-ridge mean, utterance posterior (Laplace, ours)", True,
-           {"posterior": "laplace"}),
-    Method("ssgpdm-vlmm-ridge-optimise", "ssgpdm-vlmm-ridge",
-           "SSGPDM-VLMM on a context-ridge mean, seq. optimisation (ours)", True, {"algorithm": "optimise"}),
     Method("ssgpdm-phone-posterior", "ssgpdm-phone", "SSGPDM-phoneme utterance posterior (Laplace, ours)",
            True, {"posterior": "laplace"}),
     Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
@@ -296,7 +287,7 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         "dpds": {"max_iter": cfg.dpds_max_iter},
         "context-mlp": {"seed": cfg.seed},
     }
-    params["ssgpdm-phone"] = params["ssgpdm-vlmm-ridge"] = params["ssgpdm-vlmm"]
+    params["ssgpdm-phone"] = params["ssgpdm-vlmm"]
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
     return make_estimator(family, **params.get(family, {}))

@@ -128,12 +128,6 @@ class SwitchingConfig:
         the posterior from AMSE 8.42 / ACC 0.345 / NMSE 0.887 to 7.37 / 0.377 / 0.872; not
         the default until it passes the resampling robustness test on its own
         (docs/results.md).
-    mean_function: None (deena2010: the visual GP mappings have a constant mean) or
-        ``"context-ridge"``: the visual features get an explicit parametric mean, a ridge
-        regression on phone-label and MFCC context windows, and the state models explain
-        what it leaves (a GP with explicit basis functions, Rasmussen & Williams 2006 §2.7;
-        fitted by :class:`bayes_talk.estimators.switching.SwitchingSGPDM`, which owns the
-        regression; docs/switching.md).
     """
 
     states: str = "vlmm"
@@ -147,7 +141,6 @@ class SwitchingConfig:
     fallback_frames: int = 400
     seed: int = 0
     audio_context: int = 0
-    mean_function: str | None = None
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -163,8 +156,6 @@ def _key(state: tuple[str, ...]) -> str:
 
 
 _DEFAULTS = SwitchingConfig()
-#: the values of SwitchingConfig.mean_function
-MEAN_FUNCTIONS: tuple[str | None, ...] = (None, "context-ridge")
 
 
 class SwitchingModel:
@@ -183,7 +174,7 @@ class SwitchingModel:
                  latent_dim: int = _DEFAULTS.latent_dim, max_frames_per_state: int = _DEFAULTS.max_frames_per_state,
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
                  fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
-                 audio_context: int = _DEFAULTS.audio_context, mean_function: str | None = _DEFAULTS.mean_function):
+                 audio_context: int = _DEFAULTS.audio_context):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         self.states, self.max_memory, self.epsilon, self.min_count = states, max_memory, epsilon, min_count
@@ -191,9 +182,6 @@ class SwitchingModel:
         self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
         self.fallback_frames, self.seed = fallback_frames, seed
         self.audio_context = audio_context
-        if mean_function not in MEAN_FUNCTIONS:
-            raise ValueError(f"mean_function must be one of {MEAN_FUNCTIONS}, got {mean_function!r}")
-        self.mean_function = mean_function
         self.audio_ = AudioContext(audio_context)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
@@ -209,12 +197,6 @@ class SwitchingModel:
     def name(self) -> str:
         """Method family name: ``ssgpdm-vlmm`` or ``ssgpdm-phone``."""
         return f"ssgpdm-{self.config.states}"
-
-    def visual_offset(self, mfcc: np.ndarray, labels: Sequence[str]) -> np.ndarray | None:
-        """The explicit mean of the visual features for this audio (T, D_z), added to every
-        synthesis; None when the model has none (``mean_function`` None: the state models
-        generate the visual features themselves)."""
-        return None
 
     def audio_input(self, mfcc: np.ndarray) -> np.ndarray:
         """The audio view the state models see for these MFCCs (T, D): the MFCCs
@@ -239,9 +221,6 @@ class SwitchingModel:
         cfg = self.config
         if not train:
             raise ValueError("no training sequences")
-        if cfg.mean_function is not None and type(self).visual_offset is SwitchingModel.visual_offset:
-            raise ValueError(f"mean_function={cfg.mean_function!r} is fitted by the estimator "
-                             "bayes_talk.estimators.SwitchingSGPDM, not by the bare SwitchingModel")
         dims = {(s.mfcc.shape[1], None if s.aam is None else s.aam.shape[1]) for s in train}
         if len(dims) != 1 or next(iter(dims))[1] is None:
             raise ValueError(f"training sequences need aam features of one dimension; found (D_y, D_z) = {dims}")

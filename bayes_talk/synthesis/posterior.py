@@ -218,9 +218,6 @@ def sample_synthesis(
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
                       emcee_thin, dict(sampler_kw or {}))
-    offset = model.visual_offset(mfcc, labels)   # the explicit visual mean, if the model has one
-    if offset is not None:
-        res = res.shift(offset)
     res.seconds = time.perf_counter() - t0
     if log_warnings:
         for w in res.warnings:

@@ -115,9 +115,6 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
             Xs = _roll_dynamics(m, Xs[0], b - a)
         X[a:b] = Xs
         mean[a:b], var[a:b] = m.predict_view("visual", Xs)
-    offset = model.visual_offset(mfcc, labels)   # the explicit visual mean, if the model has one
-    if offset is not None:
-        mean = mean + offset
     if lowpass_hz is not None:
         mean = lowpass(mean, lowpass_hz)
     return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used)
