@@ -76,8 +76,8 @@ def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, sc
     or this process when ``workers`` is 1; ``scheduler``: a running dask scheduler), with a
     progress bar of states done / total on a terminal (bayes_talk.progress). The model
     does not depend on the executor."""
-    from bayes_talk.executor import executor_for
     from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.executor import executor_for
     from bayes_talk.progress import ProgressMapper
 
     if not isinstance(model, SwitchingSGPDM):

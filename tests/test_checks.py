@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from bayes_talk.data.corpus import format as corpus_format
 from bayes_talk.data.checks import LABEL_TOLERANCE_S, check_audio_vs_labels
+from bayes_talk.data.corpus import format as corpus_format
 from bayes_talk.data.phones import replace_unseen, substitute_unseen
 
 

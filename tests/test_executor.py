@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
 from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
 
 SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 4, "max_frames_per_state": 80, "fallback_frames": 100}
 

@@ -310,8 +310,8 @@ def test_fused_rbf_term_matches_torch_path_and_passes_gradcheck():
     X = torch.as_tensor(rng.normal(size=(60, 3))).requires_grad_(True)
     V = torch.as_tensor(rng.normal(size=(60, 5))).requires_grad_(True)
     lg = torch.tensor([0.3, -0.8, 2.5], dtype=f64, requires_grad=True)
-    fused = lambda X, V, lg: rbf_matrix_normal(X, lg[0].exp(), lg[1].exp(), lg[2].exp(), V)  # noqa: E731
-    ref = lambda X, V, lg: matrix_normal_loglik(train_cov(X, lg[0].exp(), lg[1].exp(), lg[2].exp()), V)  # noqa: E731
+    fused = lambda X, V, lg: rbf_matrix_normal(X, lg[0].exp(), lg[1].exp(), lg[2].exp(), V)
+    ref = lambda X, V, lg: matrix_normal_loglik(train_cov(X, lg[0].exp(), lg[1].exp(), lg[2].exp()), V)
     a, b = fused(X, V, lg), ref(X, V, lg)
     assert float(a) == pytest.approx(float(b), rel=1e-12)
     for ga, gb in zip(torch.autograd.grad(a, (X, V, lg)), torch.autograd.grad(b, (X, V, lg))):

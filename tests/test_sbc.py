@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.sbc import (
     default_bins,
     holm,
@@ -16,7 +17,6 @@ from bayes_talk.evaluation.sbc import (
     synthesis_sbc,
     uniformity_test,
 )
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.synthesis.joint import make_plan
 from bayes_talk.synthesis.posterior import sample_synthesis
 from bayes_talk.synthesis.predictive_checks import (

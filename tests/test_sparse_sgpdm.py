@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_gp_core import _toy
 
 from bayes_talk.gp.kernels import rbf, train_cov
 from bayes_talk.gp.predictive import GPPredictor
@@ -12,7 +13,6 @@ from bayes_talk.gp.terms import matrix_normal_loglik
 from bayes_talk.models.sgpdm import SGPDM
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM
 from bayes_talk.synthesis.latents import predict_across
-from test_gp_core import _toy
 
 f64 = torch.float64
 
@@ -103,7 +103,7 @@ def test_fit_improves_the_bound_and_round_trips_training_audio():
     hist = np.array(m.history.log_joint)
     assert len(hist) > 3 and np.all(np.diff(hist) >= -1e-8 * np.abs(hist[1:])) and hist[-1] > hist[0]
     assert m.Z_.shape == (12, 2)
-    mu, var, X = predict_across(m, audio, X_init="nn", method="sequence")
+    mu, var, _X = predict_across(m, audio, X_init="nn", method="sequence")
     rel = np.sqrt(((mu - video) ** 2).mean(0)) / video.std(0)
     assert rel.max() < 0.25, rel
     assert var.shape == video.shape and np.all(var > 0)

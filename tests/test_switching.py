@@ -199,7 +199,7 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     np.testing.assert_allclose(a, ref)
     assert m.audio_.projection_.shape == (5 * D, D)
     # the state models were trained on the transformed audio
-    st, sm = next((k, v) for k, v in m.models_.items() if k != FALLBACK)
+    sm = next(v for k, v in m.models_.items() if k != FALLBACK)
     assert sm.predictors_["audio"].X.shape[0] > 0
     r = m.synthesize(s.mfcc, s.labels)
     # change only the last two frames' audio: with context, frame T−3's audio view changes

@@ -4,6 +4,6 @@ The metrics live in :mod:`bayes_talk.evaluation.metrics` (its ``__all__`` is re-
 here); protocols in :mod:`~bayes_talk.evaluation.protocols`.
 """
 from bayes_talk.evaluation import metrics
-from bayes_talk.evaluation.metrics import *  # noqa: F403
+from bayes_talk.evaluation.metrics import *
 
 __all__ = list(metrics.__all__)

@@ -13,6 +13,7 @@ generative process (used to simulate data in tests).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import ClassVar
 
 import torch
 from pyro.distributions import TorchDistribution
@@ -22,11 +23,14 @@ from bayes_talk.gp.kernels import rbf, train_cov
 from bayes_talk.gp.linalg import cho_solve, cholesky
 from bayes_talk.gp.terms import dynamics_loglik, observation_loglik
 
+#: the empty sample shape, the default of every ``sample``
+NO_SHAPE = torch.Size()
+
 
 class GPObservation(TorchDistribution):
     """p(Y | X) of deena2010 eq. 5 (Y centred, shape N×D)."""
 
-    arg_constraints: dict = {}
+    arg_constraints: ClassVar[dict] = {}
     support = constraints.real
 
     def __init__(self, X, alpha, gamma, beta, w, alpha_lin=None, what="observation kernel"):
@@ -40,7 +44,7 @@ class GPObservation(TorchDistribution):
             value, self.X, self.alpha, self.gamma, self.beta, self.w, self.alpha_lin, self.what
         )
 
-    def sample(self, sample_shape=torch.Size()) -> torch.Tensor:
+    def sample(self, sample_shape: torch.Size = NO_SHAPE) -> torch.Tensor:
         """Draws of Y: each column L ε / w with K = L Lᵀ the kernel matrix and ε ~ N(0, I)."""
         K = train_cov(self.X, self.alpha, self.gamma, self.beta, self.alpha_lin)
         L = cholesky(K.detach(), self.what)
@@ -52,7 +56,7 @@ class GPObservation(TorchDistribution):
 class GPDynamics(TorchDistribution):
     """p(X) of deena2010 eq. 7 for sequences of the given lengths (rows of X stacked)."""
 
-    arg_constraints: dict = {}
+    arg_constraints: ClassVar[dict] = {}
     support = constraints.real
 
     def __init__(
@@ -75,7 +79,7 @@ class GPDynamics(TorchDistribution):
             value, self.seq_lengths, self.alpha, self.gamma, self.beta, self.alpha_lin
         )
 
-    def sample(self, sample_shape=torch.Size()) -> torch.Tensor:
+    def sample(self, sample_shape: torch.Size = NO_SHAPE) -> torch.Tensor:
         """Ancestral sampling: x^s_1 ~ N(0, I); x_t | all earlier pairs from the GP posterior.
 
         One dynamics GP is shared by all sequences, so each new step conditions on every

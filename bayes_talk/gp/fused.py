@@ -86,7 +86,7 @@ class _RBFMatrixNormal(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g):  # type: ignore[override]
-        X, alpha, gamma, beta = ctx.saved_tensors
+        _X, alpha, gamma, beta = ctx.saved_tensors
         st = ctx.state
         L, A, E, Xn = st["L"], st["A"], st["E"], st["X"]
         N, D = A.shape

@@ -274,7 +274,7 @@ class SwitchingModel:
             return list(subs)
         out, n = [], 0
         for j in rng.permutation(len(subs)):
-            i, a, b = subs[j]
+            _, a, b = subs[j]
             if n + (b - a) > cap:
                 continue
             out.append(subs[j])

@@ -45,7 +45,7 @@ Every GP predictive goes through Cholesky factors and triangular solves, float64
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import pyro
@@ -54,6 +54,7 @@ import torch
 from pyro.distributions import TorchDistribution
 from torch.distributions import constraints
 
+from bayes_talk.gp.distributions import NO_SHAPE
 from bayes_talk.models.vlmm import Segment
 from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
 
@@ -138,7 +139,7 @@ class SwitchingLatents(TorchDistribution):
     block) and ln p_π(x_t | x_{t−1}) inside the block. ``sample`` draws X ancestrally.
     """
 
-    arg_constraints: dict = {}
+    arg_constraints: ClassVar[dict] = {}
     support = constraints.real
 
     def __init__(self, plan: UtterancePlan):
@@ -160,7 +161,7 @@ class SwitchingLatents(TorchDistribution):
                 lp = lp + dyn.log_lik(X[a + 1:e], X[a:e - 1]).sum()
         return lp
 
-    def sample(self, sample_shape=torch.Size()) -> torch.Tensor:
+    def sample(self, sample_shape: torch.Size = NO_SHAPE) -> torch.Tensor:
         """Ancestral draws: entry distribution at each unlinked block start, then the block model's GP dynamics."""
         if sample_shape != torch.Size():
             return torch.stack([self.sample() for _ in range(int(np.prod(sample_shape)))]).reshape(

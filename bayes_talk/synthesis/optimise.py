@@ -119,5 +119,5 @@ def maximise_sequence(
     if smooth is not None:
         vis, z, e = smooth
         zt, et = torch.as_tensor(z), torch.as_tensor(e)
-        extra = lambda X: vis.log_lik(zt, X[:1], et).sum()  # noqa: E731
+        extra = lambda X: vis.log_lik(zt, X[:1], et).sum()
     return _maximise(lambda X: sequence_log_density(X, Yt, obs, dynamics, first_t, extra), X0, max_iter)
