@@ -67,8 +67,8 @@ def _same_model(a, b) -> bool:
 # ------------------------------------------------------------------------------- executors
 def executors_section(args: argparse.Namespace) -> dict:
     from bayes_talk.data.corpus import load_corpus
-    from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
     from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
 
     settings = ({"max_iter": 30, "max_frames_per_state": 100, "fallback_frames": 200} if args.quick else {})
     train = load_corpus(args.corpus).sequences[: args.n_train]

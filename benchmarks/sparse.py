@@ -168,7 +168,7 @@ def merge_results(paths: list[Path], note: str | None = None) -> dict:
             raise ValueError(f"{path}: not a benchmarks/sparse.py result (benchmark={data.get('benchmark')!r}, "
                              f"missing keys {sorted(missing)})")
         settings = {k: data["settings"].get(k) for k in COMPARED_SETTINGS}
-        mtime = datetime.datetime.fromtimestamp(Path(path).stat().st_mtime, datetime.timezone.utc)
+        mtime = datetime.datetime.fromtimestamp(Path(path).stat().st_mtime, datetime.UTC)
         source = {"file": str(path), "command": data["command"], "settings": data["settings"],
                   "loadavg_at_start": data["machine"].get("loadavg_at_start"),
                   "loadavg_at_end": data["machine"].get("loadavg_at_end"),

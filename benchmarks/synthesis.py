@@ -43,13 +43,13 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from bayes_talk.baselines import REGISTRY  # noqa: E402
-from bayes_talk.estimators.switching import SwitchingSGPDM  # noqa: E402
-from bayes_talk.files import write_json  # noqa: E402
-from bayes_talk.gp.threads import torch_threads  # noqa: E402
-from bayes_talk.synthesis.posterior import sample_synthesis  # noqa: E402
+from bayes_talk.baselines import REGISTRY
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.files import write_json
+from bayes_talk.gp.threads import torch_threads
+from bayes_talk.synthesis.posterior import sample_synthesis
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
 def main() -> None:
