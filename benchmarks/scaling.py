@@ -14,9 +14,9 @@ Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with se
   process (``self_mb``) and of its largest child (``children_mb``: the worker processes of
   ``--executor``), their sum (an upper bound of the job's peak), and the wall time. The goal
   for the full deena2009 protocol is <= 2 GB (it was 4.6 GB, 23 min).
-- ``sparse``: the sparse whole-corpus SGPDM's time and memory against N, from
-  ``benchmarks/sparse.py``'s ``measure`` (issue 14 item 2, written on another branch; see
-  :func:`sparse_section`).
+- ``sparse``: the sparse whole-corpus SGPDM's time and memory against N (and the exact
+  SGPDM's up to 2,000 frames), from ``benchmarks/sparse.py``'s ``measure`` (issue 14 item 2;
+  see :func:`sparse_section`).
 
 Every section records the load average at its start and end (the machine is shared).
 
@@ -67,8 +67,8 @@ def _same_model(a, b) -> bool:
 # ------------------------------------------------------------------------------- executors
 def executors_section(args: argparse.Namespace) -> dict:
     from bayes_talk.data.corpus import load_corpus
-    from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
     from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
 
     settings = ({"max_iter": 30, "max_frames_per_state": 100, "fallback_frames": 200} if args.quick else {})
     train = load_corpus(args.corpus).sequences[: args.n_train]
@@ -122,7 +122,7 @@ def _rss_child(args: argparse.Namespace) -> None:
     if args.repeats:
         proto = dataclasses.replace(proto, **({"n_folds": args.repeats} if proto.scheme == "kfold"
                                               else {"n_repeats": args.repeats}))
-    with make_executor(args.executor, 2) as ex:
+    with make_executor(args.executor, args.workers) as ex:
         corpus = load_corpus(args.corpus, executor=ex if ex.parallel else None)
         res, _ = run_protocol(proto, corpus.sequences, executor=ex)
     me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -133,22 +133,70 @@ def _rss_child(args: argparse.Namespace) -> None:
                       "train_seconds": {n: e["train_seconds"] for n, e in res["methods"].items()}}))
 
 
+def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.CompletedProcess, float]:
+    """Run ``cmd`` to completion; meanwhile sum the RSS of its whole process tree every
+    ``every_s`` seconds (psutil). Returns the completed process and the largest sum (MB):
+    a lower bound of the tree's true peak (a spike between samples is missed)."""
+    import threading
+
+    import psutil
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    peak = [0.0]
+    done = threading.Event()
+
+    def sample() -> None:
+        try:
+            root = psutil.Process(proc.pid)
+        except psutil.NoSuchProcess:
+            return
+        while not done.is_set():
+            total = 0
+            try:
+                procs = [root, *root.children(recursive=True)]
+            except psutil.NoSuchProcess:
+                break
+            for q in procs:
+                try:
+                    total += q.memory_info().rss
+                except psutil.NoSuchProcess:
+                    pass
+            peak[0] = max(peak[0], total / 2**20)
+            done.wait(every_s)
+
+    t = threading.Thread(target=sample, daemon=True)
+    t.start()
+    stdout, stderr = proc.communicate()
+    done.set()
+    t.join()
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr), round(peak[0], 1)
+
+
 def peak_rss_section(args: argparse.Namespace) -> dict:
     out: dict = {"corpus": args.corpus, "executor": args.executor, "quick": args.quick,
                  "repeats": args.repeats or "all (the protocol's)",
-                 "how": "evaluate in a child process; ru_maxrss of it (self) and of its largest child",
+                 "how": ("evaluate in a child process; ru_maxrss of it (self_mb) and of its largest child "
+                         "(children_mb); peak_upper_bound_mb = self + workers x largest child (at most "
+                         "`workers` children run at once); peak_tree_sampled_mb = the largest sum of the "
+                         "RSS of the child and all its descendants, sampled every 0.5 s (psutil): a lower "
+                         "bound of the true peak"),
                  "goal_deena2009_mb": 2048, "before": {"deena2009": {"peak_mb": 4600, "wall_s": 23 * 60}},
                  "protocols": {}}
     for proto in args.protocols.split(","):
         print(f"[scaling] peak RSS of {proto}{' (quick)' if args.quick else ''} ...", flush=True)
         load0 = _load()
         cmd = [sys.executable, str(Path(__file__).resolve()), "--rss-child", proto, "--corpus", args.corpus,
-               "--executor", args.executor, "--repeats", str(args.repeats or 0)] + (["--quick"] if args.quick else [])
-        r = subprocess.run(cmd, check=False, capture_output=True, text=True, cwd=ROOT)
+               "--executor", args.executor, "--workers", str(args.workers),
+               "--repeats", str(args.repeats or 0)] + (["--quick"] if args.quick else [])
+        r, tree_mb = _run_sampling_rss(cmd)
         if r.returncode != 0:
             raise SystemExit(f"{proto}: evaluate failed:\n{r.stderr[-3000:]}")
         got = json.loads(r.stdout.strip().splitlines()[-1])
-        got["peak_upper_bound_mb"] = round(got["self_mb"] + got["children_mb"], 1)
+        # at most ``workers`` worker processes run at once, none larger than the largest one
+        n_at_once = 1 if args.executor == "local" else args.workers
+        got["workers"] = n_at_once
+        got["peak_upper_bound_mb"] = round(got["self_mb"] + n_at_once * got["children_mb"], 1)
+        got["peak_tree_sampled_mb"] = tree_mb
         got["loadavg_start"], got["loadavg_end"] = load0, _load()
         if proto == "deena2009" and not args.quick and not args.repeats:  # the goal is the full protocol's
             got["within_goal"] = got["peak_upper_bound_mb"] <= out["goal_deena2009_mb"]
@@ -157,17 +205,22 @@ def peak_rss_section(args: argparse.Namespace) -> dict:
 
 
 # ------------------------------------------------------------------------------- sparse SGPDM
-# >>> PLUG-IN POINT for the lead (issue 14 item 2, branch issue14b) <<<
-# benchmarks/sparse.py provides ``measure(...) -> dict``: the sparse whole-corpus SGPDM's
-# training time and peak memory against N (and the exact model where it fits). After the
-# merge, adapt the call below to its signature; until then the section says "not available".
 def sparse_section(args: argparse.Namespace) -> dict:
-    try:
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from sparse import measure  # benchmarks/sparse.py (issue14b)
-    except ImportError as exc:
-        return {"status": f"not available: benchmarks/sparse.py has no measure() here ({exc})"}
-    return measure(quick=args.quick)
+    """benchmarks/sparse.py's ``measure`` at each N (the sparse SGPDM, and the exact one up
+    to ``exact_max``), each fit in its own process: time, objective evaluations, peak RSS.
+    ``--quick``: N = 300, 600 on the corpus, the exact model at N = 300 (SGPDM.fit runs L-BFGS
+    in steps of 20 iterations, so 20 is the smallest budget)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from sparse import SIZES, measure  # benchmarks/sparse.py
+
+    sizes, iters, exact_max = ((300, 600), 20, 300) if args.quick else (SIZES, 20, 2000)
+    out: dict = {"corpus": args.corpus, "iters": iters, "n_inducing": 150, "exact_max": exact_max,
+                 "loadavg_start": _load(), "sizes": []}
+    for n in sizes:
+        print(f"[scaling] sparse SGPDM, N = {n} ...", flush=True)
+        out["sizes"].append(measure(n, args.corpus, n_inducing=150, iters=iters, exact_max=exact_max))
+    out["loadavg_end"] = _load()
+    return out
 
 
 # ------------------------------------------------------------------------------- main
@@ -181,6 +234,8 @@ def main() -> None:
     ap.add_argument("--protocols", default="deena2009")
     ap.add_argument("--executor", default="local", choices=("local", "processes", "dask"),
                     help="executor of the peak-RSS protocol runs")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="processes of --executor processes/dask in the peak-RSS runs (evaluate's default: 2)")
     ap.add_argument("--repeats", type=int, default=0,
                     help="peak_rss: run only this many of each protocol's repeats/folds (0: all); the peak "
                          "of one split does not grow with their number (each split's models are freed)")

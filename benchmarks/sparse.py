@@ -55,7 +55,12 @@ def corpus_views(corpus: str | os.PathLike, n_frames: int) -> tuple[dict[str, np
     seqs = list(load_corpus(corpus))
     audio, visual, lens, n = [], [], [], 0
     for s in seqs:
-        take = min(s.n_frames, n_frames - n)
+        rest = n_frames - n
+        if rest <= 0:
+            break
+        take = min(s.n_frames, rest)
+        if rest - take == 1 and take > 2:  # a 1-frame remainder is no sequence: leave 2 for the next
+            take -= 1
         if take <= 1:
             break
         audio.append(s.mfcc[:take])
@@ -76,10 +81,22 @@ def _child(kind: str, views, lens, settings: dict, queue) -> None:
     torch.set_num_threads(settings.pop("threads"))
     cls = SparseSGPDM if kind == "sparse" else SGPDM
     model = cls(**settings)
+    calls = [0]
+    log_joint = model.log_joint
+
+    def counted():  # the fit's L-BFGS closure calls model.log_joint: count the evaluations
+        calls[0] += 1
+        return log_joint()
+
+    model.log_joint = counted
     w0, c0 = time.perf_counter(), time.process_time()
     model.fit(views, seq_lengths=lens)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-    queue.put({"wall_s": wall, "cpu_s": cpu, "lbfgs_outer_steps": len(model.history.log_joint) - 1,
+    steps = len(model.history.log_joint) - 1
+    # fit evaluates the objective once before and once after each outer L-BFGS step, besides the closure
+    n_evals = calls[0] - 1 - steps
+    queue.put({"wall_s": wall, "cpu_s": cpu, "lbfgs_outer_steps": steps, "objective_evaluations": n_evals,
+               "cpu_s_per_evaluation": cpu / max(n_evals, 1),
                "objective_start": model.history.log_joint[0], "objective_end": model.history.log_joint[-1],
                "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0})
 
@@ -124,6 +141,54 @@ def measure(n_frames: int, corpus: str | os.PathLike | None = None, n_inducing: 
     return out
 
 
+ROW_KEYS = {"N", "sequences", "data", "sparse", "exact"}
+FIT_KEYS = {"wall_s", "cpu_s", "lbfgs_outer_steps", "objective_start", "objective_end", "peak_rss_mb", "s_per_iter"}
+COMPARED_SETTINGS = ("corpus", "iters", "inducing", "threads")
+
+
+def merge_results(paths: list[Path], note: str | None = None) -> dict:
+    """Combine earlier outputs of this script into one result, taking every row as it is.
+
+    Each file must be this script's JSON (``benchmark`` "sparse"; rows with the keys of
+    :func:`measure`), else ValueError naming the file and what is missing. Every row gets a
+    ``source`` (file, its command, settings, load average, the file's modification time in
+    UTC: when its last row was written). Rows whose settings (corpus, iterations, M, threads)
+    differ from the first file's go to ``other_runs``; the first row of each N is kept
+    and later duplicates go to ``other_runs`` too.
+    """
+    import datetime
+    import json
+
+    out: dict = {"benchmark": "sparse", "merged_from": [], "note": note, "sizes": [], "other_runs": []}
+    ref = None
+    for path in paths:
+        data = json.loads(Path(path).read_text())
+        missing = {"benchmark", "command", "machine", "settings", "sizes"} - data.keys()
+        if data.get("benchmark") != "sparse" or missing:
+            raise ValueError(f"{path}: not a benchmarks/sparse.py result (benchmark={data.get('benchmark')!r}, "
+                             f"missing keys {sorted(missing)})")
+        settings = {k: data["settings"].get(k) for k in COMPARED_SETTINGS}
+        mtime = datetime.datetime.fromtimestamp(Path(path).stat().st_mtime, datetime.UTC)
+        source = {"file": str(path), "command": data["command"], "settings": data["settings"],
+                  "loadavg_at_start": data["machine"].get("loadavg_at_start"),
+                  "loadavg_at_end": data["machine"].get("loadavg_at_end"),
+                  "file_mtime_utc": mtime.isoformat(timespec="seconds")}
+        out["merged_from"].append(source)
+        ref = settings if ref is None else ref
+        for row in data["sizes"]:
+            if not ROW_KEYS <= row.keys():
+                raise ValueError(f"{path}: row N={row.get('N')} lacks {sorted(ROW_KEYS - row.keys())}")
+            for kind in ("sparse", "exact"):
+                if row[kind] is not None and not FIT_KEYS <= row[kind].keys():
+                    raise ValueError(f"{path}: row N={row['N']} {kind} lacks {sorted(FIT_KEYS - row[kind].keys())}")
+            row = {**row, "source": {k: source[k] for k in ("file", "command", "file_mtime_utc")}}
+            same = settings == ref and all(r["N"] != row["N"] for r in out["sizes"])
+            (out["sizes"] if same else out["other_runs"]).append(row)
+    out["settings"] = ref
+    out["sizes"].sort(key=lambda r: r["N"])
+    return out
+
+
 def main(argv=None) -> int:
     here = Path(__file__).resolve().parent
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -134,7 +199,16 @@ def main(argv=None) -> int:
     p.add_argument("--inducing", type=int, default=150, help="inducing inputs M")
     p.add_argument("--threads", type=int, default=1, help="torch threads in each fit")
     p.add_argument("--out", type=Path, default=here / "results" / "sparse.json")
+    p.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                   help="combine earlier outputs of this script into --out (no fits are run)")
+    p.add_argument("--note", default=None, help="with --merge: a note on where the rows came from")
     args = p.parse_args(argv)
+    if args.merge:
+        res = merge_results(args.merge, args.note)
+        res["command"] = " ".join([os.path.basename(sys.executable), *sys.argv])
+        write_json(args.out, res)
+        print(f"merged {len(res['sizes'])} rows (+{len(res['other_runs'])} other) into {args.out}")
+        return 0
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     res = {"benchmark": "sparse", "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
            "machine": {"nproc": os.cpu_count(), "platform": platform.platform(),
