@@ -10,14 +10,19 @@ Usage: python benchmarks/analysis/context_residual_protocol.py OUT.json [methods
 (reads /work/data/v2/train250 and /work/data/v2/heldout40; 55 min wall at load 7-9; results in
 docs/results.md, "Experiment: the switching SGPDM on the residual of a label-context mean").
 """
-import dataclasses, json, sys, time
+import dataclasses
+import json
+import sys
+import time
+
 import numpy as np
 from sklearn.model_selection import GroupKFold
+
 from bayes_talk.baselines.context import ContextRidge
 from bayes_talk.data.corpus import load_corpus
 from bayes_talk.evaluation import systems
-from bayes_talk.evaluation.protocols import get_protocol
 from bayes_talk.evaluation.harness import run_protocol
+from bayes_talk.evaluation.protocols import get_protocol
 
 out = sys.argv[1]
 methods = sys.argv[2].split(",") if len(sys.argv) > 2 else ["ssgpdm-vlmm-posterior", "ssgpdm-vlmm-optimise"]
