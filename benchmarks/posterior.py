@@ -32,7 +32,10 @@ time (MAP + sampler), warm-up and sampling seconds, the smallest bulk and tail E
 T·d latent coordinates, rank R-hat, ESS per second, and the wall time to bulk ESS 400
 = warm-up seconds + sampling seconds × 400 / (smallest bulk ESS) (ESS grows linearly
 with the draws of a converged chain; measured, not extrapolated, when the run reached
-400). Writes ``benchmarks/results/posterior_efficiency.json``:
+400; when R-hat is above 1.01 the chains have not met and that time is only a lower
+bound, flagged ``seconds_to_ess_400_is_lower_bound``). ``--nuts-chains``, ``--nuts-warmup``,
+``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
+``budget``). Writes ``benchmarks/results/posterior_efficiency.json``:
 
     PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
         --test-corpus /work/data/v2/heldout40 --aam /work/data/v2/train250/aam.npz \
