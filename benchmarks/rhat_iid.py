@@ -23,7 +23,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from bayes_talk.synthesis.diagnostics import ESS_MIN, RHAT_MAX, chain_diagnostics  # noqa: E402
+from bayes_talk.synthesis.diagnostics import ESS_MIN, RHAT_MAX, chain_diagnostics
 
 
 def iid_reference(chains: int, draws: int, dim: int, seeds: int = 10) -> dict:
