@@ -32,7 +32,10 @@ time (MAP + sampler), warm-up and sampling seconds, the smallest bulk and tail E
 T·d latent coordinates, rank R-hat, ESS per second, and the wall time to bulk ESS 400
 = warm-up seconds + sampling seconds × 400 / (smallest bulk ESS) (ESS grows linearly
 with the draws of a converged chain; measured, not extrapolated, when the run reached
-400). Writes ``benchmarks/results/posterior_efficiency.json``:
+400; when R-hat is above 1.01 the chains have not met and that time is only a lower
+bound, flagged ``seconds_to_ess_400_is_lower_bound``). ``--nuts-chains``, ``--nuts-warmup``,
+``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
+``budget``). Writes ``benchmarks/results/posterior_efficiency.json``:
 
     PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
         --test-corpus /work/data/v2/heldout40 --aam /work/data/v2/train250/aam.npz \
@@ -64,6 +67,7 @@ from bayes_talk.evaluation.metrics import (
     crps_gaussian,
     nlpd_gaussian,
 )
+from bayes_talk.synthesis.diagnostics import RHAT_MAX
 from bayes_talk.synthesis.posterior import DEFAULT_LEVELS, sample_synthesis
 
 SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
@@ -100,6 +104,22 @@ def evaluate(truth, means, vars_, bands, samples) -> dict:
     return out
 
 
+def _efficiency_budget(args, method: str) -> dict:
+    """``sample_synthesis`` keywords overriding the library defaults (``--nuts-chains``,
+    ``--nuts-warmup``, ``--draws`` (pooled over chains), ``--emcee-warmup``); {} = the defaults."""
+    out = {}
+    if method == "nuts":
+        if args.nuts_chains is not None:
+            out["chains"] = args.nuts_chains
+        if args.nuts_warmup is not None:
+            out["warmup"] = args.nuts_warmup
+    if method == "emcee" and args.emcee_warmup is not None:
+        out["warmup"] = args.emcee_warmup
+    if args.draws is not None:
+        out["n_draws"] = args.draws
+    return out
+
+
 def efficiency(args) -> None:
     """NUTS vs emcee: wall time to bulk ESS 400 and ESS per second (see the module docstring)."""
     from bayes_talk.data.corpus import load_corpus
@@ -121,8 +141,9 @@ def efficiency(args) -> None:
         load0 = os.getloadavg()[0]
         t0 = time.perf_counter()
         skw = {"max_steps": args.emcee_max_steps} if method == "emcee" and args.emcee_max_steps else None
+        budget = _efficiency_budget(args, method)
         p = sample_synthesis(model, s.mfcc[:T], s.labels[:T], method=method, seed=args.seed, log_warnings=False,
-                             sampler_kw=skw)
+                             sampler_kw=skw, **budget)
         wall = time.perf_counter() - t0
         d = p.diagnostics
         sampler_s = d["sampler_seconds"]
@@ -130,11 +151,16 @@ def efficiency(args) -> None:
         draw_s = sampler_s - warm_s
         ess = d["ess_bulk_min"]
         to_400 = warm_s + draw_s * 400.0 / ess if ess > 0 else float("inf")
+        converged = d["rhat_max"] <= RHAT_MAX
         row = {k: d[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "n_chains", "n_draws")}
         row.update(wall_seconds=wall, setup_seconds=wall - sampler_s, sampler_seconds=sampler_s,
                    warmup_seconds=warm_s, sampling_seconds=draw_s, ess_bulk_per_second=ess / sampler_s,
                    ess_bulk_per_sampling_second=ess / draw_s if draw_s > 0 else None,
                    seconds_to_ess_400=to_400 + (wall - sampler_s), reached_ess_400=bool(ess >= 400),
+                   # ESS grows linearly with the draws only once the chains agree: with R-hat above
+                   # the threshold the extrapolated time is a lower bound, not an estimate
+                   seconds_to_ess_400_is_lower_bound=bool(not converged and ess < 400),
+                   rhat_ok=bool(converged), budget=budget or "library defaults",
                    warnings=p.warnings, loadavg_start_end=[load0, os.getloadavg()[0]],
                    diagnostics={k: v for k, v in d.items() if np.ndim(v) == 0 or isinstance(v, list)})
         res["samplers"][method] = row
@@ -158,10 +184,10 @@ def main() -> None:
     ap.add_argument("--corpus", type=Path, default=None)
     ap.add_argument("--n-train", type=int, default=50)
     ap.add_argument("--n-test", type=int, default=3)
-    ap.add_argument("--draws", type=int, default=200)
-    ap.add_argument("--nuts-warmup", type=int, default=150)
-    ap.add_argument("--nuts-chains", type=int, default=2)
-    ap.add_argument("--emcee-warmup", type=int, default=500)
+    ap.add_argument("--draws", type=int, default=None, help="draws kept (default 200; --efficiency: the library's)")
+    ap.add_argument("--nuts-warmup", type=int, default=None, help="default 150; --efficiency: the library's")
+    ap.add_argument("--nuts-chains", type=int, default=None, help="default 2; --efficiency: the library's")
+    ap.add_argument("--emcee-warmup", type=int, default=None, help="default 500; --efficiency: the library's")
     ap.add_argument("--methods", default="map,laplace,nuts,emcee")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "posterior.json")
@@ -173,6 +199,9 @@ def main() -> None:
         if args.methods == "map,laplace,nuts,emcee":
             args.methods = "nuts,emcee"
         return efficiency(args)
+    for name, default in (("draws", 200), ("nuts_warmup", 150), ("nuts_chains", 2), ("emcee_warmup", 500)):
+        if getattr(args, name) is None:
+            setattr(args, name, default)
 
     train, test, data_info, cfg = load_data(args)
     res = {"command": "benchmarks/posterior.py " + " ".join(sys.argv[1:]), "data": data_info,

@@ -287,6 +287,32 @@ def test_laplace_synthesis_mixture_and_reproducibility(toy):
     assert all(np.array_equal(q1[k][0], q2[k][0]) for k in q1)
 
 
+def test_emcee_walkers_go_through_the_batched_density(toy):
+    """emcee's walkers are evaluated in one batched call of the numpy twin, equal to one call
+    per walker (the loop it replaces), with -inf kept for non-finite values."""
+    from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
+    from bayes_talk.synthesis.posterior import _Whitened
+    from bayes_talk.synthesis.samplers import batch_log_prob
+
+    model, test = toy
+    s = test[0]
+    dens = UtteranceDensity(make_plan(model, s.mfcc[:12], s.labels[:12], "frame"))
+    n = dens.T * dens.d
+    rng = np.random.default_rng(0)
+    g = _Whitened(dens, rng.standard_normal(n) * 0.1, np.diag(rng.uniform(0.05, 0.2, n)))
+    Z = rng.standard_normal((7, n))
+    f = batch_log_prob(g)
+    calls, batch = [], dens.batch
+    dens.batch = lambda Xb: calls.append(len(Xb)) or batch(Xb)
+    got = f(Z)
+    assert calls == [7]                          # one batched call for all walkers
+    dens.batch = batch
+    np.testing.assert_allclose(got, [g.numpy(z)[0] for z in Z], rtol=1e-10)
+    bad = Z.copy()
+    bad[3] = np.nan
+    assert np.isneginf(f(bad)[3]) and np.all(np.isfinite(f(bad)[[0, 1, 2, 4]]))
+
+
 @pytest.mark.parametrize("method", ["nuts", "emcee"])
 def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     model, test = toy

@@ -255,6 +255,12 @@ class _Whitened:
             return torch.stack([self(zz) for zz in z])
         return _Potential.apply(z, self.numpy)
 
+    def batch_numpy(self, Z: np.ndarray) -> np.ndarray:
+        """ln p(X_MAP + L z) for a batch Z (W, n) in one :meth:`UtteranceDensity.batch` call
+        (emcee's walkers; ~5x cheaper per point than one call each)."""
+        lp, _ = self.dens.batch(self.to_x(np.asarray(Z, dtype=np.float64)))
+        return lp
+
     def to_x(self, Z: np.ndarray) -> np.ndarray:
         return self.x_map + Z @ self.L.T
 

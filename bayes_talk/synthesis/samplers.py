@@ -184,11 +184,20 @@ AUTOCORR_TOL = 50.0
 
 
 def batch_log_prob(log_prob: LogProb) -> Callable[[np.ndarray], np.ndarray]:
-    """Vectorised log density for emcee: (W, n) numpy -> (W,) numpy, -inf where not finite."""
+    """Vectorised log density for emcee: (W, n) numpy -> (W,) numpy, -inf where not finite.
+
+    A ``log_prob`` with a ``batch_numpy`` attribute ((W, n) numpy -> (W,) numpy: all walkers
+    in one call, e.g. the synthesis density's batched twin) is evaluated through it; otherwise
+    ``torch.func.vmap`` over the torch function, or a loop when vmap fails."""
+    direct = getattr(log_prob, "batch_numpy", None)
     vm = torch.func.vmap(log_prob)
     state = {"vmap": True}
 
     def f(P: np.ndarray) -> np.ndarray:
+        if direct is not None:
+            v = np.asarray(direct(np.asarray(P, dtype=np.float64)), dtype=np.float64).copy()
+            v[~np.isfinite(v)] = -np.inf
+            return v
         P_t = _as_tensor(P)
         with torch.no_grad():
             if state["vmap"]:
