@@ -127,6 +127,11 @@ def score(where: Path, out: Path | None) -> None:
     variants, cal = _variants(fit_res, fit_truths)
     report["calibration"] = cal.to_dict()
     for lp in (None, 4.0):
+        if lp is not None:  # also: the calibration fitted on post-filtered held-out predictions
+            from bayes_talk.synthesis.band_calibration import BandCalibration
+
+            variants["stages 1+2 fitted post-filtered"] = BandCalibration.fit(
+                [r.shift(lowpass(r.mean, lp) - r.mean) for r in fit_res], fit_truths, method="laplace")
         for name, v in variants.items():
             t0 = time.perf_counter()
             scores = []
