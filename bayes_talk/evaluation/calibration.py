@@ -19,7 +19,11 @@ from that type only:
   components), not of a moment-matched Gaussian;
 * **CRPS**: for K = 1 the closed form of the Gaussian; for a mixture the sample (energy)
   form E|X − z| − ½ E|X − X'| from ``crps_samples`` draws of (1) (``result.sample``,
-  seeded), with the fair (unbiased) pair term (:func:`~bayes_talk.evaluation.metrics.crps_sample_entries`).
+  seeded), with the fair (unbiased) pair term (:func:`~bayes_talk.evaluation.metrics.crps_sample_entries`);
+  the same for a band-calibrated result
+  (:class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult`, whose ``cdf``,
+  ``logpdf`` and ``interval`` are those of the recalibrated distribution, exactly, and
+  whose draws are inverse-transform draws of it).
   (A maintained closed form for normal mixtures exists — ``scoringrules.crps_mixnorm`` —
   but it is O(K²) per entry: about 4 s for one 60-frame utterance with K = 64 on this
   machine; the sorted-sample form is O(m log m).)

@@ -3,15 +3,17 @@
 The whole-utterance posterior's bands are too narrow on new sentences (90 % band ≈ 0.79
 on the deena2010 held-out test, docs/results.md): the synthesis posterior is conditional
 on the trained hyperparameters and training latents, whose own uncertainty is not
-propagated, and the GP noise levels are fitted to training frames. The remedy here is
-one scale factor s_d per AAM parameter d applied to the whole predictive mixture about
-its mean m_td,
+propagated, and the GP noise levels are fitted to training frames. The remedy here has
+two stages, both per AAM parameter d and both fitted on held-out training utterances.
+
+**Stage 1, a scale.** One factor s_d applied to the whole predictive mixture about its
+mean m_td,
 
     z' = m_td + s_d (z − m_td):   μ'^k_td = m_td + s_d (μ^k_td − m_td),   v'^k_td = s_d² v^k_td,   (1)
 
 an affine map of the mixture, so its mean is unchanged, its standard deviation and every
 central band's half-widths are multiplied by s_d, and samples, quantiles, CDF and density
-of the calibrated result follow exactly (it is again a
+of the scaled result follow exactly (it is again a
 :class:`~bayes_talk.synthesis.result.SynthesisResult`).
 
 **Fitting s_d** (:meth:`BandCalibration.fit`). For each held-out entry with truth y,
@@ -22,9 +24,24 @@ mixture mean m and raw central band [l_q, u_q] at level q, the smallest scale wh
 
 so the calibrated coverage at level q is the empirical CDF of s*_q at s_d, exactly, with
 no re-synthesis. s_d minimises Σ_q (cov_q(s) − q)² over q ∈ {0.5, 0.8, 0.9, 0.95} on a log
-grid of s in [1/8, 8] (the middle of the minimising set when it is flat). One factor
-per parameter cannot fix a wrong *shape* (e.g. heavy tails): the fitted in-sample
-coverage at every level is stored beside the factors so that shows.
+grid of s in [1/8, 8] (the middle of the minimising set when it is flat).
+
+**Stage 2, a monotone level map** (quantile recalibration, Kuleshov et al. 2018). One
+factor per parameter cannot fix a wrong *shape*: with errors heavier-tailed than the
+mixture, the 50 % band wants a smaller factor than the 90 % band. So the scaled
+mixture's central level of each held-out truth, c = |2F_s(y) − 1| (the smallest level
+whose scaled band contains y), is collected per parameter, and H_d, its empirical
+distribution function made piecewise linear through the knots (r_dj, q_j) — r_dj the
+empirical q_j-quantile of c for q_j ∈ ``LEVEL_KNOTS`` = 0.05, 0.10, …, 0.95, and (0, 0),
+(1, 1) — maps levels: the calibrated central q-band is the scaled mixture's central
+H_d⁻¹(q)-band, so on the held-out data it covers q at every knot (up to ties). As a
+distribution, F' = G_d ∘ F_s with G_d(u) = ½ + ½ sgn(u − ½) H_d(|2u − 1|):
+:class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult` (its docstring says
+which of its answers are exact and which approximated). Beyond the last knot the map is
+linear to (1, 1), so the scaled mixture's own tail shape is kept there: stage 1 brings
+the outer bands close first, so this last piece stays near the identity. Without the
+second stage (``level_raw`` None, e.g. a version-1 file) the calibration is stage 1 alone.
+The in-sample coverage before and after is stored beside the knots.
 
 **Where the held-out utterances come from** (:func:`fit_band_calibration`): a seeded
 ``holdout`` fraction (default 20 %) of the *training* utterances; a second model of the
@@ -45,26 +62,31 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bayes_talk.files import write_json
+from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "BandCalibration", "fit_band_calibration", "min_scales",
+__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "BandCalibration", "fit_band_calibration", "min_scales",
            "split_for_calibration"]
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "band_calibration.json"
 _FORMAT = "bayes_talk.band_calibration"
-_VERSION = 1
+_VERSION = 2
+_READS = (1, 2)
 #: default fraction of the training utterances held out to fit the calibration
 HOLDOUT_FRACTION = 0.2
 _GRID = np.exp(np.linspace(math.log(1 / 8), math.log(8), 2001))
+#: calibrated central levels q_j of the level map's knots (stage 2)
+LEVEL_KNOTS: tuple[float, ...] = tuple(np.round(np.arange(1, 20) * 0.05, 2))
+_KNOT_EPS = 1e-9
 
 
 def min_scales(result: SynthesisResult, truth: np.ndarray, levels: Sequence[float] = DEFAULT_LEVELS
@@ -90,12 +112,20 @@ def _coverage_at(s_star: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
     return np.mean(s_star <= scale, axis=tuple(range(1, s_star.ndim)))
 
 
+def _scaled(result: SynthesisResult, scale: np.ndarray) -> SynthesisResult:
+    """The mixture scaled by (1) about its mean."""
+    m = result.mean[None, None]
+    return replace(result, draw_mean=m + scale * (result.draw_mean - m), draw_var=result.draw_var * scale * scale)
+
+
 @dataclass
 class BandCalibration:
-    """Per-parameter scale factors (1) of one synthesis method's predictive.
+    """The two stages (module docstring) of one synthesis method's band calibration.
 
-    scale: (D,) factors s_d; method: the synthesis method they were fitted on
-    ("laplace", ...); levels: the levels fitted; n_utterances / n_frames: the held-out data;
+    scale: (D,) factors s_d (stage 1); level_raw: (D, J) raw central levels r_dj of the
+    level map's knots (stage 2; None: stage 1 alone) and level_cal: (J,) their calibrated
+    levels q_j; method: the synthesis method they were fitted on ("laplace", ...);
+    levels: the levels reported; n_utterances / n_frames: the held-out data;
     coverage_raw / coverage_calibrated: {level: pooled coverage} on that data before and
     after (in-sample); held_out: the held-out utterance names; info: how it was made
     (hold-out fraction, seed, draws).
@@ -104,6 +134,8 @@ class BandCalibration:
     scale: np.ndarray
     method: str
     levels: tuple[float, ...] = tuple(DEFAULT_LEVELS)
+    level_raw: np.ndarray | None = None
+    level_cal: tuple[float, ...] = LEVEL_KNOTS
     n_utterances: int = 0
     n_frames: int = 0
     coverage_raw: dict[str, float] = field(default_factory=dict)
@@ -119,15 +151,18 @@ class BandCalibration:
         if not np.all(np.isfinite(self.scale) & (self.scale > 0)):
             raise ValueError("scale: expected finite factors > 0")
         self.levels = tuple(float(q) for q in self.levels)
+        if self.level_raw is not None:
+            raw, cal = check_level_map(self.level_raw, self.level_cal, self.scale.size, "band calibration")
+            self.level_raw, self.level_cal = raw, tuple(float(q) for q in cal)
 
     # ------------------------------------------------------------------ fit / apply
     @classmethod
     def fit(cls, results: Sequence[SynthesisResult], truths: Sequence[np.ndarray], method: str | None = None,
             levels: Sequence[float] = DEFAULT_LEVELS, per_parameter: bool = True,
             names: Sequence[str] = ()) -> BandCalibration:
-        """Fit s_d on held-out predictions ``results`` and their truths (each (T_i, D)).
-
-        per_parameter=False fits one factor for all parameters (pooled)."""
+        """Fit s_d and the level map on held-out predictions ``results`` and their truths
+        (each (T_i, D)). per_parameter=False fits one factor and one map for all parameters
+        (pooled)."""
         if not results or len(results) != len(truths):
             raise ValueError(f"fit: need one truth per result and at least one, got {len(results)} results "
                              f"and {len(truths)} truths")
@@ -144,32 +179,53 @@ class BandCalibration:
             best = np.flatnonzero(loss <= loss.min() + 1e-12)
             scale.append(float(_GRID[best[len(best) // 2]]))
         scale = np.full(D, scale[0]) if not per_parameter else np.asarray(scale)
-        raw, cal = _coverage_at(s_star, 1.0), _coverage_at(s_star, scale)
+        # stage 2: central levels c = |2 F_s(y) - 1| of the truths under the scaled mixtures
+        c = np.concatenate([np.abs(2.0 * _scaled(r, scale).cdf(z) - 1.0) for r, z in zip(results, truths)])
+        knots = np.asarray(LEVEL_KNOTS)
+        J = knots.size
+        pooled = c.reshape(-1, 1) if not per_parameter else c
+        r_dj = np.quantile(pooled, knots, axis=0).T                      # (D or 1, J)
+        r_dj = np.clip(r_dj, _KNOT_EPS, 1.0 - (J + 1) * _KNOT_EPS)
+        r_dj = np.maximum.accumulate(r_dj + _KNOT_EPS * np.arange(J), axis=1)   # strictly increasing
+        r_dj = np.broadcast_to(r_dj, (D, J)).copy()
+        raw = _coverage_at(s_star, 1.0)
+        cal = [np.mean(c <= np.array([np.interp(q, np.r_[0, knots, 1], np.r_[0, r_dj[d], 1]) for d in range(D)]))
+               for q in levels]
         meth = method if method is not None else results[0].method
-        return cls(scale, meth, levels, len(results), int(N),
-                   {f"{q:g}": float(c) for q, c in zip(levels, raw)},
-                   {f"{q:g}": float(c) for q, c in zip(levels, cal)}, list(names),
-                   {"per_parameter": bool(per_parameter)})
+        return cls(scale, meth, levels, r_dj, LEVEL_KNOTS, len(results), int(N),
+                   {f"{q:g}": float(v) for q, v in zip(levels, raw)},
+                   {f"{q:g}": float(v) for q, v in zip(levels, cal)}, list(names),
+                   {"per_parameter": bool(per_parameter),
+                    "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}})
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
-        """The calibrated result: (1) applied to every component; the factors are recorded in
-        its diagnostics under ``band_calibration``."""
+        """The calibrated result: (1) applied to every component, then the level map (a
+        :class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult`; without one,
+        the scaled mixture itself). The factors are recorded in its diagnostics under
+        ``band_calibration``, with the raw level of its 90 % band (median over parameters)."""
         if result.n_dims != self.scale.size:
             raise ValueError(f"band calibration has {self.scale.size} factors but the prediction has "
                              f"{result.n_dims} AAM parameters: it belongs to another model")
-        m = result.mean[None, None]
         s = self.scale
         diag = dict(result.diagnostics)
         diag["band_calibration"] = {"method": self.method, "scale_min": float(s.min()),
-                                    "scale_median": float(np.median(s)), "scale_max": float(s.max())}
-        return replace(result, draw_mean=m + s * (result.draw_mean - m), draw_var=result.draw_var * s * s,
-                       diagnostics=diag)
+                                    "scale_median": float(np.median(s)), "scale_max": float(s.max()),
+                                    "level_map": self.level_raw is not None}
+        scaled = replace(_scaled(result, s), diagnostics=diag)
+        if self.level_raw is None:
+            return scaled
+        knots = np.r_[0.0, self.level_cal, 1.0]
+        diag["band_calibration"]["raw_level_of_90_median"] = float(np.median(
+            [np.interp(0.9, knots, np.r_[0.0, r, 1.0]) for r in self.level_raw]))
+        return RecalibratedResult(**{f.name: getattr(scaled, f.name) for f in fields(SynthesisResult)},
+                                  level_raw=self.level_raw, level_cal=np.asarray(self.level_cal))
 
     # ------------------------------------------------------------------ persistence
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (format, version, method, levels, factors, fit information)."""
         return {"format": _FORMAT, "version": _VERSION, "method": self.method, "levels": list(self.levels),
-                "scale": self.scale.tolist(), "n_utterances": self.n_utterances, "n_frames": self.n_frames,
+                "scale": self.scale.tolist(), "level_cal": list(self.level_cal),
+                "level_raw": None if self.level_raw is None else self.level_raw.tolist(), "n_utterances": self.n_utterances, "n_frames": self.n_frames,
                 "coverage_raw": self.coverage_raw, "coverage_calibrated": self.coverage_calibrated,
                 "held_out": list(self.held_out), "info": self.info}
 
@@ -179,11 +235,14 @@ class BandCalibration:
         if not isinstance(d, dict) or d.get("format") != _FORMAT:
             raise ValueError(f"{where}: expected format {_FORMAT!r}, found "
                              f"{d.get('format') if isinstance(d, dict) else type(d).__name__!r}")
-        if d.get("version") != _VERSION:
-            raise ValueError(f"{where}: format version {d.get('version')!r}; this bayes_talk reads {_VERSION}")
+        if d.get("version") not in _READS:
+            raise ValueError(f"{where}: format version {d.get('version')!r}; this bayes_talk reads "
+                             f"{', '.join(map(str, _READS))}")
         try:
+            raw = d.get("level_raw") if d["version"] >= 2 else None
             return cls(np.asarray(d["scale"], dtype=np.float64), str(d["method"]), tuple(d["levels"]),
-                       int(d["n_utterances"]), int(d["n_frames"]), dict(d["coverage_raw"]),
+                       None if raw is None else np.asarray(raw, dtype=np.float64),
+                       tuple(d["level_cal"]) if raw is not None else LEVEL_KNOTS, int(d["n_utterances"]), int(d["n_frames"]), dict(d["coverage_raw"]),
                        dict(d["coverage_calibrated"]), list(d["held_out"]), dict(d.get("info", {})))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: incomplete or invalid band calibration ({exc})") from None

@@ -1,0 +1,145 @@
+"""The two-stage band calibration: a scale, then a monotone level map (quantile
+recalibration) fixing the shape of heavy-tailed errors; the recalibrated result's answers
+against each other; save/load; bad input."""
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+import scipy.integrate
+
+from bayes_talk.synthesis.band_calibration import CALIBRATION_FILE, LEVEL_KNOTS, BandCalibration
+from bayes_talk.synthesis.recalibrated_result import RecalibratedResult
+from bayes_talk.synthesis.result import SynthesisResult
+
+TAIL_SCALE = np.array([1.0, 0.6, 1.5])
+
+
+def _heavy_tailed(n, seed, T=25, K=3):
+    """Mixtures of K Gaussians per entry; the truths are the mixture mean plus Student-t(3)
+    errors of the mixture's standard deviation times a per-parameter factor."""
+    rng = np.random.default_rng(seed)
+    res, truths = [], []
+    for _ in range(n):
+        m = rng.normal(size=(1, K, T, TAIL_SCALE.size))
+        v = rng.uniform(0.2, 1.0, size=m.shape)
+        r = SynthesisResult("laplace", None, m, v)
+        truths.append(r.mean + np.sqrt(r.var) * TAIL_SCALE * rng.standard_t(3, size=r.mean.shape))
+        res.append(r)
+    return res, truths
+
+
+def _coverage(results, truths, level):
+    inside = [np.mean((z >= lo) & (z <= hi)) for r, z in zip(results, truths) for lo, hi in [r.interval(level)]]
+    return float(np.mean(inside))
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    res, truths = _heavy_tailed(60, seed=0)
+    return BandCalibration.fit(res, truths, method="laplace"), res, truths
+
+
+def test_level_map_reaches_nominal_coverage_where_one_scale_cannot(fitted):
+    cal = fitted[0]
+    assert cal.level_raw.shape == (TAIL_SCALE.size, len(LEVEL_KNOTS))
+    for q in ("0.5", "0.8", "0.9", "0.95"):                      # in-sample: nominal at the knots
+        assert cal.coverage_calibrated[q] == pytest.approx(float(q), abs=0.005)
+    fresh, fresh_truths = _heavy_tailed(60, seed=1)
+    scale_only = BandCalibration(cal.scale, "laplace")             # stage 1 alone
+    two_stage = [cal.apply(r) for r in fresh]
+    one_stage = [scale_only.apply(r) for r in fresh]
+    for q in (0.5, 0.9):
+        assert _coverage(two_stage, fresh_truths, q) == pytest.approx(q, abs=0.02)
+    # the single best scale per parameter cannot fit both levels of heavy-tailed errors
+    miss = [abs(_coverage(one_stage, fresh_truths, q) - q) for q in (0.5, 0.9)]
+    assert max(miss) > 0.03, miss
+    # nor can the raw bands
+    assert _coverage(fresh, fresh_truths, 0.9) < 0.82
+
+
+def test_recalibrated_result_answers_agree(fitted):
+    cal, res, _ = fitted
+    r = cal.apply(res[0])
+    assert isinstance(r, RecalibratedResult) and not r.is_gaussian
+    mix = r.mixture
+    np.testing.assert_allclose(mix.var, res[0].var * cal.scale**2, rtol=1e-10)    # stage 1
+    np.testing.assert_allclose(r.mean, res[0].mean, atol=1e-12)
+    for q in (0.1, 0.5, 0.9):
+        np.testing.assert_allclose(r.cdf(r.quantile(q)), q, atol=1e-9)
+    # the calibrated 90 % band is the scaled mixture's band at the mapped raw level
+    lo, hi = r.interval(0.9)
+    raw_level = np.interp(0.9, np.r_[0, LEVEL_KNOTS, 1], np.r_[0, cal.level_raw[1], 1])
+    lo_m, hi_m = SynthesisResult("x", None, mix.draw_mean[..., 1:2], mix.draw_var[..., 1:2]).interval(raw_level)
+    np.testing.assert_allclose(np.c_[lo[:, 1], hi[:, 1]], np.c_[lo_m[:, 0], hi_m[:, 0]], rtol=1e-9, atol=1e-9)
+    # the density is the derivative of the CDF and integrates to one (frame 0, parameter 2;
+    # piecewise between the images of the knots, where the density ratio jumps)
+    one = cal.apply(SynthesisResult("laplace", None, res[0].draw_mean[:, :, :1], res[0].draw_var[:, :, :1]))
+
+    def dens(x):
+        return float(np.exp(one.logpdf(np.array([[0.0, 0.0, x]]))[0, 2]))
+
+    def cdf(x):
+        return float(one.cdf(np.array([[0.0, 0.0, x]]))[0, 2])
+
+    h, x0 = 1e-5, float(one.mean[0, 2]) + 0.1
+    assert dens(x0) == pytest.approx((cdf(x0 + h) - cdf(x0 - h)) / (2 * h), rel=1e-5)
+    cuts = sorted(float(one.quantile(0.5 + s * q / 2)[0, 2]) for q in LEVEL_KNOTS for s in (-1, 1))
+    pieces = [(-np.inf, cuts[0])] + list(itertools.pairwise(cuts)) + [(cuts[-1], np.inf)]
+    assert sum(scipy.integrate.quad(dens, a, b)[0] for a, b in pieces) == pytest.approx(1.0, abs=1e-6)
+    # draws follow the calibrated distribution; var is their second moment about the mean
+    x = r.sample(4000, seed=3)
+    assert np.mean((x >= lo) & (x <= hi)) == pytest.approx(0.9, abs=0.01)
+    np.testing.assert_allclose(np.mean((x - r.mean) ** 2, axis=(0, 1)), r.var.mean(0), rtol=0.08)
+    assert r.predictive_draws(2).shape == (1, 6, r.n_frames, r.n_dims)
+    # a post-filter of the mean moves the bands with it, the map staying
+    delta = np.full(r.mean.shape, 0.5)
+    s = r.shift(delta)
+    np.testing.assert_allclose(s.interval(0.9)[1], hi + 0.5, atol=1e-9)
+    idata = r.to_inference_data(truth=r.mean)
+    assert idata.posterior_predictive["aam"].shape[-2:] == (r.n_frames, r.n_dims)
+
+
+def test_save_load_round_trip_keeps_the_level_map(fitted, tmp_path):
+    cal, res, _ = fitted
+    cal.save(tmp_path)
+    back = BandCalibration.load(tmp_path)
+    np.testing.assert_array_equal(back.level_raw, cal.level_raw)
+    assert back.level_cal == cal.level_cal and back.coverage_calibrated == cal.coverage_calibrated
+    np.testing.assert_array_equal(back.apply(res[1]).interval(0.9)[0], cal.apply(res[1]).interval(0.9)[0])
+    # a version-1 file (scale only) is still read, as stage 1 alone
+    d = json.loads((tmp_path / CALIBRATION_FILE).read_text())
+    d["version"] = 1
+    del d["level_raw"], d["level_cal"]
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(d))
+    v1 = BandCalibration.load(tmp_path)
+    assert v1.level_raw is None and type(v1.apply(res[1])) is SynthesisResult
+
+
+@pytest.mark.parametrize("bad, match", [
+    (lambda r: np.where(r > 0.5, 1.2, r), r"level_raw must lie in \(0, 1\)"),
+    (lambda r: np.where(r > 0.5, np.nan, r), "level_raw contains NaN"),
+    (lambda r: r[:, ::-1], "strictly increasing"),
+    (lambda r: r[:2], r"level_raw must have shape \(3, 19\)"),
+])
+def test_bad_level_maps_are_refused_by_name(fitted, tmp_path, bad, match):
+    cal = fitted[0]
+    d = cal.to_dict()
+    d["level_raw"] = bad(cal.level_raw).tolist()
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(d).replace("NaN", "NaN"))
+    with pytest.raises(ValueError, match=f"band_calibration.json.*{match}"):
+        BandCalibration.load(tmp_path)
+
+
+def test_bad_levels_in_use_give_clear_errors(fitted):
+    cal, res, _ = fitted
+    r = cal.apply(res[0])
+    for q in (0.0, 1.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match=r"must be in \(0, 1\)"):
+            r.interval(q)
+    with pytest.raises(ValueError, match="level_cal must lie in"):
+        BandCalibration(cal.scale, "laplace", level_raw=cal.level_raw, level_cal=(0.0,) + cal.level_cal[1:])
+    with pytest.raises(ValueError, match="expected values of shape"):
+        r.cdf(np.zeros((2, 2)))
