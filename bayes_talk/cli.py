@@ -10,7 +10,7 @@ Sub-commands::
                                     [--voice NAME] [--image-size PX] [--force]
     bayes-talk corpus track DIR [--prototypes 4] [--search-unannotated] [--allow-lost]
     bayes-talk corpus propose-prototypes DIR [--prototypes 4] [--per-video K] [--out DIR]
-    bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,sgplvm} --out MODEL_DIR
+    bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,ssgpdm-vlmm-rc,ssgpdm-phone-rc,sgplvm} --out MODEL_DIR
     bayes-talk synth MODEL_DIR --audio X.wav --labels X.lab --out OUT_DIR
                      [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR ...

@@ -31,7 +31,7 @@ from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
-MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "sgplvm")
+MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "sgplvm")
 _DEFAULT = object()
 
 

@@ -51,6 +51,8 @@ def test_method_registry_complete_and_families_shared():
     assert set(S.METHODS) == {
         "ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
         "ssgpdm-vlmm-posterior", "ssgpdm-phone-posterior",
+        "ssgpdm-vlmm-rc-posterior", "ssgpdm-phone-rc-posterior", "ssgpdm-vlmm-rc-optimise",
+        "ssgpdm-phone-rc-optimise",
         "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean",
         "context-ridge", "context-mlp", "zero", "oracle", "sparse-sgpdm"}
     fam = S.group_by_family(["sgplvm-a", "hmm-mean", "sgplvm-b", "ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"])
@@ -239,7 +241,7 @@ def gp_run(utts):
 def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     res, traj, calls = gp_run
     assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "sparse-sgpdm", "ssgpdm-phone",
-                             "ssgpdm-vlmm"]                                    # shared training
+                             "ssgpdm-phone-rc", "ssgpdm-vlmm", "ssgpdm-vlmm-rc"]  # shared training
     m = res["methods"]
     assert set(m) == {k for k, v in S.METHODS.items() if v.has_variance and k not in CEILING}
     for e in m.values():

@@ -18,6 +18,8 @@ __all__ = ["ESTIMATORS", "make_estimator"]
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-vlmm": (SwitchingSGPDM, {"states": "vlmm"}),
     "ssgpdm-phone": (SwitchingSGPDM, {"states": "phone"}),
+    "ssgpdm-vlmm-rc": (SwitchingSGPDM, {"states": "vlmm", "right_context": True}),
+    "ssgpdm-phone-rc": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "sgplvm": (SGPLVM, {}),
     **{name: (cls, {}) for name, cls in _BASELINES.items()},
 }

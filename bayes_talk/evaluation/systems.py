@@ -14,6 +14,10 @@ ssgpdm-phone-predict        ssgpdm-phone        Algorithm 2, phone states
 ssgpdm-vlmm-posterior       ssgpdm-vlmm         ours: mean and variance of the whole-utterance
                                                 synthesis posterior (Laplace), VLMM states
 ssgpdm-phone-posterior      ssgpdm-phone        the same with phone states
+ssgpdm-vlmm-rc-posterior    ssgpdm-vlmm-rc      the posterior with right-context (anticipatory)
+ssgpdm-phone-rc-posterior   ssgpdm-phone-rc     states, bayes_talk.models.right_context
+ssgpdm-vlmm-rc-optimise     ssgpdm-vlmm-rc      Algorithm 1 with right-context states
+ssgpdm-phone-rc-optimise    ssgpdm-phone-rc
 sgplvm-a                    sgplvm              deena2009, back-constraint initialiser
 sgplvm-b                    sgplvm              deena2009, HMM/Viterbi initialiser
 voice-puppetry              voice-puppetry      Brand (1999)
@@ -188,6 +192,14 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            {"posterior": "laplace"}),
     Method("ssgpdm-phone-posterior", "ssgpdm-phone", "SSGPDM-phoneme utterance posterior (Laplace, ours)",
            True, {"posterior": "laplace"}),
+    Method("ssgpdm-vlmm-rc-posterior", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, posterior (ours)", True,
+           {"posterior": "laplace"}),
+    Method("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context, posterior (ours)",
+           True, {"posterior": "laplace"}),
+    Method("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation", True,
+           {"algorithm": "optimise"}),
+    Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context, seq. optimisation",
+           True, {"algorithm": "optimise"}),
     Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
     Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
     Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
@@ -287,7 +299,8 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         "dpds": {"max_iter": cfg.dpds_max_iter},
         "context-mlp": {"seed": cfg.seed},
     }
-    params["ssgpdm-phone"] = params["ssgpdm-vlmm"]
+    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc"):
+        params[fam] = params["ssgpdm-vlmm"]
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
     return make_estimator(family, **params.get(family, {}))

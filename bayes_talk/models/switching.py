@@ -43,6 +43,7 @@ from bayes_talk.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.models.right_context import RightContextStates
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.models.vlmm import VLMM, Segment
 
@@ -141,6 +142,7 @@ class SwitchingConfig:
     fallback_frames: int = 400
     seed: int = 0
     audio_context: int = 0
+    right_context: bool = False
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -149,6 +151,14 @@ def _fit_state(job: tuple) -> tuple[dict, dict]:
     with torch_threads(1):
         m = SGPDM(**cfg_dict).fit({"audio": audio, "visual": visual}, seq_lengths=lengths)
     return m.state()
+
+
+def _states_from_dict(d: dict):
+    """The state model saved by its ``to_dict`` (phone, VLMM, or right-context around either)."""
+    kind = d.get("kind")
+    if kind == "right-context":
+        return RightContextStates(_states_from_dict(d["base"]))
+    return PhoneStates.from_dict(d) if kind == "phone" else VLMM.from_dict(d)
 
 
 def _key(state: tuple[str, ...]) -> str:
@@ -174,14 +184,17 @@ class SwitchingModel:
                  latent_dim: int = _DEFAULTS.latent_dim, max_frames_per_state: int = _DEFAULTS.max_frames_per_state,
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
                  fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
-                 audio_context: int = _DEFAULTS.audio_context):
+                 audio_context: int = _DEFAULTS.audio_context, right_context: bool = _DEFAULTS.right_context):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
+        if not isinstance(right_context, (bool, np.bool_)):
+            raise ValueError(f"right_context must be True or False, got {right_context!r}")
         self.states, self.max_memory, self.epsilon, self.min_count = states, max_memory, epsilon, min_count
         self.latent_dim, self.max_frames_per_state = latent_dim, max_frames_per_state
         self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
         self.fallback_frames, self.seed = fallback_frames, seed
         self.audio_context = audio_context
+        self.right_context = bool(right_context)
         self.audio_ = AudioContext(audio_context)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
@@ -195,8 +208,9 @@ class SwitchingModel:
 
     @property
     def name(self) -> str:
-        """Method family name: ``ssgpdm-vlmm`` or ``ssgpdm-phone``."""
-        return f"ssgpdm-{self.config.states}"
+        """Method family name: ``ssgpdm-vlmm`` or ``ssgpdm-phone``, with ``-rc`` for
+        right-context states."""
+        return f"ssgpdm-{self.config.states}" + ("-rc" if self.config.right_context else "")
 
     def audio_input(self, mfcc: np.ndarray) -> np.ndarray:
         """The audio view the state models see for these MFCCs (T, D): the MFCCs
@@ -234,6 +248,8 @@ class SwitchingModel:
             self.states_model_ = VLMM(cfg.max_memory, eps, mc).fit([s.labels for s in train])
         else:
             self.states_model_ = PhoneStates().fit([s.labels for s in train])
+        if cfg.right_context:
+            self.states_model_ = RightContextStates(self.states_model_)
         # training subsequences per state (overlapping by design)
         subs: dict[tuple[str, ...], list[tuple[int, int, int]]] = defaultdict(list)
         for i, s in enumerate(train):
@@ -338,7 +354,7 @@ class SwitchingModel:
             # models saved before the counts were recorded: every seen phone counts once
             obj.phone_counts_ = {k: int(v) for k, v in meta.get("phone_counts", {}).items()}
             sm = meta["states_model"]
-            obj.states_model_ = PhoneStates.from_dict(sm) if sm.get("kind") == "phone" else VLMM.from_dict(sm)
+            obj.states_model_ = _states_from_dict(sm)
             obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
             obj.audio_ = AudioContext.from_arrays(obj.audio_context, arrays)
             grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
