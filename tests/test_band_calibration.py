@@ -65,8 +65,10 @@ def test_recalibrated_result_answers_agree(fitted):
     r = cal.apply(res[0])
     assert isinstance(r, RecalibratedResult) and not r.is_gaussian
     mix = r.mixture
-    np.testing.assert_allclose(mix.var, res[0].var * cal.scale**2, rtol=1e-10)    # stage 1
-    np.testing.assert_allclose(r.mean, res[0].mean, atol=1e-12)
+    a = cal.mean_scale                                                             # stage 0
+    shrunk = SynthesisResult("laplace", None, res[0].draw_mean * a, res[0].draw_var)
+    np.testing.assert_allclose(mix.var, shrunk.var * cal.scale**2, rtol=1e-10)    # stage 1
+    np.testing.assert_allclose(r.mean, a * res[0].mean, atol=1e-12)
     for q in (0.1, 0.5, 0.9):
         np.testing.assert_allclose(r.cdf(r.quantile(q)), q, atol=1e-9)
     # the calibrated 90 % band is the scaled mixture's band at the mapped raw level
@@ -143,3 +145,41 @@ def test_bad_levels_in_use_give_clear_errors(fitted):
         BandCalibration(cal.scale, "laplace", level_raw=cal.level_raw, level_cal=(0.0,) + cal.level_cal[1:])
     with pytest.raises(ValueError, match="expected values of shape"):
         r.cdf(np.zeros((2, 2)))
+
+
+def _half_predictable(n, seed, T=30):
+    """Parameter 0 is the predicted mean plus noise; parameter 1 is noise the predicted
+    mean (of the same spread) does not follow."""
+    rng = np.random.default_rng(seed)
+    res, truths = [], []
+    for _ in range(n):
+        m = rng.normal(size=(1, 2, T, 2))
+        r = SynthesisResult("laplace", None, m, np.full(m.shape, 0.3))
+        z = r.mean + 0.5 * rng.normal(size=r.mean.shape)
+        z[:, 1] = rng.normal(size=T) * np.std(r.mean[:, 1])
+        res.append(r)
+        truths.append(z)
+    return res, truths
+
+
+def test_mean_shrinkage_pulls_unpredicted_parameters_to_zero_and_lowers_the_error(tmp_path):
+    res, truths = _half_predictable(40, seed=0)
+    cal = BandCalibration.fit(res, truths, method="laplace")
+    assert cal.mean_scale[0] > 0.9 and cal.mean_scale[1] < 0.15, cal.mean_scale
+    fresh, fresh_truths = _half_predictable(40, seed=1)
+    mse = lambda rs: np.mean([np.mean((r.mean - z) ** 2, axis=0) for r, z in zip(rs, fresh_truths)], axis=0)  # noqa: E731
+    before, after = mse(fresh), mse([cal.apply(r) for r in fresh])
+    assert after[1] < 0.7 * before[1] and after[0] < 1.05 * before[0]
+    np.testing.assert_allclose(cal.apply(fresh[0]).mean[:, 1], cal.mean_scale[1] * fresh[0].mean[:, 1], atol=1e-12)
+    # bands still calibrated on fresh data after the shrinkage
+    assert _coverage([cal.apply(r) for r in fresh], fresh_truths, 0.9) == pytest.approx(0.9, abs=0.03)
+    off = BandCalibration.fit(res, truths, method="laplace", shrink_mean=False)
+    assert off.mean_scale is None
+    cal.save(tmp_path)
+    back = BandCalibration.load(tmp_path)
+    np.testing.assert_array_equal(back.mean_scale, cal.mean_scale)
+    d = json.loads((tmp_path / CALIBRATION_FILE).read_text())
+    d["mean_scale"] = [0.5, 1.5]
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="mean_scale"):
+        BandCalibration.load(tmp_path)

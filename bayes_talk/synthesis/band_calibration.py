@@ -72,15 +72,16 @@ from bayes_talk.files import write_json
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "BandCalibration", "fit_band_calibration", "min_scales",
+__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "BandCalibration", "fit_band_calibration",
+           "mean_shrinkage", "min_scales",
            "split_for_calibration"]
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "band_calibration.json"
 _FORMAT = "bayes_talk.band_calibration"
-_VERSION = 2
-_READS = (1, 2)
+_VERSION = 3
+_READS = (1, 2, 3)
 #: default fraction of the training utterances held out to fit the calibration
 HOLDOUT_FRACTION = 0.2
 _GRID = np.exp(np.linspace(math.log(1 / 8), math.log(8), 2001))
@@ -107,6 +108,21 @@ def min_scales(result: SynthesisResult, truth: np.ndarray, levels: Sequence[floa
     return np.asarray(out)
 
 
+def _shrunk(result: SynthesisResult, a: np.ndarray) -> SynthesisResult:
+    """Stage 0 (0): every component mean multiplied by a_d, variances kept."""
+    return replace(result, draw_mean=result.draw_mean * a)
+
+
+def mean_shrinkage(results: Sequence[SynthesisResult], truths: Sequence[np.ndarray]) -> np.ndarray:
+    """a_d of (0) (D,) from held-out predictions and their truths."""
+    m = np.concatenate([r.mean for r in results])
+    y = np.concatenate([np.asarray(z, dtype=np.float64) for z in truths])
+    if m.shape != y.shape:
+        raise ValueError(f"truths: expected frames of shape {m.shape} (the predictions'), found {y.shape}")
+    den = np.sum(m * m, axis=0)
+    return np.clip(np.where(den > 0, np.sum(m * y, axis=0) / np.where(den > 0, den, 1.0), 1.0), 0.0, 1.0)
+
+
 def _coverage_at(s_star: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
     """(L,) coverage at each level of bands scaled by ``scale`` (per last axis)."""
     return np.mean(s_star <= scale, axis=tuple(range(1, s_star.ndim)))
@@ -120,9 +136,10 @@ def _scaled(result: SynthesisResult, scale: np.ndarray) -> SynthesisResult:
 
 @dataclass
 class BandCalibration:
-    """The two stages (module docstring) of one synthesis method's band calibration.
+    """The stages (module docstring) of one synthesis method's band calibration.
 
-    scale: (D,) factors s_d (stage 1); level_raw: (D, J) raw central levels r_dj of the
+    scale: (D,) factors s_d (stage 1); mean_scale: (D,) factors a_d (stage 0; None: none,
+    e.g. a file of version ≤ 2); level_raw: (D, J) raw central levels r_dj of the
     level map's knots (stage 2; None: stage 1 alone) and level_cal: (J,) their calibrated
     levels q_j; method: the synthesis method they were fitted on ("laplace", ...);
     levels: the levels reported; n_utterances / n_frames: the held-out data;
@@ -142,9 +159,16 @@ class BandCalibration:
     coverage_calibrated: dict[str, float] = field(default_factory=dict)
     held_out: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    mean_scale: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.scale = np.asarray(self.scale, dtype=np.float64)
+        if self.mean_scale is not None:
+            self.mean_scale = np.asarray(self.mean_scale, dtype=np.float64)
+            if self.mean_scale.shape != self.scale.shape or not np.all(
+                    np.isfinite(self.mean_scale) & (self.mean_scale >= 0) & (self.mean_scale <= 1)):
+                raise ValueError(f"mean_scale: expected {self.scale.size} factors in [0, 1], found "
+                                 f"{self.mean_scale.tolist() if self.mean_scale.size < 8 else self.mean_scale.shape}")
         if self.scale.ndim != 1 or self.scale.size == 0:
             raise ValueError(f"scale: expected a non-empty 1-D array (one factor per AAM parameter), "
                              f"found shape {self.scale.shape}")
@@ -159,14 +183,18 @@ class BandCalibration:
     @classmethod
     def fit(cls, results: Sequence[SynthesisResult], truths: Sequence[np.ndarray], method: str | None = None,
             levels: Sequence[float] = DEFAULT_LEVELS, per_parameter: bool = True,
-            names: Sequence[str] = ()) -> BandCalibration:
-        """Fit s_d and the level map on held-out predictions ``results`` and their truths
-        (each (T_i, D)). per_parameter=False fits one factor and one map for all parameters
-        (pooled)."""
+            names: Sequence[str] = (), shrink_mean: bool = True) -> BandCalibration:
+        """Fit a_d (``shrink_mean``), s_d and the level map on held-out predictions
+        ``results`` and their truths (each (T_i, D)). per_parameter=False fits one factor and
+        one map for all parameters (pooled)."""
         if not results or len(results) != len(truths):
             raise ValueError(f"fit: need one truth per result and at least one, got {len(results)} results "
                              f"and {len(truths)} truths")
         levels = tuple(float(q) for q in levels)
+        raw = _coverage_at(np.concatenate([min_scales(r, z, levels) for r, z in zip(results, truths)], axis=1), 1.0)
+        a = mean_shrinkage(results, truths) if shrink_mean else None
+        if a is not None:
+            results = [_shrunk(r, a) for r in results]
         s_star = np.concatenate([min_scales(r, z, levels) for r, z in zip(results, truths)], axis=1)  # (L, N, D)
         L, N, D = s_star.shape
         target = np.asarray(levels)[:, None]
@@ -188,7 +216,6 @@ class BandCalibration:
         r_dj = np.clip(r_dj, _KNOT_EPS, 1.0 - (J + 1) * _KNOT_EPS)
         r_dj = np.maximum.accumulate(r_dj + _KNOT_EPS * np.arange(J), axis=1)   # strictly increasing
         r_dj = np.broadcast_to(r_dj, (D, J)).copy()
-        raw = _coverage_at(s_star, 1.0)
         cal = [np.mean(c <= np.array([np.interp(q, np.r_[0, knots, 1], np.r_[0, r_dj[d], 1]) for d in range(D)]))
                for q in levels]
         meth = method if method is not None else results[0].method
@@ -196,10 +223,11 @@ class BandCalibration:
                    {f"{q:g}": float(v) for q, v in zip(levels, raw)},
                    {f"{q:g}": float(v) for q, v in zip(levels, cal)}, list(names),
                    {"per_parameter": bool(per_parameter),
-                    "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}})
+                    "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}},
+                   a)
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
-        """The calibrated result: (1) applied to every component, then the level map (a
+        """The calibrated result: (0) and (1) applied to every component, then the level map (a
         :class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult`; without one,
         the scaled mixture itself). The factors are recorded in its diagnostics under
         ``band_calibration``, with the raw level of its 90 % band (median over parameters)."""
@@ -210,7 +238,10 @@ class BandCalibration:
         diag = dict(result.diagnostics)
         diag["band_calibration"] = {"method": self.method, "scale_min": float(s.min()),
                                     "scale_median": float(np.median(s)), "scale_max": float(s.max()),
-                                    "level_map": self.level_raw is not None}
+                                    "level_map": self.level_raw is not None,
+                                    "mean_scale_min": None if self.mean_scale is None else float(self.mean_scale.min())}
+        if self.mean_scale is not None:
+            result = _shrunk(result, self.mean_scale)
         scaled = replace(_scaled(result, s), diagnostics=diag)
         if self.level_raw is None:
             return scaled
@@ -227,7 +258,8 @@ class BandCalibration:
                 "scale": self.scale.tolist(), "level_cal": list(self.level_cal),
                 "level_raw": None if self.level_raw is None else self.level_raw.tolist(), "n_utterances": self.n_utterances, "n_frames": self.n_frames,
                 "coverage_raw": self.coverage_raw, "coverage_calibrated": self.coverage_calibrated,
-                "held_out": list(self.held_out), "info": self.info}
+                "held_out": list(self.held_out), "info": self.info,
+                "mean_scale": None if self.mean_scale is None else self.mean_scale.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "band calibration") -> BandCalibration:
@@ -243,7 +275,8 @@ class BandCalibration:
             return cls(np.asarray(d["scale"], dtype=np.float64), str(d["method"]), tuple(d["levels"]),
                        None if raw is None else np.asarray(raw, dtype=np.float64),
                        tuple(d["level_cal"]) if raw is not None else LEVEL_KNOTS, int(d["n_utterances"]), int(d["n_frames"]), dict(d["coverage_raw"]),
-                       dict(d["coverage_calibrated"]), list(d["held_out"]), dict(d.get("info", {})))
+                       dict(d["coverage_calibrated"]), list(d["held_out"]), dict(d.get("info", {})),
+                       None if d.get("mean_scale") is None else np.asarray(d["mean_scale"], dtype=np.float64))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: incomplete or invalid band calibration ({exc})") from None
 
