@@ -284,7 +284,7 @@ class SGPDM:
         cfg = self.config
         if monitor is not None and (monitor_every < 1 or patience < 1):
             raise ValueError(f"monitor_every and patience must be >= 1, got {monitor_every} and {patience}")
-        step_iter = monitor_every if monitor is not None else 20
+        step_iter = min(monitor_every if monitor is not None else 20, max(1, cfg.max_iter))
         free = self._free_tensors()
         opt = torch.optim.LBFGS(free, lr=1.0, max_iter=step_iter, history_size=50, line_search_fn="strong_wolfe")
 
@@ -297,6 +297,8 @@ class SGPDM:
         self.history = FitHistory([float(self.log_joint().detach())])
         best, best_params, since = math.inf, None, 0
         for step in range(1, max(1, math.ceil(cfg.max_iter / step_iter)) + 1):
+            # L-BFGS iterations in blocks of step_iter, the last block the remainder: max_iter in all
+            opt.param_groups[0]["max_iter"] = min(step_iter, max(1, cfg.max_iter - (step - 1) * step_iter))
             opt.step(closure)
             with torch.no_grad():
                 cur = float(self.log_joint())
@@ -317,6 +319,7 @@ class SGPDM:
                         break
             if abs(cur - prev) <= cfg.tol * max(1.0, abs(cur)):
                 break
+        self.history.n_iter = int(opt.state[free[0]].get("n_iter", 0)) if free else 0
         if best_params is not None:
             with torch.no_grad():
                 for t, b in zip(free, best_params):

@@ -121,8 +121,10 @@ def sgpdm_model(
 @dataclass
 class FitHistory:
     """Objective (log joint) after each outer L-BFGS step; with a monitor, its value after
-    each step (``monitor``) and the step whose parameters were kept (``best_step``, 1-based)."""
+    each step (``monitor``), the step whose parameters were kept (``best_step``, 1-based) and
+    the L-BFGS iterations run in all (``n_iter``, at most the model's ``max_iter``)."""
 
     log_joint: list[float] = field(default_factory=list)
     monitor: list[float] = field(default_factory=list)
     best_step: int | None = None
+    n_iter: int = 0
