@@ -167,7 +167,7 @@ def test_mean_shrinkage_pulls_unpredicted_parameters_to_zero_and_lowers_the_erro
     cal = BandCalibration.fit(res, truths, method="laplace")
     assert cal.mean_scale[0] > 0.9 and cal.mean_scale[1] < 0.15, cal.mean_scale
     fresh, fresh_truths = _half_predictable(40, seed=1)
-    mse = lambda rs: np.mean([np.mean((r.mean - z) ** 2, axis=0) for r, z in zip(rs, fresh_truths)], axis=0)  # noqa: E731
+    mse = lambda rs: np.mean([np.mean((r.mean - z) ** 2, axis=0) for r, z in zip(rs, fresh_truths)], axis=0)
     before, after = mse(fresh), mse([cal.apply(r) for r in fresh])
     assert after[1] < 0.7 * before[1] and after[0] < 1.05 * before[0]
     np.testing.assert_allclose(cal.apply(fresh[0]).mean[:, 1], cal.mean_scale[1] * fresh[0].mean[:, 1], atol=1e-12)

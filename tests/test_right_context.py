@@ -11,7 +11,7 @@ from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.right_context import RIGHT_MARK, next_different
 from bayes_talk.models.switching import FALLBACK
 
-SMALL = dict(latent_dim=2, max_iter=15, min_count=4, max_frames_per_state=80, fallback_frames=100)
+SMALL = {"latent_dim": 2, "max_iter": 15, "min_count": 4, "max_frames_per_state": 80, "fallback_frames": 100}
 
 
 def test_next_different_label_of_every_frame():

@@ -188,7 +188,7 @@ class SwitchingModel:
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         if not isinstance(right_context, (bool, np.bool_)):
-            raise ValueError(f"right_context must be True or False, got {right_context!r}")
+            raise ValueError(f"right_context must be True or False, got {right_context!r}")  # noqa: TRY004 - package convention: bad input is a ValueError
         self.states, self.max_memory, self.epsilon, self.min_count = states, max_memory, epsilon, min_count
         self.latent_dim, self.max_frames_per_state = latent_dim, max_frames_per_state
         self.min_frames_per_state, self.max_iter = min_frames_per_state, max_iter
