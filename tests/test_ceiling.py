@@ -143,3 +143,13 @@ def test_score_with_ceiling_for_the_demo():
     assert rows["zero"]["gain_amse"] == 0.0 and rows["oracle"]["gain_nmse"] == 1.0
     z = rows["zero"]["amse"]
     assert rows["half"]["gain_amse"] == pytest.approx((z - 0.25 * z) / (z + 0.01))
+
+
+def test_post_filter_leaves_the_ceiling_alone(built):
+    """lowpass_hz filters the methods, not zero/oracle: a filtered oracle would lose its
+    bias correction (mse_bias) and the generator's own fast motion."""
+    plain, filt = SystemConfig(oracle_draws=2), SystemConfig(oracle_draws=2, lowpass_hz=4.0)
+    model = OracleModel(n_draws=2).fit(built[:2])
+    a, b = predict("oracle", model, built[3], plain), predict("oracle", model, built[3], filt)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    assert b.mse_bias is not None

@@ -33,7 +33,7 @@ def test_single_array_is_one_utterance_and_amse_averages_utterances():
     np.testing.assert_allclose(stacked, [9.25 / 6, 4.0], rtol=0, atol=1e-14)
 
 
-def test_correlation_by_hand_and_constant_dimension_skipped():
+def test_correlation_by_hand_constant_truth_skipped_constant_prediction_zero():
     r0 = -np.sqrt(3) / 2   # dim 0: truth (0,1,2), pred (1,1,0)
     r1 = 3 / np.sqrt(84)   # dim 1: truth (1,3,2), pred (0.5,1,2)
     assert M.correlation([T1], [P1])[0] == pytest.approx((r0 + r1) / 2, abs=1e-14)
@@ -41,6 +41,10 @@ def test_correlation_by_hand_and_constant_dimension_skipped():
     T3 = np.hstack([T1, np.full((3, 1), 7.0)])
     P3 = np.hstack([P1, np.array([[1.0], [2.0], [0.0]])])
     assert M.correlation([T3], [P3])[0] == pytest.approx((r0 + r1) / 2, abs=1e-14)
+    # a constant *prediction* where the truth varies counts as 0, not skipped
+    P4 = P1.copy()
+    P4[:, 1] = 0.25
+    assert M.correlation([T1], [P4])[0] == pytest.approx(r0 / 2, abs=1e-14)
     # perfect correlation under an affine map
     assert M.acc([T1], [3 * T1 - 1]) == pytest.approx(1.0, abs=1e-14)
 

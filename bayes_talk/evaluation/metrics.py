@@ -141,18 +141,23 @@ def normalised_mse(truth: ArrayList, pred: ArrayList, variance: np.ndarray | Non
 def correlation(truth: ArrayList, pred: ArrayList) -> np.ndarray:
     """Per-utterance mean over dimensions of the Pearson correlation (n,).
 
-    Dimensions where the truth or the prediction is constant are skipped; nan if none remain.
+    Dimensions where the truth is constant are skipped (nan if none remain); a dimension
+    where the truth varies but the prediction is constant counts as correlation 0 (a still
+    prediction follows nothing), so a method cannot raise its ACC by predicting some
+    dimensions as constants (e.g. a mean shrunk to zero there).
     """
     out = []
     for t, p in _pairs(truth, pred):
         tc, pc = t - t.mean(axis=0), p - p.mean(axis=0)
         st, sp_ = np.sqrt(np.sum(tc * tc, axis=0)), np.sqrt(np.sum(pc * pc, axis=0))
         scale = np.maximum(np.abs(t).max(axis=0), np.abs(p).max(axis=0)) * np.sqrt(t.shape[0])
-        ok = (st > 1e-12 * scale) & (sp_ > 1e-12 * scale)
-        if not ok.any():
+        ok_t = st > 1e-12 * scale
+        if not ok_t.any():
             out.append(np.nan)
             continue
-        r = np.sum(tc[:, ok] * pc[:, ok], axis=0) / (st[ok] * sp_[ok])
+        ok = ok_t & (sp_ > 1e-12 * scale)
+        r = np.zeros(int(ok_t.sum()))
+        r[ok[ok_t]] = np.sum(tc[:, ok] * pc[:, ok], axis=0) / (st[ok] * sp_[ok])
         out.append(float(np.mean(np.clip(r, -1.0, 1.0))))
     return np.array(out)
 
