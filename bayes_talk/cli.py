@@ -127,7 +127,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
                     transcript=args.transcript, align_method=args.align_method, truth=args.truth,
-                    calibrated=not args.raw_bands,
+                    calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None,
                     sampler_options={"chains": args.chains, "warmup": args.warmup,
                                      "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth})
     for k, p in written.items():
@@ -411,6 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
                         "drawn in bands.png and stored as observed_data in posterior.nc")
     s.add_argument("--no-video", action="store_true", help="skip the MP4s")
+    s.add_argument("--lowpass-hz", type=float, default=4.0, metavar="HZ",
+                   help="zero-phase low-pass of a switching model's mean, bands moving with it "
+                        "(deena2010 §4.2.3; default 4 Hz, the setting of the held-out figures; 0: off)")
     s.add_argument("--raw-bands", action="store_true",
                    help="do not apply the model's band calibration (train --calibrate-bands)")
     s.add_argument("--force", action="store_true",

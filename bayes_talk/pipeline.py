@@ -279,7 +279,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
           seed: int = 0, tier: str | None = None, text: str | None = None,
           transcript: str | os.PathLike | None = None, align_method: str | None = None,
           truth: str | os.PathLike | None = None, calibrated: bool = True,
-          sampler_options: dict | None = None) -> dict[str, Path]:
+          sampler_options: dict | None = None, lowpass_hz: float | None = _DEFAULT) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -313,6 +313,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     ``calibrated``: apply the model's band calibration (``band_calibration.json``, fitted by
     ``train --calibrate-bands``) when ``posterior`` is the method it was fitted on; False:
     the raw posterior bands. Whether it was applied is recorded in ``diagnostics.json``.
+
+    ``lowpass_hz``: the zero-phase low-pass of deena2010 §4.2.3 applied to a switching
+    model's mean, the bands moving with it (default
+    :data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz, the setting of the
+    held-out figures in docs/results.md; None: off). Recorded in ``segments.json``.
     """
     from bayes_talk.bundle import OutputSet
     from bayes_talk.video import write_video
@@ -368,6 +373,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                    seed=seed, log_warnings=False, **_sampler_args(sampler_options))
             if calibrated and tm.calibration is not None and tm.calibration.method == posterior:
                 res = tm.calibration.apply(res)
+        from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
+
+        lowpass_hz = POST_FILTER_HZ if lowpass_hz is _DEFAULT else lowpass_hz
+        if lowpass_hz is not None:
+            res = res.shift(lowpass(res.mean, float(lowpass_hz), fps=tm.fps) - res.mean)
         segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if derived is not None:
@@ -389,7 +399,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)
         written[key] = out / names[key]
-    write_json(out / names["segments"], {"segments": segs, "fps": tm.fps})
+    write_json(out / names["segments"], {"segments": segs, "fps": tm.fps,
+                                         "post_filter_hz": None if tm.kind == "sgplvm" else lowpass_hz})
     written["segments"] = out / names["segments"]
     if tm.aam is not None:
         params = res.mean + tm.offset

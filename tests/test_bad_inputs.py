@@ -19,7 +19,7 @@ from bayes_talk.data.labels import read_labels
 from bayes_talk.features.mfcc import FMAX_HZ
 from bayes_talk.pipeline import load_trained, read_utterance
 
-SMALL = {"latent_dim": 3, "max_iter": 15, "min_frames_per_state": 10, "max_frames_per_state": 60, "fallback_frames": 80}
+SMALL = {"latent_dim": 3, "max_iter": 20, "min_frames_per_state": 10, "max_frames_per_state": 60, "fallback_frames": 80}
 
 
 @pytest.fixture(scope="module")

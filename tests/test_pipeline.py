@@ -54,6 +54,22 @@ def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_
     assert (out / "trajectory.npy").stat().st_mtime_ns == before
 
 
+def test_synth_post_filters_the_mean_by_default_and_moves_the_bands_with_it(model_dir, corpus_dir, tmp_path):
+    from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
+
+    wav, lab = _first_utterance(corpus_dir)
+    args = ["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--no-video", "--posterior", "map"]
+    assert main(args + ["--out", str(tmp_path / "f")]) == 0
+    assert main(args + ["--out", str(tmp_path / "r"), "--lowpass-hz", "0"]) == 0
+    f, r = np.load(tmp_path / "f" / "trajectory.npy"), np.load(tmp_path / "r" / "trajectory.npy")
+    np.testing.assert_allclose(f, lowpass(r, POST_FILTER_HZ), rtol=1e-10, atol=1e-12)
+    assert not np.allclose(f, r)
+    with np.load(tmp_path / "f" / "bands.npz") as bf, np.load(tmp_path / "r" / "bands.npz") as br:
+        np.testing.assert_allclose(bf["upper90"] - f, br["upper90"] - r, rtol=1e-8, atol=1e-10)
+    assert json.loads((tmp_path / "f" / "segments.json").read_text())["post_filter_hz"] == POST_FILTER_HZ
+    assert json.loads((tmp_path / "r" / "segments.json").read_text())["post_filter_hz"] is None
+
+
 def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, corpus_dir, tmp_path):
     wav, lab = _first_utterance(corpus_dir)
     out = tmp_path / "post"

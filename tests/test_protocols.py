@@ -397,11 +397,14 @@ def test_harness_reports_calibration_and_calibrated_and_raw_posterior(gp_run):
     (bc,) = post["band_calibration"]
     assert bc["method"] == "laplace" and len(bc["scale"]) == traj.truth.shape[1] and len(bc["held_out"]) == 1
     assert post["calibration_seconds"] > 0
-    # the calibrated and raw predictive share the mean; the first stage scales by the factors,
-    # the second maps the levels (the calibrated 90 % band is a raw band of the mapped level)
+    # stage 0 shrinks the mean by the factors a_d; stage 1 scales the shrunk mixture about
+    # it, the second maps the levels (the calibrated 90 % band is a raw band of the mapped level)
     pred = traj.predictions["ssgpdm-vlmm-posterior"]
-    np.testing.assert_allclose(pred.result.mean, pred.raw.mean, atol=1e-10)
-    np.testing.assert_allclose(pred.result.mixture.var, pred.raw.var * np.asarray(bc["scale"]) ** 2, rtol=1e-8)
+    a = np.asarray(bc["mean_scale"])
+    assert a.shape == (traj.truth.shape[1],) and np.all((a >= 0) & (a <= 1))
+    np.testing.assert_allclose(pred.result.mean, a * pred.raw.mean, atol=1e-10)
+    shrunk = dataclasses.replace(pred.raw, draw_mean=pred.raw.draw_mean * a)
+    np.testing.assert_allclose(pred.result.mixture.var, shrunk.var * np.asarray(bc["scale"]) ** 2, rtol=1e-8)
     np.testing.assert_allclose(pred.result.cdf(pred.result.interval(0.9)[1]), 0.95, atol=1e-8)
     assert len(bc["level_raw"]) == traj.truth.shape[1]
     assert "## Calibration" in res["markdown_sections"][0] and "ssgpdm-vlmm-posterior (raw)" in \

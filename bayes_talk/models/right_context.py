@@ -58,6 +58,7 @@ class RightContextStates:
 
     @property
     def alphabet_(self) -> list[str]:
+        """The base model's label alphabet."""
         return self.base.alphabet_
 
     def fit(self, sequences: Sequence[Sequence[str]]) -> RightContextStates:

@@ -47,6 +47,11 @@ DEFAULT_SMOOTHNESS = "frame"
 _NN = NearestNeighbour()
 
 
+#: the post-filter ``synth`` applies to a switching model's mean by default (Hz; deena2010
+#: §4.2.3's zero-phase low-pass; the setting of every held-out figure in docs/results.md)
+POST_FILTER_HZ = 4.0
+
+
 def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) -> np.ndarray:
     """Zero-phase Butterworth low-pass along time (scipy.signal.filtfilt)."""
     if not 0 < cutoff_hz < fps / 2:
