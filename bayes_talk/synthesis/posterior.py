@@ -11,8 +11,10 @@ their trained MAP values.
 1. **MAP** (:func:`maximise_utterance`): start at deena2010's Algorithm 1 path (block by
    block, :func:`bayes_talk.synthesis.sequential.synthesize`), then maximise the joint
    density by L-BFGS in coordinates whitened by the Laplace precision at that start, then
-   up to 3 Newton steps. Converged when max |∂ ln p/∂x| ≤ ``gtol`` or the Newton decrement
-   is ≤ ``dtol`` nats (reported, with the iteration count).
+   by a trust-region Newton method with the exact Hessian (scipy ``trust-exact``), which
+   handles the negative curvature the joint density has away from its modes. Converged
+   when max |∂ ln p/∂x| ≤ ``gtol`` or the Hessian is negative definite and the Newton
+   decrement is ≤ ``dtol`` nats (reported, with the iteration count).
 2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws. Judged by
    the PSIS Pareto k̂ of the importance weights p/q (200 draws; k̂ ≤ 0.7 wanted), not by
    R-hat on independent draws.
@@ -53,6 +55,7 @@ from bayes_talk.synthesis.diagnostics import (
     energy_bfmi,
     psis_khat,
 )
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import INIT_SCALE, NUTS_DEFAULTS, Draws, run_emcee, run_nuts
@@ -64,20 +67,19 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee")
-#: Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
+#: trust-region Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
 MAP_MAX_ITER = 100
+#: L-BFGS iterations before them (cheap steps towards the mode's basin)
+MAP_LBFGS_ITER = 100
 #: the joint MAP has converged when max |∂ ln p / ∂x| is at most this
 MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
 LAPLACE_KHAT_DRAWS = 200
-#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
-DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
-                 "emcee": 320}
-#: emcee: burn-in steps, walkers reported as chains, the chain may run on to this many
-#: times its first length to meet the autocorrelation rule, within this many stored floats
-EMCEE_WARMUP = 500
+#: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
+#: chains, the chain may run on to this many times its first length to meet the autocorrelation
+#: rule, within this many stored floats
 EMCEE_REPORTED_WALKERS = 16
 EMCEE_MAX_STEPS_FACTOR = 10
 EMCEE_MAX_STORED_FLOATS = 1.25e8
@@ -109,24 +111,94 @@ def _floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, 
 
 
 def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = MAP_MAX_ITER,
-                       gtol: float = MAP_GTOL, dtol: float = MAP_DTOL, newton_steps: int = 3) -> MapResult:
-    """The joint MAP from X0 (Algorithm 1's path): L-BFGS (scipy) on the log density in the
-    coordinates whitened by the Laplace precision at X0, x = X0 + L z with L Lᵀ = (−∇² ln p)⁻¹
-    (eigenvalues floored), so the badly scaled latent directions (posterior sds spanning
-    orders of magnitude) look alike to the optimiser, then up to ``newton_steps`` Newton
-    steps with the exact Hessian. Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when the
-    negative Hessian is positive definite and the Newton decrement ½ gᵀ(−∇²ln p)⁻¹g (the
-    log density a Newton step would still gain) is at most ``dtol`` nats: with dynamics
-    noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is then 10⁻⁶ away
-    from the mode, so the gradient alone is not scale-free. The Hessian at the result is
-    returned for Laplace."""
+                       gtol: float = MAP_GTOL, dtol: float = MAP_DTOL,
+                       lbfgs_iter: int = MAP_LBFGS_ITER) -> MapResult:
+    """The joint MAP from X0 (Algorithm 1's path), in two stages.
+
+    1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
+       Laplace precision at X0, x = X0 + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues
+       floored, negative ones by their modulus): cheap steps that bring the badly scaled
+       latent directions (posterior sds spanning orders of magnitude) to the mode's basin.
+    2. A trust-region Newton method with the exact Hessian (scipy's ``trust-exact``: the
+       trust-region subproblem solved nearly exactly, Moré & Sorensen 1983; Nocedal & Wright
+       2006 §4.3), again in coordinates whitened at the stage-1 point, so the trust region is
+       an ellipsoid of the local posterior's shape. Unlike a line search along the Newton
+       direction of a floored Hessian, it follows negative curvature out of saddle regions
+       (on held-out utterances the joint density has them, e.g. in 5-frame silence blocks),
+       and it takes full Newton steps, with quadratic convergence, near the mode. At most
+       ``max_iter`` iterations.
+
+    Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when P is positive definite and the Newton
+    decrement ½ gᵀP⁻¹g (the log density a Newton step would still gain) is at most ``dtol``
+    nats: with dynamics noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is
+    then 10⁻⁶ away from the mode, so the gradient alone is not scale-free. The Hessian, the
+    gradient norm and the decrement are those at the returned point (the Hessian is for
+    Laplace)."""
     from scipy.optimize import minimize
 
     x0 = np.asarray(X0, dtype=np.float64).reshape(-1).copy()
     f0, g0 = dens(x0)
+    n_iter = 0
+    x, f, g = x0, f0, g0.reshape(-1)
+    if lbfgs_iter > 0:
+        x, f, g, n_iter = _lbfgs_stage(dens, x0, f0, g, lbfgs_iter, gtol)
+    H = dens.hessian(x)
+    state = _newton_state(H, g, gtol, dtol)
+    if not state["converged"] and max_iter > 0:
+        lam, U, _ = _floored_precision(H)
+        L = U / np.sqrt(lam)
+        xs = x.copy()
+        cache: dict = {}
+
+        def point(z: np.ndarray) -> dict:
+            key = z.tobytes()
+            if key not in cache:
+                cache.clear()
+                xz = xs + L @ z
+                fz, gz = dens(xz)
+                cache[key] = {"x": xz, "f": fz, "g": gz.reshape(-1)}
+            return cache[key]
+
+        def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
+            p = point(z)
+            if not np.isfinite(p["f"]):
+                return np.inf, np.zeros_like(z)
+            return -p["f"], -(L.T @ p["g"])
+
+        def neg_hess(z: np.ndarray) -> np.ndarray:
+            p = point(z)
+            if "H" not in p:
+                p["H"] = dens.hessian(p["x"])
+            return -(L.T @ p["H"] @ L)
+
+        def done(intermediate_result) -> None:
+            p = point(np.asarray(intermediate_result.x))
+            if "H" not in p:
+                p["H"] = dens.hessian(p["x"])
+            if _newton_state(p["H"], p["g"], gtol, dtol)["converged"]:
+                raise StopIteration
+
+        res = minimize(neg, np.zeros_like(x), jac=True, hess=neg_hess, method="trust-exact", callback=done,
+                       options={"maxiter": max_iter, "gtol": 1e-300})
+        p = point(np.asarray(res.x))
+        if np.isfinite(p["f"]) and p["f"] >= f:
+            x, f, g = p["x"], float(p["f"]), p["g"]
+            H = p["H"] if "H" in p else dens.hessian(x)
+            state = _newton_state(H, g, gtol, dtol)
+        n_iter += int(res.nit)
+    return MapResult(x.reshape(dens.T, dens.d), float(f), state["grad_norm"], n_iter, state["converged"],
+                     float(f0), H, state["decrement"], state["n_mod"])
+
+
+def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarray, max_iter: int,
+                 gtol: float) -> tuple[np.ndarray, float, np.ndarray, int]:
+    """L-BFGS (scipy) on ln p in coordinates whitened at x0; the best point seen and its
+    gradient, and the iteration count."""
+    from scipy.optimize import minimize
+
     lam, U, _ = _floored_precision(dens.hessian(x0))
     L = U / np.sqrt(lam)
-    best = {"f": f0, "x": x0, "g": g0.reshape(-1)}
+    best = {"f": f0, "x": x0, "g": g0}
 
     def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
         x = x0 + L @ z
@@ -142,30 +214,17 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
 
     res = minimize(neg, np.zeros_like(x0), jac=True, method="L-BFGS-B", callback=done,
                    options={"maxiter": max_iter, "gtol": 1e-12, "ftol": 1e-15, "maxcor": 30})
-    x, f, g = best["x"], best["f"], best["g"]
-    n_iter = int(res.nit)
-    # Newton polish with the exact Hessian (needed for Laplace anyway)
-    for _ in range(newton_steps + 1):
-        H = dens.hessian(x)
-        lam, U, n_mod = _floored_precision(H)
-        step = U @ ((U.T @ g) / lam)
-        decrement = 0.5 * float(g @ step)          # predicted gain of a Newton step (nats)
-        gnorm = float(np.max(np.abs(g)))
-        converged = gnorm <= gtol or (n_mod == 0 and decrement <= dtol)
-        if converged:
-            break
-        t = 1.0
-        for _ in range(20):
-            fn, gn = dens(x + t * step)
-            if np.isfinite(fn) and fn > f:
-                break
-            t *= 0.5
-        else:
-            break
-        x, f, g = x + t * step, fn, gn.reshape(-1)
-        n_iter += 1
-    return MapResult(x.reshape(dens.T, dens.d), float(f), gnorm, n_iter, converged, float(f0), H,
-                     decrement, n_mod)
+    return best["x"], float(best["f"]), best["g"], int(res.nit)
+
+
+def _newton_state(H: np.ndarray, g: np.ndarray, gtol: float, dtol: float) -> dict:
+    """The convergence test at a point with Hessian H and gradient g of ln p: max |g|, the
+    Newton decrement ½ gᵀP⁻¹g (P = −H, eigenvalues floored), eigenvalues floored, converged."""
+    lam, U, n_mod = _floored_precision(H)
+    decrement = 0.5 * float(np.sum((U.T @ g) ** 2 / lam))
+    gnorm = float(np.max(np.abs(g)))
+    return {"grad_norm": gnorm, "decrement": decrement, "n_mod": n_mod,
+            "converged": gnorm <= gtol or (n_mod == 0 and decrement <= dtol)}
 
 
 #: the former name of :class:`~bayes_talk.synthesis.result.SynthesisResult` (the same type)
@@ -195,7 +254,8 @@ def sample_synthesis(
         draws of 16 reported walkers thinned by ``emcee_thin`` or more).
     chains: NUTS chains (default 4), started overdispersed at z ~ N(0, 2² I) in the
         whitened coordinates (X = X_MAP + L z).
-    map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
+    map_iter: trust-region Newton iterations of the joint MAP (after L-BFGS; Algorithm 1's
+        path is the start).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200)).
