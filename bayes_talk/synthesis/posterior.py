@@ -49,13 +49,13 @@ import numpy as np
 import torch
 
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
 from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
     energy_bfmi,
     psis_khat,
 )
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import INIT_SCALE, NUTS_DEFAULTS, Draws, run_emcee, run_nuts

@@ -36,7 +36,7 @@ import torch
 
 from bayes_talk import progress
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.defaults import NUTS_DEFAULTS  # noqa: F401  (re-exported)
+from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
 
 log = logging.getLogger(__name__)
 
