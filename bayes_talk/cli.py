@@ -322,6 +322,8 @@ def _add_alignment_parsers(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bayes-talk`` argument parser with every sub-command."""
+    from bayes_talk.synthesis.defaults import EMCEE_WARMUP, NUTS_DEFAULTS, draws_help
+
     p = argparse.ArgumentParser(prog="bayes-talk", description=__doc__.splitlines()[0],
                                 parents=[_verbosity_parser(False)], formatter_class=_HelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -399,13 +401,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
                         "posterior.nc, bands.png)")
     s.add_argument("--draws", type=_positive_int, default=None,
-                   help="posterior draws pooled over chains (default: laplace 64, nuts 4 x 250, emcee 320)")
-    s.add_argument("--chains", type=_positive_int, default=None, help="NUTS chains (default 4)")
+                   help=f"posterior draws pooled over chains ({draws_help()})")
+    s.add_argument("--chains", type=_positive_int, default=None, help=f"NUTS chains (default {NUTS_DEFAULTS['chains']})")
     s.add_argument("--warmup", type=_non_negative_int, default=None,
-                   help="NUTS warm-up iterations per chain (default 500) / emcee burn-in steps (default 500)")
+                   help=f"NUTS warm-up iterations per chain (default {NUTS_DEFAULTS['warmup']}) / emcee burn-in steps "
+                        f"(default {EMCEE_WARMUP})")
     s.add_argument("--target-accept", type=float, default=None,
-                   help="NUTS target acceptance statistic of the step-size adaptation (default 0.8)")
-    s.add_argument("--max-tree-depth", type=_positive_int, default=None, help="NUTS max tree depth (default 10)")
+                   help=f"NUTS target acceptance statistic of the step-size adaptation "
+                        f"(default {NUTS_DEFAULTS['target_accept']})")
+    s.add_argument("--max-tree-depth", type=_positive_int, default=None, help=f"NUTS max tree depth (default {NUTS_DEFAULTS['max_tree_depth']})")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "

@@ -366,7 +366,12 @@ def test_outputs_are_documented_and_the_recipe_gives_the_landmarks(model_dir, co
     text = capsys.readouterr().out
     assert "MEAN-REMOVED" in text and "aam_offset" in text and "tm.offset" in text
     flat = " ".join(text.split())
-    assert "--draws DRAWS" in text and "(default: laplace 64, nuts 4 x 250, emcee 320)" in flat
+    from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
+
+    nuts = f"nuts {NUTS_DEFAULTS['chains']} x {NUTS_DEFAULTS['draws_per_chain']}"
+    assert "--draws DRAWS" in text and f"(default: laplace 64, {nuts}, emcee 320)" in flat
+    assert f"NUTS chains (default {NUTS_DEFAULTS['chains']})" in flat
+    assert f"NUTS warm-up iterations per chain (default {NUTS_DEFAULTS['warmup']})" in flat
     wav, lab = _utt(corpus_dir)
     out = tmp_path / "o"
     assert main(["-q", "synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--out", str(out),

@@ -11,8 +11,10 @@ their trained MAP values.
 1. **MAP** (:func:`maximise_utterance`): start at deena2010's Algorithm 1 path (block by
    block, :func:`bayes_talk.synthesis.sequential.synthesize`), then maximise the joint
    density by L-BFGS in coordinates whitened by the Laplace precision at that start, then
-   up to 3 Newton steps. Converged when max |∂ ln p/∂x| ≤ ``gtol`` or the Newton decrement
-   is ≤ ``dtol`` nats (reported, with the iteration count).
+   by a trust-region Newton method with the exact Hessian (scipy ``trust-exact``), which
+   handles the negative curvature the joint density has away from its modes. Converged
+   when max |∂ ln p/∂x| ≤ ``gtol`` or the Hessian is negative definite and the Newton
+   decrement is ≤ ``dtol`` nats (reported, with the iteration count).
 2. **laplace**: N(X_MAP, (−∇² ln p)⁻¹) at the MAP; ``n_draws`` independent draws. Judged by
    the PSIS Pareto k̂ of the importance weights p/q (200 draws; k̂ ≤ 0.7 wanted), not by
    R-hat on independent draws.
@@ -47,6 +49,7 @@ import numpy as np
 import torch
 
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
 from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
@@ -64,20 +67,25 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee")
-#: Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
+#: trust-region Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
 MAP_MAX_ITER = 100
+#: L-BFGS iterations before them (cheap steps towards the mode's basin)
+MAP_LBFGS_ITER = 100
 #: the joint MAP has converged when max |∂ ln p / ∂x| is at most this
 MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
+#: restarts of the joint MAP from draws of its Laplace approximation, per round (at most
+#: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
+#: held-out utterance restarts found one 27 nats above the first, docs/uncertainty.md), and
+#: the samplers run in coordinates whitened at the best mode found
+MAP_RESTARTS = {"map": 0, "laplace": 0, "nuts": 6, "emcee": 6}
+MAP_RESTART_ROUNDS = 3
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
 LAPLACE_KHAT_DRAWS = 200
-#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
-DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
-                 "emcee": 320}
-#: emcee: burn-in steps, walkers reported as chains, the chain may run on to this many
-#: times its first length to meet the autocorrelation rule, within this many stored floats
-EMCEE_WARMUP = 500
+#: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
+#: chains, the chain may run on to this many times its first length to meet the autocorrelation
+#: rule, within this many stored floats
 EMCEE_REPORTED_WALKERS = 16
 EMCEE_MAX_STEPS_FACTOR = 10
 EMCEE_MAX_STORED_FLOATS = 1.25e8
@@ -109,24 +117,94 @@ def _floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, 
 
 
 def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = MAP_MAX_ITER,
-                       gtol: float = MAP_GTOL, dtol: float = MAP_DTOL, newton_steps: int = 3) -> MapResult:
-    """The joint MAP from X0 (Algorithm 1's path): L-BFGS (scipy) on the log density in the
-    coordinates whitened by the Laplace precision at X0, x = X0 + L z with L Lᵀ = (−∇² ln p)⁻¹
-    (eigenvalues floored), so the badly scaled latent directions (posterior sds spanning
-    orders of magnitude) look alike to the optimiser, then up to ``newton_steps`` Newton
-    steps with the exact Hessian. Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when the
-    negative Hessian is positive definite and the Newton decrement ½ gᵀ(−∇²ln p)⁻¹g (the
-    log density a Newton step would still gain) is at most ``dtol`` nats: with dynamics
-    noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is then 10⁻⁶ away
-    from the mode, so the gradient alone is not scale-free. The Hessian at the result is
-    returned for Laplace."""
+                       gtol: float = MAP_GTOL, dtol: float = MAP_DTOL,
+                       lbfgs_iter: int = MAP_LBFGS_ITER) -> MapResult:
+    """The joint MAP from X0 (Algorithm 1's path), in two stages.
+
+    1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
+       Laplace precision at X0, x = X0 + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues
+       floored, negative ones by their modulus): cheap steps that bring the badly scaled
+       latent directions (posterior sds spanning orders of magnitude) to the mode's basin.
+    2. A trust-region Newton method with the exact Hessian (scipy's ``trust-exact``: the
+       trust-region subproblem solved nearly exactly, Moré & Sorensen 1983; Nocedal & Wright
+       2006 §4.3), again in coordinates whitened at the stage-1 point, so the trust region is
+       an ellipsoid of the local posterior's shape. Unlike a line search along the Newton
+       direction of a floored Hessian, it follows negative curvature out of saddle regions
+       (on held-out utterances the joint density has them, e.g. in 5-frame silence blocks),
+       and it takes full Newton steps, with quadratic convergence, near the mode. At most
+       ``max_iter`` iterations.
+
+    Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when P is positive definite and the Newton
+    decrement ½ gᵀP⁻¹g (the log density a Newton step would still gain) is at most ``dtol``
+    nats: with dynamics noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is
+    then 10⁻⁶ away from the mode, so the gradient alone is not scale-free. The Hessian, the
+    gradient norm and the decrement are those at the returned point (the Hessian is for
+    Laplace)."""
     from scipy.optimize import minimize
 
     x0 = np.asarray(X0, dtype=np.float64).reshape(-1).copy()
     f0, g0 = dens(x0)
+    n_iter = 0
+    x, f, g = x0, f0, g0.reshape(-1)
+    if lbfgs_iter > 0:
+        x, f, g, n_iter = _lbfgs_stage(dens, x0, f0, g, lbfgs_iter, gtol)
+    H = dens.hessian(x)
+    state = _newton_state(H, g, gtol, dtol)
+    if not state["converged"] and max_iter > 0:
+        lam, U, _ = _floored_precision(H)
+        L = U / np.sqrt(lam)
+        xs = x.copy()
+        cache: dict = {}
+
+        def point(z: np.ndarray) -> dict:
+            key = z.tobytes()
+            if key not in cache:
+                cache.clear()
+                xz = xs + L @ z
+                fz, gz = dens(xz)
+                cache[key] = {"x": xz, "f": fz, "g": gz.reshape(-1)}
+            return cache[key]
+
+        def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
+            p = point(z)
+            if not np.isfinite(p["f"]):
+                return np.inf, np.zeros_like(z)
+            return -p["f"], -(L.T @ p["g"])
+
+        def neg_hess(z: np.ndarray) -> np.ndarray:
+            p = point(z)
+            if "H" not in p:
+                p["H"] = dens.hessian(p["x"])
+            return -(L.T @ p["H"] @ L)
+
+        def done(intermediate_result) -> None:
+            p = point(np.asarray(intermediate_result.x))
+            if "H" not in p:
+                p["H"] = dens.hessian(p["x"])
+            if _newton_state(p["H"], p["g"], gtol, dtol)["converged"]:
+                raise StopIteration
+
+        res = minimize(neg, np.zeros_like(x), jac=True, hess=neg_hess, method="trust-exact", callback=done,
+                       options={"maxiter": max_iter, "gtol": 1e-300})
+        p = point(np.asarray(res.x))
+        if np.isfinite(p["f"]) and p["f"] >= f:
+            x, f, g = p["x"], float(p["f"]), p["g"]
+            H = p["H"] if "H" in p else dens.hessian(x)
+            state = _newton_state(H, g, gtol, dtol)
+        n_iter += int(res.nit)
+    return MapResult(x.reshape(dens.T, dens.d), float(f), state["grad_norm"], n_iter, state["converged"],
+                     float(f0), H, state["decrement"], state["n_mod"])
+
+
+def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarray, max_iter: int,
+                 gtol: float) -> tuple[np.ndarray, float, np.ndarray, int]:
+    """L-BFGS (scipy) on ln p in coordinates whitened at x0; the best point seen and its
+    gradient, and the iteration count."""
+    from scipy.optimize import minimize
+
     lam, U, _ = _floored_precision(dens.hessian(x0))
     L = U / np.sqrt(lam)
-    best = {"f": f0, "x": x0, "g": g0.reshape(-1)}
+    best = {"f": f0, "x": x0, "g": g0}
 
     def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
         x = x0 + L @ z
@@ -142,30 +220,48 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
 
     res = minimize(neg, np.zeros_like(x0), jac=True, method="L-BFGS-B", callback=done,
                    options={"maxiter": max_iter, "gtol": 1e-12, "ftol": 1e-15, "maxcor": 30})
-    x, f, g = best["x"], best["f"], best["g"]
-    n_iter = int(res.nit)
-    # Newton polish with the exact Hessian (needed for Laplace anyway)
-    for _ in range(newton_steps + 1):
-        H = dens.hessian(x)
-        lam, U, n_mod = _floored_precision(H)
-        step = U @ ((U.T @ g) / lam)
-        decrement = 0.5 * float(g @ step)          # predicted gain of a Newton step (nats)
-        gnorm = float(np.max(np.abs(g)))
-        converged = gnorm <= gtol or (n_mod == 0 and decrement <= dtol)
-        if converged:
+    return best["x"], float(best["f"]), best["g"], int(res.nit)
+
+
+def _newton_state(H: np.ndarray, g: np.ndarray, gtol: float, dtol: float) -> dict:
+    """The convergence test at a point with Hessian H and gradient g of ln p: max |g|, the
+    Newton decrement ½ gᵀP⁻¹g (P = −H, eigenvalues floored), eigenvalues floored, converged."""
+    lam, U, n_mod = _floored_precision(H)
+    decrement = 0.5 * float(np.sum((U.T @ g) ** 2 / lam))
+    gnorm = float(np.max(np.abs(g)))
+    return {"grad_norm": gnorm, "decrement": decrement, "n_mod": n_mod,
+            "converged": gnorm <= gtol or (n_mod == 0 and decrement <= dtol)}
+
+
+def restart_map(dens: UtteranceDensity, mp: MapResult, n_restarts: int, seed: int = 0,
+                rounds: int = MAP_RESTART_ROUNDS, max_iter: int = MAP_MAX_ITER) -> tuple[MapResult, list[float]]:
+    """The highest mode found by restarting :func:`maximise_utterance` from ``n_restarts``
+    draws of the Laplace approximation N(x_MAP, (−∇² ln p)⁻¹) at the current mode, keeping
+    the best converged result, and again from the new best, for at most ``rounds`` rounds
+    or until a round finds nothing higher by more than ``MAP_DTOL`` nats. The draws lie in
+    the Laplace approximation's typical set, where a unimodal posterior would bring every
+    restart back to the same mode. Returns the best result and the log density of every
+    restart's end (seeded: same seed, same result)."""
+    rng = np.random.default_rng([seed, 0x6D6170])
+    found: list[float] = []
+    for _ in range(rounds):
+        lam, U, _ = _floored_precision(mp.hessian)
+        L = U / np.sqrt(lam)
+        x = mp.latents.reshape(-1)
+        best = mp
+        for _ in range(n_restarts):
+            x0 = (x + L @ rng.standard_normal(x.size)).reshape(dens.T, dens.d)
+            if not np.isfinite(dens(x0)[0]):
+                continue
+            r = maximise_utterance(dens, x0, max_iter=max_iter)
+            found.append(r.log_density)
+            if r.converged and r.log_density > best.log_density:
+                best = r
+        if best.log_density <= mp.log_density + MAP_DTOL:
             break
-        t = 1.0
-        for _ in range(20):
-            fn, gn = dens(x + t * step)
-            if np.isfinite(fn) and fn > f:
-                break
-            t *= 0.5
-        else:
-            break
-        x, f, g = x + t * step, fn, gn.reshape(-1)
-        n_iter += 1
-    return MapResult(x.reshape(dens.T, dens.d), float(f), gnorm, n_iter, converged, float(f0), H,
-                     decrement, n_mod)
+        best.start_log_density = mp.start_log_density
+        mp = best
+    return mp, found
 
 
 #: the former name of :class:`~bayes_talk.synthesis.result.SynthesisResult` (the same type)
@@ -183,6 +279,7 @@ def sample_synthesis(
     warmup: int | None = None,
     chains: int = NUTS_DEFAULTS["chains"],
     map_iter: int = MAP_MAX_ITER,
+    map_restarts: int | None = None,
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
     log_warnings: bool = True,
@@ -195,7 +292,11 @@ def sample_synthesis(
         draws of 16 reported walkers thinned by ``emcee_thin`` or more).
     chains: NUTS chains (default 4), started overdispersed at z ~ N(0, 2² I) in the
         whitened coordinates (X = X_MAP + L z).
-    map_iter: Newton iterations of the joint MAP (Algorithm 1's path is the start).
+    map_iter: trust-region Newton iterations of the joint MAP (after L-BFGS; Algorithm 1's
+        path is the start).
+    map_restarts: restarts of the joint MAP per round from draws of its Laplace
+        approximation, keeping the highest mode (:func:`restart_map`; default
+        :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP and Laplace).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200)).
@@ -213,11 +314,14 @@ def sample_synthesis(
         raise ValueError(f"chains must be >= 1, got {chains}")
     if warmup is not None and warmup < 0:
         raise ValueError(f"warmup must be >= 0, got {warmup}")
+    map_restarts = MAP_RESTARTS[method] if map_restarts is None else int(map_restarts)
+    if map_restarts < 0:
+        raise ValueError(f"map_restarts must be >= 0, got {map_restarts}")
     mfcc = _check_inputs(model, mfcc, labels)
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
-                      emcee_thin, dict(sampler_kw or {}))
+                      emcee_thin, dict(sampler_kw or {}), map_restarts)
     res.seconds = time.perf_counter() - t0
     if log_warnings:
         for w in res.warnings:
@@ -266,18 +370,24 @@ class _Whitened:
 
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
-            skw) -> SynthesisResult:
+            skw, map_restarts: int = 0) -> SynthesisResult:
     plan = make_plan(model, mfcc, labels, smoothness)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
     start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness).latents
     mp = maximise_utterance(dens, start, max_iter=map_iter)
+    first_log_density = mp.log_density
+    modes: list[float] = []
+    if map_restarts:
+        mp, modes = restart_map(dens, mp, map_restarts, seed, max_iter=map_iter)
     lam, U, n_mod = _floored_precision(mp.hessian)
     L = U / np.sqrt(lam)                         # Laplace covariance = L Lᵀ
     diag: dict = {"map_converged": mp.converged, "map_grad_norm": mp.grad_norm, "map_iter": mp.n_iter,
                   "map_decrement": mp.decrement,
                   "map_log_density": mp.log_density, "algorithm1_log_density": mp.start_log_density,
-                  "hessian_modified": n_mod, "dim": T * d, "n_segments": len(plan.blocks)}
+                  "hessian_modified": n_mod, "dim": T * d, "n_segments": len(plan.blocks),
+                  "map_restarts": map_restarts, "map_first_log_density": first_log_density,
+                  "map_restart_log_densities": modes}
     warn: list[str] = []
     if not mp.converged:
         warn.append(f"synthesis MAP did not converge: max |gradient| {mp.grad_norm:.3g} > {MAP_GTOL}, "
@@ -400,11 +510,13 @@ __all__ = [
     "MAP_DTOL",
     "MAP_GTOL",
     "MAP_MAX_ITER",
+    "MAP_RESTARTS",
     "POSTERIOR_METHODS",
     "MapResult",
     "PosteriorSynthesis",
     "SynthesisResult",
     "maximise_utterance",
+    "restart_map",
     "sample_synthesis",
     "visual_predictive",
 ]

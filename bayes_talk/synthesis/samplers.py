@@ -36,6 +36,7 @@ import torch
 
 from bayes_talk import progress
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
 
 log = logging.getLogger(__name__)
 
@@ -68,10 +69,6 @@ def _as_tensor(x) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------- NUTS
-#: NUTS defaults of the library and the CLI (found on a 3-second held-out utterance,
-#: docs/uncertainty.md "Sampler options"): chains, warm-up iterations per chain, draws
-#: kept per chain, target acceptance statistic of the step-size adaptation, max tree depth
-NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10}
 #: spread of the overdispersed chain starts: z ~ N(0, INIT_SCALE² I) in whitened coordinates
 INIT_SCALE = 2.0
 

@@ -1,0 +1,27 @@
+"""Default settings of the synthesis posterior's samplers, in one torch-free module.
+
+The library (:mod:`bayes_talk.synthesis.samplers`, :mod:`bayes_talk.synthesis.posterior`)
+and the CLI's help text read these, so the two cannot drift apart; importing this
+module pulls in neither torch nor pyro (``bayes-talk --help`` stays fast).
+"""
+from __future__ import annotations
+
+#: NUTS defaults of the library and the CLI (docs/uncertainty.md "Sampler options"): chains,
+#: warm-up iterations per chain, draws kept per chain, target acceptance statistic of the
+#: step-size adaptation, max tree depth
+NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10}
+#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
+DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
+                 "emcee": 320}
+#: emcee burn-in steps
+EMCEE_WARMUP = 500
+
+
+def draws_help() -> str:
+    """The default draws of each sampler as the CLI's ``--draws`` help states them."""
+    n = NUTS_DEFAULTS
+    return (f"default: laplace {DEFAULT_DRAWS['laplace']}, nuts {n['chains']} x {n['draws_per_chain']}, "
+            f"emcee {DEFAULT_DRAWS['emcee']}")
+
+
+__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "draws_help"]
