@@ -112,10 +112,17 @@ def _add_track_parsers(csub) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import train
 
+    from bayes_talk.pipeline import DEFAULT_CALIBRATION
+
+    if args.no_calibrate_bands and args.calibrate_bands is not None:
+        raise ValueError("give --calibrate-bands or --no-calibrate-bands, not both")
+    cal = args.calibrate_bands
+    if cal is None and not args.no_calibrate_bands and args.model != "sgplvm":
+        cal = DEFAULT_CALIBRATION
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
                 alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler,
-                calibrate_bands=args.calibrate_bands)
+                calibrate_bands=cal)
     print(f"model written to {out}")
     return 0
 
@@ -351,11 +358,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_track_parsers(csub)
 
     # --- train / synth -------------------------------------------------------------------
-    from bayes_talk.pipeline import MODEL_KINDS
+    from bayes_talk.pipeline import DEFAULT_MODEL, MODEL_KINDS
 
     t = sub.add_parser("train", help="train a model on a corpus directory", **_SUB_KW)
     t.add_argument("corpus_dir", help="built or user corpus directory")
-    t.add_argument("--model", choices=MODEL_KINDS, default="ssgpdm-vlmm", help="model kind (docs/model.md)")
+    t.add_argument("--model", choices=MODEL_KINDS, default=DEFAULT_MODEL,
+                   help=f"model kind (docs/model.md; default {DEFAULT_MODEL}: right-context phone states; "
+                        "ssgpdm-vlmm: deena2010's)")
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
     t.add_argument("--force", action="store_true", help="allow writing into a non-empty directory")
@@ -372,8 +381,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_executor_args(t, "the per-state models and the featurisation")
     t.add_argument("--calibrate-bands", type=float, nargs="?", const=0.2, default=None, metavar="FRACTION",
                    help="hold out FRACTION (default 0.2) of the training utterances, train once more on the "
-                        "rest and fit per-parameter band scale factors of the Laplace posterior on them "
-                        "(saved in the model, applied by synth; docs/uncertainty.md)")
+                        "rest and fit the per-parameter calibration of the Laplace posterior on them: mean "
+                        "shrinkage, band scale, level map (saved in the model, applied by synth; "
+                        "docs/uncertainty.md). On by default (0.2) for switching models")
+    t.add_argument("--no-calibrate-bands", action="store_true",
+                   help="skip the calibration (half the training time; synth then gives the raw posterior)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",

@@ -222,7 +222,8 @@ def test_train_force_interrupted_while_saving_refuses_to_load(model_dir, corpus_
     monkeypatch.setattr(bayes_talk.bundle, "write_bundle_manifest", interrupted)
     before = _tree(tmp_path, skip=out)
     corpus_before = _tree(corpus_dir)
-    assert main(["train", str(corpus_dir), "--model", "ssgpdm-phone", "--out", str(out), "--force"]) == 130
+    assert main(["train", str(corpus_dir), "--model", "ssgpdm-phone", "--out", str(out), "--force",
+                 "--no-calibrate-bands"]) == 130
     with pytest.raises(BundleError, match=r"bundle_manifest\.json is missing: the model's save was interrupted"):
         load_trained(out)
     assert _tree(tmp_path, skip=out) == before and _tree(corpus_dir) == corpus_before

@@ -249,7 +249,8 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
     assert desc["held_out"] == ["utt0003", "utt0007"] and desc["n_train"] == 8
     assert len(seen[-1]) == 8 and not {"utt0003", "utt0007"} & set(seen[-1])
     # --holdout N: the last N, from the command line
-    assert main(["train", str(corpus_dir), "--out", str(tmp_path / "m2"), "--holdout", "3"]) == 0
+    assert main(["train", str(corpus_dir), "--out", str(tmp_path / "m2"), "--holdout", "3",
+                 "--model", "ssgpdm-vlmm", "--no-calibrate-bands"]) == 0
     desc = json.loads((tmp_path / "m2" / "bayes_talk_model.json").read_text())
     assert desc["held_out"] == ["utt0007", "utt0008", "utt0009"] and seen[-1][-1] == "utt0006"
     # bad lists are refused naming the file and the problem
@@ -282,3 +283,19 @@ def test_synth_without_labels_aligns_the_text_or_uses_the_recogniser(model_dir, 
     # labels and a transcript together are refused, nothing written
     assert main(args + ["--labels", str(lab), "--text", text, "--out", str(tmp_path / "both")]) == 2
     assert not (tmp_path / "both").exists()
+
+
+def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch):
+    import bayes_talk.pipeline as pl
+    from bayes_talk import cli
+
+    calls = []
+    monkeypatch.setattr(pl, "train", lambda corpus, kind, out, **kw: calls.append((kind, kw["calibrate_bands"])) or out)
+    assert cli.main(["train", "c", "--out", "o"]) == 0
+    assert cli.main(["train", "c", "--out", "o", "--no-calibrate-bands"]) == 0
+    assert cli.main(["train", "c", "--out", "o", "--calibrate-bands", "0.3", "--model", "ssgpdm-vlmm"]) == 0
+    assert cli.main(["train", "c", "--out", "o", "--model", "sgplvm"]) == 0
+    assert calls == [(pl.DEFAULT_MODEL, pl.DEFAULT_CALIBRATION), (pl.DEFAULT_MODEL, None), ("ssgpdm-vlmm", 0.3),
+                     ("sgplvm", None)]
+    assert pl.DEFAULT_MODEL == "ssgpdm-phone-rc"
+    assert cli.main(["train", "c", "--out", "o", "--calibrate-bands", "--no-calibrate-bands"]) == 2
