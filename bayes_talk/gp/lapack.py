@@ -22,10 +22,13 @@ The default is ``torch-mkl`` when available, else ``scipy``; the environment var
 ``BAYES_TALK_LAPACK=scipy`` (read at import) or :func:`set_provider` chooses scipy.
 :func:`provider` names the one in use.
 
-Threads: MKL inside torch follows ``torch.set_num_threads``; on this shared 2-core
-machine under load (other processes on both cores) MKL's two-thread ``dpotri`` was
-measured 4x slower than on one thread, while OpenBLAS degraded less; the per-state
-models run on one thread (:mod:`bayes_talk.gp.threads`), where MKL is the faster.
+Threads: MKL inside torch follows ``torch.set_num_threads``, except ``dpotri``, which
+runs on at most :data:`POTRI_THREADS` MKL threads (default 1; environment variable
+``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). Measured on this shared 2-core machine
+with other processes on both cores (one thread; median of 7): MKL ``dpotrf`` + ``dpotri``
+at N = 2000 took 0.14 + 0.19 s on one thread, and 0.19 + 1.65 s on two threads (at
+N = 1000 0.05 s against 3.6 s): MKL's two-thread ``dpotri`` collapses when the second
+core is taken, its ``dpotrf`` does not. On an idle multi-core machine raise it.
 """
 from __future__ import annotations
 
@@ -92,35 +95,41 @@ def _data(a: np.ndarray):
     return a.ctypes.data_as(_ptr)
 
 
+def _square_in_place(a: np.ndarray, routine: str, scipy_call) -> int:
+    """``routine`` ('L') on the square array ``a`` in place; LAPACK's ``info``."""
+    _check(a, routine)
+    if _LIB is None:
+        out, info = scipy_call(a)
+        if out is not a and a.size:
+            a[...] = out
+        return int(info)
+    n_, info = _c_int(a.shape[0]), _c_int(0)
+    getattr(_LIB, routine + "_")(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
+    return info.value
+
+
 def potrf_lower(a: np.ndarray) -> int:
     """Overwrite the lower triangle of the N×N array ``a`` with L, K = L Lᵀ (``dpotrf``,
     'L'); the strict upper triangle is not touched. Returns LAPACK's ``info`` (0: success,
     k > 0: the leading minor of order k is not positive definite)."""
-    _check(a, "potrf")
-    n = a.shape[0]
-    if _LIB is None:
-        out, info = lapack.dpotrf(a, lower=1, clean=0, overwrite_a=1)
-        if out is not a and n:
-            a[...] = out
-        return int(info)
-    n_, info = _c_int(n), _c_int(0)
-    _LIB.dpotrf_(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
-    return info.value
+    return _square_in_place(a, "dpotrf", lambda a: lapack.dpotrf(a, lower=1, clean=0, overwrite_a=1))
+
+
+#: the most MKL threads ``dpotri`` runs on (None: as many as torch; module docstring)
+POTRI_THREADS: int | None = int(os.environ.get("BAYES_TALK_POTRI_THREADS", "1")) or None
 
 
 def potri_lower(a: np.ndarray) -> int:
     """Overwrite the lower triangle of ``a`` (holding L) with that of K⁻¹ (``dpotri``,
     'L'); the strict upper triangle is not touched. Returns ``info``."""
-    _check(a, "potri")
-    n = a.shape[0]
-    if _LIB is None:
-        out, info = lapack.dpotri(a, lower=1, overwrite_c=1)
-        if out is not a and n:
-            a[...] = out
-        return int(info)
-    n_, info = _c_int(n), _c_int(0)
-    _LIB.dpotri_(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
-    return info.value
+    set_local = getattr(_LIB, "MKL_Set_Num_Threads_Local", None) if _LIB is not None else None
+    if set_local is None or POTRI_THREADS is None:
+        return _square_in_place(a, "dpotri", lambda a: lapack.dpotri(a, lower=1, overwrite_c=1))
+    prev = set_local(max(1, min(POTRI_THREADS, torch.get_num_threads())))
+    try:
+        return _square_in_place(a, "dpotri", None)
+    finally:
+        set_local(prev)
 
 
 def potrs_lower(L: np.ndarray, b: np.ndarray) -> int:
