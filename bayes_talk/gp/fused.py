@@ -40,6 +40,7 @@ and logs it (:mod:`bayes_talk.gp.linalg`). float64 throughout.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -53,7 +54,7 @@ from bayes_talk.gp.lapack import potrf_lower, potri_lower, potrs_lower
 LOG_2PI = math.log(2.0 * math.pi)
 
 #: column chunks of the compiled passes (fixed, so results do not depend on threads)
-N_CHUNKS = 16
+N_CHUNKS = 32
 
 
 @numba.njit(cache=True)
@@ -150,33 +151,43 @@ def _gradient_chunks(X, buf, A, alpha, n_chunks, acc, dl, sums, first, step):
 
 #: below this N the compiled passes run on the calling thread only
 THREADED_MIN_N = 400
-_POOL: ThreadPoolExecutor | None = None
+_POOL: tuple[tuple[int, int], ThreadPoolExecutor] | None = None
 
 
 def _threads() -> int:
     return max(1, min(torch.get_num_threads(), os.cpu_count() or 1))
 
 
-def _run_chunked(fn, N: int, *args) -> None:
-    """``fn(*args, first, step)`` over the chunks: on the calling thread alone, or split
-    between it and ``torch.get_num_threads() − 1`` pool threads (plain threads running
-    GIL-free compiled code, so no OpenMP runtime meets torch's or MKL's)."""
+def _run_chunked(fn, N: int, n_chunks: int, *args) -> None:
+    """``fn(*args, first, step)`` over the ``n_chunks`` chunks: all on the calling thread,
+    or chunk by chunk from a shared counter on it and ``torch.get_num_threads() − 1`` pool
+    threads (plain threads running GIL-free compiled code, so no OpenMP runtime meets
+    torch's or MKL's; a thread that the OS holds back leaves its share to the others)."""
     global _POOL
     n = _threads() if N >= THREADED_MIN_N else 1
     if n == 1:
         fn(*args, 0, 1)
         return
-    if _POOL is None or _POOL._max_workers < n - 1:
-        _POOL = ThreadPoolExecutor(max_workers=n - 1, thread_name_prefix="bayes_talk_gp")
-    futures = [_POOL.submit(fn, *args, t, n) for t in range(1, n)]
-    fn(*args, 0, n)
+    key = (os.getpid(), n - 1)  # a forked child, or more threads, gets a pool of its own
+    if _POOL is None or _POOL[0] != key:
+        if _POOL is not None and _POOL[0][0] == key[0]:
+            _POOL[1].shutdown(wait=False)
+        _POOL = (key, ThreadPoolExecutor(max_workers=n - 1, thread_name_prefix="bayes_talk_gp"))
+    counter = itertools.count()
+
+    def work() -> None:
+        while (c := next(counter)) < n_chunks:
+            fn(*args, c, n_chunks)
+
+    futures = [_POOL[1].submit(work) for _ in range(n - 1)]
+    work()
     for f in futures:
         f.result()
 
 
 def _build(X: np.ndarray, alpha: float, gamma: float, noise: float, buf: np.ndarray, n_chunks: int) -> None:
     """Lower triangle of ``buf`` ← K = αE + noise·I; E_ij (i > j) at buf[i−j−1, N−1−j]."""
-    _run_chunked(_build_chunks, X.shape[0], X, alpha, gamma, noise, buf, n_chunks)
+    _run_chunked(_build_chunks, X.shape[0], n_chunks, X, alpha, gamma, noise, buf, n_chunks)
 
 
 def _gradient(X: np.ndarray, buf: np.ndarray, A: np.ndarray, alpha: float, n_chunks: int):
@@ -187,7 +198,7 @@ def _gradient(X: np.ndarray, buf: np.ndarray, A: np.ndarray, alpha: float, n_chu
     acc = np.zeros((n_chunks, N, d))
     dl = np.empty((n_chunks, d))
     sums = np.zeros((n_chunks, 3))
-    _run_chunked(_gradient_chunks, N, X, buf, A, alpha, n_chunks, acc, dl, sums)
+    _run_chunked(_gradient_chunks, N, n_chunks, X, buf, A, alpha, n_chunks, acc, dl, sums)
     return acc, sums
 
 
