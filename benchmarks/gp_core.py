@@ -112,7 +112,7 @@ class Ours:
         return float(loss.detach())
 
     def raw_torch_eval(self) -> float:
-        import bayes_talk.gp.fused as fused
+        from bayes_talk.gp import fused
 
         prev, fused.ENABLED = fused.ENABLED, False
         try:
@@ -205,8 +205,8 @@ def lapack_floors(K: np.ndarray) -> dict:
         np.copyto(work, K)
         t0, c0 = time.perf_counter(), time.process_time()
         L, info = sl.dpotrf(work, lower=1, overwrite_a=1)
-        Li, info2 = sl.dtrtri(L, lower=1)
-        Ki, info3 = sl.dpotri(L, lower=1)
+        _Li, info2 = sl.dtrtri(L, lower=1)
+        _Ki, info3 = sl.dpotri(L, lower=1)
         if info or info2 or info3:
             raise RuntimeError("LAPACK floor: K is not positive definite")
         return time.perf_counter() - t0, time.process_time() - c0

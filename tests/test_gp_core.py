@@ -337,7 +337,7 @@ def test_fused_path_falls_back_to_jitter_when_kernel_is_singular(caplog):
 
 def _both_paths(fn):
     """fn() with the fused path on, then with the torch path (fused.ENABLED off)."""
-    import bayes_talk.gp.fused as fused
+    from bayes_talk.gp import fused
 
     prev = fused.ENABLED
     try:

@@ -30,9 +30,10 @@ threads (from N = :data:`THREADED_MIN_N`; the calling thread and a small pool of
 threads running GIL-free numba code) over a fixed set of :data:`N_CHUNKS` column chunks
 (balanced: columns j and N−1−j together) whose partial sums are added in chunk order,
 so their results do not depend on the number of threads. (numba's own OpenMP threading
-layer next to torch's OpenMP and MKL threads was measured at 10-100x slowdowns per call
-on this loaded 2-core machine, even with one thread.) The backward is re-entrant (``retain_graph``): the
-buffer records whether L has been inverted already, and the gradient pass only reads it.
+layer next to torch's OpenMP and MKL threads made a whole evaluation at N = 200 10-20x
+slower on this loaded 2-core machine, even with one thread.) The backward is re-entrant
+(``retain_graph``): the buffer records whether L has been inverted already, and the
+gradient pass only reads it.
 
 When ``dpotrf`` fails (K not numerically positive definite) :func:`rbf_matrix_normal`
 returns None and the caller takes the torch path, whose Cholesky escalates the jitter
