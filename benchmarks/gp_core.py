@@ -15,16 +15,25 @@ Everything below is measured in one run, on the same machine load:
                   observation term, 1/θ hyperprior).
     * ours_raw:   ``bayes_talk.gp.terms.observation_loglik(Y, X, α, γ, β, w)`` with X and
                   log α, log γ, log β requiring grad, plus backward (no Pyro overhead).
+    * ours_raw_torch: the same term through the torch path (``train_cov`` + the Cholesky
+                  autograd function of terms.py), the default before issue 14's fused
+                  path: the "before" measured side by side.
+    * floor_ours / floor_gpy: the LAPACK calls alone on this N×N kernel matrix, timed
+                  without the copy that precedes them: ours ``dpotrf`` + ``dpotri``
+                  (bayes_talk.gp.lapack's provider), GPy's ``pdinv`` ``dpotrf`` +
+                  ``dtrtri`` + ``dpotri`` (scipy). The SGPDM has three kernels (two views
+                  and the dynamics), so its floor is about 3 × floor_ours.
 (b) sgpdm_full: the two-view SGPDM with dynamics (views D = 20 + 30,
     ``SGPDM(latent_dim=8, max_iter=1)``, default fixed dynamics): one log joint +
     gradient; reported as a ratio to the same GPy figure.
 
-Every timing is the median of ``--repeats`` calls after one warm-up; the four
+Every timing is the median of ``--repeats`` calls after one warm-up; the
 variants are interleaved within each repeat so they see the same machine load.
 A correctness check compares our GPLVM objective with GPy's at one small N, and a
 profile splits one of our evaluations at the largest N into its parts.
 
 Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5]
+      [--threads 1] [--sizes 1000,2000] [--no-fused] [--lapack scipy]
 """
 from __future__ import annotations
 
@@ -102,6 +111,22 @@ class Ours:
         loss.backward()
         return float(loss.detach())
 
+    def raw_torch_eval(self) -> float:
+        from bayes_talk.gp import fused
+
+        prev, fused.ENABLED = fused.ENABLED, False
+        try:
+            return self.raw_eval()
+        finally:
+            fused.ENABLED = prev
+
+    def kernel_matrix(self) -> np.ndarray:
+        """K at the fitted state, Fortran-ordered (what the LAPACK floors factorise)."""
+        from bayes_talk.gp.kernels import train_cov
+
+        a, g, b = (torch.exp(v.detach()) for v in self.logs)
+        return np.asfortranarray(train_cov(self.X.detach(), a, g, b).numpy())
+
     def hyper(self) -> tuple[float, float, float]:
         return tuple(float(torch.exp(self.m._log[f"{k}/y"].detach())) for k in ("alpha", "gamma", "beta"))
 
@@ -160,22 +185,56 @@ def timed(fn) -> tuple[float, float]:
     return time.perf_counter() - t0, time.process_time() - c0
 
 
+def lapack_floors(K: np.ndarray) -> dict:
+    """Timers of the LAPACK calls alone on copies of K: ours (dpotrf + dpotri through
+    bayes_talk.gp.lapack) and GPy's pdinv (scipy dpotrf + dtrtri + dpotri)."""
+    from scipy.linalg import lapack as sl
+
+    from bayes_talk.gp.lapack import potrf_lower, potri_lower
+
+    work = np.empty_like(K, order="F")
+
+    def ours() -> tuple[float, float]:
+        np.copyto(work, K)
+        t0, c0 = time.perf_counter(), time.process_time()
+        if potrf_lower(work) != 0 or potri_lower(work) != 0:
+            raise RuntimeError("LAPACK floor: K is not positive definite")
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    def gpy() -> tuple[float, float]:
+        np.copyto(work, K)
+        t0, c0 = time.perf_counter(), time.process_time()
+        L, info = sl.dpotrf(work, lower=1, overwrite_a=1)
+        _Li, info2 = sl.dtrtri(L, lower=1)
+        _Ki, info3 = sl.dpotri(L, lower=1)
+        if info or info2 or info3:
+            raise RuntimeError("LAPACK floor: K is not positive definite")
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    return {"floor_ours": ours, "floor_gpy": gpy}
+
+
+RATIO_KEYS = ("ours_pyro", "ours_raw", "ours_raw_torch", "sgpdm_full", "floor_ours", "floor_gpy")
+
+
 def bench_size(N: int, repeats: int) -> dict:
     t0 = time.perf_counter()
     ours = Ours(N)
     gpy = Gpy(ours)
     full = Full(N)
     setup = time.perf_counter() - t0
-    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_raw": ours.raw_eval, "sgpdm_full": full.eval}
-    for f in fns.values():  # warm-up
+    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_raw": ours.raw_eval,
+           "ours_raw_torch": ours.raw_torch_eval, "sgpdm_full": full.eval}
+    self_timed = lapack_floors(ours.kernel_matrix())
+    for f in [*fns.values(), *self_timed.values()]:  # warm-up
         f()
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    cpu: dict[str, list[float]] = {k: [] for k in fns}
-    order = list(fns)
+    times: dict[str, list[float]] = {k: [] for k in [*fns, *self_timed]}
+    cpu: dict[str, list[float]] = {k: [] for k in times}
+    order = list(times)
     for r in range(repeats):
         # interleave, rotating the order so no variant always runs first
         for k in order[r % len(order):] + order[: r % len(order)]:
-            w, c = timed(fns[k])
+            w, c = self_timed[k]() if k in self_timed else timed(fns[k])
             times[k].append(w)
             cpu[k].append(c)
     med = {k: statistics.median(v) for k, v in times.items()}
@@ -183,10 +242,12 @@ def bench_size(N: int, repeats: int) -> dict:
     return {
         "N": N,
         "setup_s": setup,
-        "seconds": {k: {"median": med[k], "all": times[k]} for k in fns},
-        "cpu_seconds": {k: {"median": cmed[k], "all": cpu[k]} for k in fns},
-        "ratio_to_gpy": {k: med[k] / med["gpy"] for k in ("ours_pyro", "ours_raw", "sgpdm_full")},
-        "cpu_ratio_to_gpy": {k: cmed[k] / cmed["gpy"] for k in ("ours_pyro", "ours_raw", "sgpdm_full")},
+        "seconds": {k: {"median": med[k], "all": times[k]} for k in times},
+        "cpu_seconds": {k: {"median": cmed[k], "all": cpu[k]} for k in times},
+        "ratio_to_gpy": {k: med[k] / med["gpy"] for k in RATIO_KEYS},
+        "cpu_ratio_to_gpy": {k: cmed[k] / cmed["gpy"] for k in RATIO_KEYS},
+        "sgpdm_floor_estimate_ratio_to_gpy": 3.0 * med["floor_ours"] / med["gpy"],
+        "sgpdm_floor_estimate_cpu_ratio_to_gpy": 3.0 * cmed["floor_ours"] / cmed["gpy"],
     }
 
 
@@ -248,52 +309,44 @@ def correctness(N: int) -> dict:
 
 # ---------------------------------------------------------------------------- profile
 def profile(N: int, repeats: int) -> dict:
-    """Split one raw evaluation of our observation term at size N into its parts."""
-    from bayes_talk.gp.kernels import train_cov
-    from bayes_talk.gp.linalg import cho_solve, cholesky
+    """Split one evaluation of our observation term at size N into its parts: the fused
+    path's (bayes_talk/gp/fused.py) compiled passes and LAPACK calls, and the torch
+    path's Cholesky and cholesky_inverse for comparison."""
+    from bayes_talk.gp import fused
+    from bayes_talk.gp.lapack import potrf_lower, potri_lower, potrs_lower
 
     ours = Ours(N)
-    Yw = ours.Y * ours.w
-    X = ours.X
-    a, g, b = (torch.exp(v.detach()) for v in ours.logs)
-    D = Yw.shape[1]
+    Xn = np.ascontiguousarray(ours.X.detach().numpy())
+    V = np.asfortranarray((ours.Y * ours.w).numpy())
+    a, g, b = (float(torch.exp(v.detach())) for v in ours.logs)
+    buf = np.empty((N, N), order="F")
+    A = np.empty_like(V, order="F")
 
     def parts() -> dict[str, float]:
         out = {}
-        Xl = X.detach().clone().requires_grad_(True)
-        t = time.perf_counter(); K = train_cov(Xl, a, g, b); out["kernel_build"] = time.perf_counter() - t
-        Kd = K.detach()
-        t = time.perf_counter(); L = cholesky(Kd); out["cholesky"] = time.perf_counter() - t
-        t = time.perf_counter(); A = cho_solve(L, Yw); out["cho_solve_Y"] = time.perf_counter() - t
-        t = time.perf_counter(); Ki = torch.cholesky_inverse(L); out["cholesky_inverse"] = time.perf_counter() - t
-        t = time.perf_counter(); gK = 0.5 * (A @ A.mT - D * Ki); out["dL_dK_assembly"] = time.perf_counter() - t
-        t = time.perf_counter(); K.backward(gK); out["kernel_backward_autograd"] = time.perf_counter() - t
-        # closed-form RBF X-gradient (what a custom backward could do)
-        t = time.perf_counter()
-        with torch.no_grad():
-            Xd = Xl.detach()
-            G = gK * (Kd - torch.eye(N, dtype=Kd.dtype) / b)  # gK ∘ K_rbf
-            s = G.sum(1)
-            dX = -2.0 * g * (s[:, None] * Xd - G @ Xd)
-        out["kernel_backward_closed_form"] = time.perf_counter() - t
-        out["_closed_form_max_abs_err"] = float((dX - Xl.grad).abs().max())
+
+        def step(name, fn):
+            t = time.perf_counter()
+            r = fn()
+            out[name] = time.perf_counter() - t
+            return r
+
+        step("build_K_and_E", lambda: fused._build(Xn, a, g, 1.0 / b, buf, fused.N_CHUNKS))
+        if step("dpotrf", lambda: potrf_lower(buf)) != 0:
+            raise RuntimeError("profile: K is not positive definite")
+        np.copyto(A, V)
+        step("dpotrs", lambda: potrs_lower(buf, A))
+        step("dpotri", lambda: potri_lower(buf))
+        step("gradient_pass", lambda: fused._gradient(Xn, buf, np.ascontiguousarray(A), a, fused.N_CHUNKS))
+        Kt = torch.from_numpy(ours.kernel_matrix())
+        L = step("torch_cholesky", lambda: torch.linalg.cholesky(Kt))
+        step("torch_cholesky_inverse", lambda: torch.cholesky_inverse(L))
         return out
 
     parts()
     runs = [parts() for _ in range(repeats)]
     res = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    # the whole thing through autograd, and torch.profiler's top operators
-    from torch.profiler import ProfilerActivity, profile as tprof
-
-    ours.raw_eval()
-    with tprof(activities=[ProfilerActivity.CPU]) as prof:
-        ours.raw_eval()
-    table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
-    top = [
-        {"op": e.key, "self_cpu_ms": e.self_cpu_time_total / 1e3, "count": e.count}
-        for e in sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)[:15]
-    ]
-    return {"N": N, "parts_median_s": res, "profiler_top_ops": top, "profiler_table": table}
+    return {"N": N, "parts_median_s": res}
 
 
 # ---------------------------------------------------------------------------- main
@@ -342,16 +395,22 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-profile", action="store_true")
-    p.add_argument("--fused", action="store_true",
-                   help="our terms through bayes_talk/gp/fused.py (also BAYES_TALK_FUSED=1)")
+    p.add_argument("--no-fused", action="store_true",
+                   help="our terms through the torch path instead of bayes_talk/gp/fused.py "
+                        "(also BAYES_TALK_FUSED=0)")
+    p.add_argument("--lapack", choices=("torch-mkl", "scipy"), default=None,
+                   help="LAPACK provider of the fused path (default: bayes_talk.gp.lapack's)")
     p.add_argument("--sizes", default=None, help="comma-separated N (default: 500,1000,2000)")
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
-    if args.fused:
-        import bayes_talk.gp.fused
+    import bayes_talk.gp.fused
+    from bayes_talk.gp import lapack
 
-        bayes_talk.gp.fused.ENABLED = True
+    if args.no_fused:
+        bayes_talk.gp.fused.ENABLED = False
+    if args.lapack:
+        lapack.set_provider(args.lapack)
     limiter = None
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -369,22 +428,24 @@ def main(argv=None) -> int:
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
                      "warmup": 1, "sizes": list(sizes),
                      "threads_limit": args.threads,
-                     "fused": bool(__import__("bayes_talk.gp.fused", fromlist=["ENABLED"]).ENABLED)},
+                     "fused": bool(bayes_talk.gp.fused.ENABLED), "lapack_provider": lapack.provider()},
         "correctness": correctness(CHECK_N),
         "sizes": [],
     }
     print(f"{'N':>5} {'gpy':>9} {'ours_pyro':>10} {'ours_raw':>9} {'sgpdm_full':>10}  "
-          f"{'pyro/gpy':>8} {'raw/gpy':>8} {'full/gpy':>8}")
+          f"{'pyro/gpy':>8} {'raw/gpy':>8} {'full/gpy':>8} {'torch/gpy':>9} {'floor/gpy':>9} {'gpyfloor/gpy':>12}")
     for N in sizes:
         r = bench_size(N, args.repeats)
         result["sizes"].append(r)
         s, q = r["seconds"], r["ratio_to_gpy"]
         print(f"{N:>5} {s['gpy']['median']:>9.4f} {s['ours_pyro']['median']:>10.4f} "
               f"{s['ours_raw']['median']:>9.4f} {s['sgpdm_full']['median']:>10.4f}  "
-              f"{q['ours_pyro']:>8.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f}", flush=True)
+              f"{q['ours_pyro']:>8.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f} "
+              f"{q['ours_raw_torch']:>9.2f} {q['floor_ours']:>9.2f} {q['floor_gpy']:>12.2f}", flush=True)
         c = r["cpu_ratio_to_gpy"]
         print(f"{'':>5} CPU-time ratios: pyro/gpy {c['ours_pyro']:.2f}  raw/gpy {c['ours_raw']:.2f}  "
-              f"full/gpy {c['sgpdm_full']:.2f}", flush=True)
+              f"full/gpy {c['sgpdm_full']:.2f}  torch/gpy {c['ours_raw_torch']:.2f}  "
+              f"floor/gpy {c['floor_ours']:.2f}  gpyfloor/gpy {c['floor_gpy']:.2f}", flush=True)
     if not args.no_profile:
         result["profile"] = profile(max(sizes), args.repeats)
         print(f"profile at N={max(sizes)} (median s):")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 
 import numpy as np
 import pytest
@@ -332,3 +333,92 @@ def test_fused_path_falls_back_to_jitter_when_kernel_is_singular(caplog):
     with caplog.at_level(logging.WARNING, logger="bayes_talk.gp.linalg"):
         ll = observation_loglik(Y, X, one, one, torch.tensor(1e30, dtype=f64), torch.ones(2, dtype=f64))
     assert torch.isfinite(ll) and "jitter" in caplog.text
+
+
+def _both_paths(fn):
+    """fn() with the fused path on, then with the torch path (fused.ENABLED off)."""
+    from bayes_talk.gp import fused
+
+    prev = fused.ENABLED
+    try:
+        fused.ENABLED = True
+        a = fn()
+        fused.ENABLED = False
+        b = fn()
+    finally:
+        fused.ENABLED = prev
+    return a, b
+
+
+def test_fused_default_equals_torch_path_on_the_two_view_sgpdm_log_joint():
+    """The default (fused) path against the torch path on the whole objective of a
+    two-view SGPDM with learned dynamics and two sequences: value and every gradient."""
+    audio, video = _toy(40)
+    m = SGPDM(latent_dim=3, max_iter=3, learn_dynamics=True)
+    m.fit({"audio": audio, "visual": video}, seq_lengths=[15, 25])
+    free = m._free_tensors()
+
+    def value_and_grads():
+        for t in free:
+            t.grad = None
+        lj = m.log_joint()
+        lj.backward()
+        return float(lj), [t.grad.clone() for t in free]
+
+    (fa, ga), (fb, gb) = _both_paths(value_and_grads)
+    assert fa == pytest.approx(fb, rel=1e-13, abs=1e-10)
+    for x, y in zip(ga, gb):
+        np.testing.assert_allclose(x.numpy(), y.numpy(), rtol=1e-9, atol=1e-9 * float(y.abs().max()))
+
+
+def test_fused_threads_providers_and_repeated_backward_agree():
+    """The compiled passes on two threads (N above THREADED_MIN_N) equal the one-thread
+    passes bit for bit; the whole term agrees across thread counts and with scipy's
+    LAPACK to round-off; a second backward through the same graph (retain_graph) gives
+    the same gradients."""
+    from bayes_talk.gp import fused, lapack
+    from bayes_talk.gp.threads import torch_threads
+
+    rng = np.random.default_rng(12)
+    N = fused.THREADED_MIN_N + 31
+    Xn = rng.normal(size=(N, 3))
+    X = torch.as_tensor(Xn).requires_grad_(True)
+    V = torch.as_tensor(rng.normal(size=(N, 4)))
+    lg = torch.tensor([0.2, -0.5, 3.0], dtype=f64, requires_grad=True)
+    A = rng.normal(size=(N, 4))
+
+    def passes():
+        buf = np.empty((N, N), order="F")
+        fused._build(Xn, 1.3, 0.4, 0.01, buf, fused.N_CHUNKS)
+        acc, sums = fused._gradient(Xn, buf, A, 1.3, fused.N_CHUNKS)
+        return buf, acc, sums
+
+    def term():
+        ll = fused.rbf_matrix_normal(X, lg[0].exp(), lg[1].exp(), lg[2].exp(), V)
+        g1 = torch.autograd.grad(ll, (X, lg), retain_graph=True)
+        g2 = torch.autograd.grad(ll, (X, lg))
+        for a, b in zip(g1, g2):
+            assert torch.equal(a, b)
+        return float(ll), g1
+
+    results = {}
+    for n in (1, 2):
+        with torch_threads(n):
+            assert fused._threads() == min(n, os.cpu_count())
+            results[n] = passes(), term()
+    for a, b in zip(results[1][0], results[2][0]):
+        assert np.array_equal(a, b)
+    prev = lapack.provider()
+    try:
+        lapack.set_provider("scipy")
+        results["scipy"] = (None, term())
+    finally:
+        lapack.set_provider(prev)
+    ref_ll, ref_g = results[1][1]
+    for key in (2, "scipy"):
+        ll, g = results[key][1]
+        assert ll == pytest.approx(ref_ll, rel=1e-13)
+        for a, b in zip(g, ref_g):
+            np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-10, atol=1e-10 * float(b.abs().max()))
+    with pytest.raises(ValueError, match="unknown LAPACK provider"):
+        lapack.set_provider("netlib")
