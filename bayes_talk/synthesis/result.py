@@ -41,7 +41,7 @@ from scipy.special import logsumexp, ndtr, ndtri
 if TYPE_CHECKING:
     import arviz
 
-    from bayes_talk.synthesis.posterior import MapResult
+    from bayes_talk.synthesis.joint_map import MapResult
 
 __all__ = ["DEFAULT_LEVELS", "PREDICTIVE_DRAWS", "SynthesisResult"]
 
