@@ -16,7 +16,7 @@ One verb: every function that finds latents by maximising a log density is calle
 ``maximise_*`` (:func:`maximise_points`, :func:`maximise_sequence`,
 :func:`~bayes_talk.synthesis.segment_objective.maximise_segment`,
 :func:`~bayes_talk.synthesis.sequential.maximise_state_segment`,
-:func:`~bayes_talk.synthesis.posterior.maximise_utterance`).
+:func:`~bayes_talk.synthesis.joint_map.maximise_utterance`).
 """
 from __future__ import annotations
 
