@@ -323,8 +323,13 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
     fails = convergence_problems(diag)
     if not fails:
         return []
-    advice = {"laplace": "the Gaussian approximation is poor here; use --posterior nuts",
-              "nuts": "run more draws/warm-up (or raise the target acceptance for divergences)",
+    # the whole-utterance posterior is multimodal (docs/uncertainty.md): no sampler here is a
+    # sure cure, so the advice says what to try and what the bands then are
+    advice = {"laplace": "the Gaussian approximation is poor here (the posterior is multimodal); its "
+                         "calibrated bands are calibrated empirically (train --calibrate-bands), not by "
+                         "the approximation; --posterior nuts explores more but may not converge either",
+              "nuts": "run more draws/warm-up (or raise the target acceptance for divergences); chains "
+                      "in different modes of a multimodal posterior will not agree",
               "emcee": "run it longer (max_steps) or use --posterior nuts"}.get(method, "")
     return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; " + advice]
 
