@@ -13,9 +13,10 @@ import sys
 import time
 
 import numpy as np
+from audio_context_patch import use_audio_context
 
 from bayes_talk.data.corpus import load_corpus
-from bayes_talk.evaluation import harness, systems
+from bayes_talk.evaluation import harness
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
 
@@ -27,13 +28,7 @@ def predict(name, model, seq, cfg):
     return p
 harness.predict = predict
 K = int(sys.argv[3]) if len(sys.argv) > 3 else 0
-_b0 = systems._build
-def _build(family, cfg):
-    m = _b0(family, cfg)
-    if family.startswith("ssgpdm-"):
-        m.audio_context = K
-    return m
-systems._build = _build
+use_audio_context(K)
 out = sys.argv[1]; methods = sys.argv[2].split(",")
 t0 = time.time()
 tr = load_corpus("/work/data/v2/train250", cmvn="mean")

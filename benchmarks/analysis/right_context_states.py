@@ -14,9 +14,10 @@ import json
 import sys
 import time
 
+from audio_context_patch import use_audio_context
+
 import bayes_talk.models.switching as sw
 from bayes_talk.data.corpus import load_corpus
-from bayes_talk.evaluation import systems
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
 from bayes_talk.models.vlmm import Segment
@@ -41,19 +42,7 @@ class RightPhoneStates(sw.PhoneStates):
 
 sw.PhoneStates = RightPhoneStates
 K = int(sys.argv[2]) if len(sys.argv) > 2 else 0   # audio context half-width (SwitchingConfig.audio_context)
-
-
-_build0 = systems._build
-
-
-def _build(family, cfg):
-    m = _build0(family, cfg)
-    if family.startswith("ssgpdm-"):
-        m.audio_context = K
-    return m
-
-
-systems._build = _build
+use_audio_context(K)
 if __name__ == "__main__":
     out = sys.argv[1]
     methods = ["ssgpdm-phone-posterior", "ssgpdm-phone-optimise"]
