@@ -184,6 +184,38 @@ def test_numpy_twin_equals_the_pyro_program(toy, smoothness):
     assert n_linked > 0  # adjacent blocks of one state model are linked by its dynamics
 
 
+def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
+    """The compiled GP predictive (bayes_talk.gp.predictive_fused: loglik, mean/variance,
+    mean VJP) equals the NumPy/LAPACK reference to 1e-9 relative for every state model's
+    audio, visual and dynamics GP (β_x = 10⁶), with and without the extra variance, for 1
+    and 40 rows, near and far from the training inputs."""
+    from bayes_talk.gp import fused
+
+    model, _ = toy
+    rng = np.random.default_rng(1)
+    for sg in model.models_.values():
+        for p in (sg.predictors_["audio"], sg.predictors_["visual"], sg.dynamics_predictor_):
+            if p is None:
+                continue
+            g = numpy_gp(p)
+            D = g.A.shape[1]
+            for T, scale in ((1, 0.0), (40, 0.05), (40, 3.0)):
+                Xs = g.X[rng.integers(0, len(g.X), T)] + scale * rng.standard_normal((T, g.X.shape[1]))
+                Y = g.mean + rng.standard_normal((T, D))
+                G = rng.standard_normal((T, D))
+                for extra in (None, np.abs(rng.standard_normal(D))):
+                    a, b = g.loglik(Y, Xs, extra, rowwise=True), g.loglik_numpy(Y, Xs, extra, rowwise=True)
+                    for x, y in zip(a, b):
+                        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
+                mv, vjp = g.mean_var(Xs), g.mean_vjp(Xs, G)
+                monkeypatch.setattr(fused, "ENABLED", False)
+                mv_ref, vjp_ref = g.mean_var(Xs), g.mean_vjp(Xs, G)
+                monkeypatch.setattr(fused, "ENABLED", True)
+                np.testing.assert_allclose(mv[0], mv_ref[0], rtol=1e-9, atol=1e-9 * np.abs(mv_ref[0]).max())
+                np.testing.assert_allclose(mv[1], mv_ref[1], rtol=1e-9)
+                np.testing.assert_allclose(vjp, vjp_ref, rtol=1e-9, atol=1e-9 * np.abs(vjp_ref).max())
+
+
 def test_linked_blocks_follow_the_state_dynamics(toy):
     """A block after a block of the same model has no entry density: its first point is a
     dynamics step from the previous frame (SwitchingLatents.log_prob term by term)."""
@@ -283,13 +315,13 @@ def test_a_converged_joint_map_has_its_gradient_or_decrement_within_tolerance(to
 def test_map_restarts_from_laplace_draws_find_a_higher_mode(toy):
     """The joint density is multimodal: from a converged local mode (reached from a perturbed
     start), restarts from two draws of its Laplace approximation find a converged mode at
-    least 1 nat higher (25 nats here), and ``restart_map`` keeps it."""
+    least 1 nat higher (23 nats here), and ``restart_map`` keeps it."""
     model, test = toy
     s = test[2]
     dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels))
     X0 = model.synthesize(s.mfcc, s.labels).latents
     with torch_threads(1):
-        mp = maximise_utterance(dens, X0 + 0.1 * np.random.default_rng(0).standard_normal(X0.shape))
+        mp = maximise_utterance(dens, X0 + 0.1 * np.random.default_rng(2).standard_normal(X0.shape))
         best, found = restart_map(dens, mp, 2, seed=0, rounds=1)
         f, _ = dens(best.latents)
     assert mp.converged and best.converged and len(found) == 2

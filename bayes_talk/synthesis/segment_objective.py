@@ -26,7 +26,13 @@ import math
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
+from bayes_talk.gp import fused
 from bayes_talk.gp.predictive import GPPredictor
+from bayes_talk.gp.predictive_fused import (
+    predictive_loglik,
+    predictive_mean_var,
+    predictive_mean_vjp,
+)
 
 LOG_2PI = math.log(2.0 * math.pi)
 #: L-BFGS iterations per segment (Algorithms 1 and 2): the one default of the library, the
@@ -50,8 +56,10 @@ class _NumpyGP:
         self.A = p.A.numpy().copy()
         self.L = np.asfortranarray(p.L.numpy().copy())
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
-        self.w2 = (p.w * p.w).numpy()
+        self.w2 = (p.w * p.w).numpy().copy()
         self.mean = p.mean.numpy().copy()
+        self.Lc = np.ascontiguousarray(self.L)      # for the compiled path (row by row)
+        self._no_extra = np.zeros(self.A.shape[1])
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
@@ -71,6 +79,11 @@ class _NumpyGP:
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
+        if fused.ENABLED:
+            Xs = np.ascontiguousarray(Xs, dtype=np.float64)
+            mu, s = np.empty((Xs.shape[0], self.A.shape[1])), np.empty(Xs.shape[0])
+            predictive_mean_var(self.X, self.A, self.Lc, self.mean, self.alpha, self.gamma, self.beta, Xs, mu, s)
+            return mu, s
         k = self.kernel(Xs)
         V = self._solve(k.T)
         s = np.maximum(self.alpha - (V * V).sum(0) + 1.0 / self.beta, 1.0 / self.beta)
@@ -78,6 +91,11 @@ class _NumpyGP:
 
     def mean_vjp(self, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_tm ∂μ_m(x_t)/∂x_t for each row (T×d): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
+        if fused.ENABLED:
+            Xs = np.ascontiguousarray(Xs, dtype=np.float64)
+            out = np.empty(Xs.shape)
+            predictive_mean_vjp(self.X, self.A, self.alpha, self.gamma, Xs, np.ascontiguousarray(G, dtype=np.float64), out)
+            return out
         c = self.kernel(Xs) * (G @ self.A.T)
         return -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)
 
@@ -86,7 +104,25 @@ class _NumpyGP:
         """ℓ summed over rows (``rowwise``: per row, (T,)), ∂ℓ/∂Xs (T×d), ∂ℓ/∂Y (T×D).
 
         Rows are independent, so many inputs can share one call (and one pair of
-        triangular solves): :meth:`UtteranceDensity.gradients` stacks them."""
+        triangular solves): :meth:`UtteranceDensity.batch` stacks them. Computed by the
+        compiled loop of :mod:`bayes_talk.gp.predictive_fused` unless ``BAYES_TALK_FUSED=0``
+        (then by :meth:`loglik_numpy`, the reference)."""
+        if not fused.ENABLED:
+            return self.loglik_numpy(Y, Xs, extra_var, rowwise)
+        Y = np.ascontiguousarray(Y, dtype=np.float64)
+        Xs = np.ascontiguousarray(Xs, dtype=np.float64)
+        T = Xs.shape[0]
+        ll = np.empty(T)
+        gx = np.empty((T, Xs.shape[1]))
+        gy = np.empty(Y.shape)
+        extra = self._no_extra if extra_var is None else np.ascontiguousarray(extra_var, dtype=np.float64)
+        predictive_loglik(self.X, self.A, self.Lc, self.mean, self.alpha, self.gamma, self.beta,
+                          self.w2, Y, Xs, extra, ll, gx, gy)
+        return (ll if rowwise else float(ll.sum())), gx, gy
+
+    def loglik_numpy(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None,
+                     rowwise: bool = False):
+        """:meth:`loglik` by NumPy and LAPACK (dtrtrs): the reference of the compiled path."""
         k = self.kernel(Xs)                                           # T×N
         mu = k @ self.A + self.mean                                  # T×D
         V = self._solve(k.T)                                          # N×T: L⁻¹k
