@@ -110,9 +110,7 @@ def _add_track_parsers(csub) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from bayes_talk.pipeline import train
-
-    from bayes_talk.pipeline import DEFAULT_CALIBRATION
+    from bayes_talk.pipeline import DEFAULT_CALIBRATION, train
 
     if args.no_calibrate_bands and args.calibrate_bands is not None:
         raise ValueError("give --calibrate-bands or --no-calibrate-bands, not both")

@@ -70,7 +70,7 @@ from bayes_talk.evaluation.metrics import (
 from bayes_talk.synthesis.diagnostics import RHAT_MAX
 from bayes_talk.synthesis.posterior import DEFAULT_LEVELS, sample_synthesis
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
 def load_data(args):
@@ -236,8 +236,8 @@ def main() -> None:
                 bands.append({q: (r.mean - scipy.stats.norm.ppf(0.5 + q / 2) * sd,
                                   r.mean + scipy.stats.norm.ppf(0.5 + q / 2) * sd) for q in DEFAULT_LEVELS})
                 continue
-            kw = {"nuts": dict(warmup=args.nuts_warmup, chains=args.nuts_chains),
-                  "emcee": dict(warmup=args.emcee_warmup), "laplace": {}}[method]
+            kw = {"nuts": {"warmup": args.nuts_warmup, "chains": args.nuts_chains},
+                  "emcee": {"warmup": args.emcee_warmup}, "laplace": {}}[method]
             p = sample_synthesis(model, s.mfcc, s.labels, method=method, n_draws=args.draws, seed=args.seed, **kw)
             means.append(p.mean)
             vars_.append(p.var)

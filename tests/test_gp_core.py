@@ -152,8 +152,8 @@ def test_pyro_log_joint_equals_papers_objective_term_by_term():
     tr = m.trace()
     got = {k: float(n["log_prob_sum"].detach()) for k, n in tr.nodes.items() if n["type"] == "sample"}
     assert set(got) == set(expected)
-    for k in expected:
-        assert got[k] == pytest.approx(expected[k], rel=1e-9, abs=1e-9), k
+    for k, want in expected.items():
+        assert got[k] == pytest.approx(want, rel=1e-9, abs=1e-9), k
     assert float(m.log_joint()) == pytest.approx(sum(expected.values()), rel=1e-10)
 
 

@@ -1,6 +1,7 @@
 """Command line end to end: corpus build -> train -> synth, and its refusals."""
 from __future__ import annotations
 
+import itertools
 import json
 import shutil
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 from bayes_talk.cli import main
 from bayes_talk.pipeline import load_trained
 
-SMALL = dict(latent_dim=3, max_iter=20, min_count=3, max_frames_per_state=80, fallback_frames=100)
+SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 3, "max_frames_per_state": 80, "fallback_frames": 100}
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,7 @@ def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_
     segs = json.loads((out / "segments.json").read_text())["segments"]
     assert traj.shape == var.shape and traj.shape[0] == lms.shape[0] and np.all(var > 0)
     assert segs[0]["start"] == 0 and segs[-1]["stop"] == traj.shape[0]
-    assert all(a["stop"] == b["start"] for a, b in zip(segs, segs[1:]))
+    assert all(a["stop"] == b["start"] for a, b in itertools.pairwise(segs))
     video = (out / "face.mp4").read_bytes()
     assert len(video) > 1000 and b"ftyp" in video[:64]
     # a second run into the same directory is refused, nothing is touched

@@ -2,12 +2,16 @@
 predictive, reproducibility, ArviZ diagnostics and band coverage on toy data."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
 from toydata import make_utterances
 
 from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.evaluation.metrics import coverage
+from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.diagnostics import (
     DIAGNOSTIC_KEYS,
     KHAT_MAX,
@@ -16,14 +20,23 @@ from bayes_talk.synthesis.diagnostics import (
     energy_bfmi,
     psis_khat,
 )
-from bayes_talk.evaluation.metrics import coverage
-from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.joint import SwitchingLatents, UtteranceDensity, make_plan, pyro_log_density
-from bayes_talk.synthesis.posterior import MAP_DTOL, MAP_GTOL, maximise_utterance, restart_map, sample_synthesis
-from bayes_talk.synthesis.segment_objective import numpy_gp
+from bayes_talk.synthesis.joint import (
+    SwitchingLatents,
+    UtteranceDensity,
+    make_plan,
+    pyro_log_density,
+)
+from bayes_talk.synthesis.posterior import (
+    MAP_DTOL,
+    MAP_GTOL,
+    maximise_utterance,
+    restart_map,
+    sample_synthesis,
+)
 from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
+from bayes_talk.synthesis.segment_objective import numpy_gp
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 # a correlated 2-D Gaussian with known moments
 MU = np.array([1.0, -2.0])
@@ -396,7 +409,7 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     model, test = toy
     s = test[2]
     # emcee: no run-on for the autocorrelation rule here (max_steps 0), tested on the Gaussian above
-    kw = dict(warmup=40, chains=2) if method == "nuts" else dict(warmup=60, sampler_kw={"max_steps": 0})
+    kw = {"warmup": 40, "chains": 2} if method == "nuts" else {"warmup": 60, "sampler_kw": {"max_steps": 0}}
     r = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method=method, n_draws=16, seed=0, **kw)
     assert r.n_draws >= 16 and r.latent_draws.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
     d = r.diagnostics
@@ -429,9 +442,9 @@ def test_band_coverage_on_held_out_toy_data_is_monotone(toy):
     cov = [coverage(truth, *bands[k]) for k in levels]
     print("coverage", dict(zip(levels, cov)))
     assert all(0.0 <= c <= 1.0 for c in cov)
-    assert all(a <= b for a, b in zip(cov, cov[1:])) and cov[-1] > cov[0]
+    assert all(a <= b for a, b in itertools.pairwise(cov)) and cov[-1] > cov[0]
     widths = [np.mean([np.mean(hi - lo) for lo, hi in zip(*bands[k])]) for k in levels]
-    assert all(a < b for a, b in zip(widths, widths[1:]))
+    assert all(a < b for a, b in itertools.pairwise(widths))
 
 
 def test_synth_cli_sampler_options_reach_sample_synthesis():

@@ -81,7 +81,7 @@ def test_sparse_predictor_matches_exact_at_z_equal_x_and_titsias_formula_otherwi
 def test_sparse_log_joint_equals_exact_sgpdm_with_all_frames_as_inducing_points():
     audio, video = _toy(30)
     views, lens = {"audio": audio, "visual": video}, [12, 18]
-    kw = dict(latent_dim=2, learn_dynamics=True, dyn_alpha=1.0, dyn_gamma=2.0, dyn_beta=100.0, init_scale=1.0)
+    kw = {"latent_dim": 2, "learn_dynamics": True, "dyn_alpha": 1.0, "dyn_gamma": 2.0, "dyn_beta": 100.0, "init_scale": 1.0}
     exact = SGPDM(max_iter=5, **kw).fit(views, seq_lengths=lens)
     sp = SparseSGPDM(max_iter=1, n_inducing=1000, jitter=0.0, **kw).fit(views, seq_lengths=lens)
     with torch.no_grad():
@@ -92,8 +92,8 @@ def test_sparse_log_joint_equals_exact_sgpdm_with_all_frames_as_inducing_points(
         got = {k: float(v) for k, v in sp.terms().items()}
     want = {k: float(n["log_prob_sum"].detach()) for k, n in exact.trace().nodes.items() if n["type"] == "sample"}
     assert set(got) == set(want)
-    for k in want:
-        assert got[k] == pytest.approx(want[k], rel=1e-9), k
+    for k, w in want.items():
+        assert got[k] == pytest.approx(w, rel=1e-9), k
     assert float(sp.trace().log_prob_sum().detach()) == pytest.approx(float(exact.log_joint().detach()), rel=1e-9)
 
 

@@ -1,6 +1,8 @@
 """espeak-ng synthesis: reproducibility, timings, phone mapping."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -35,7 +37,7 @@ def test_intervals_cover_padded_audio(results):
     assert iv[0][0] == 0.0 and iv[-1][1] == n / sr
     assert iv[0][2] == "sil" and iv[-1][2] == "sil"
     assert iv[0][1] >= 0.2 and iv[-1][1] - iv[-1][0] >= 0.2
-    for (s0, e0, _), (s1, _, _) in zip(iv[:-1], iv[1:]):
+    for (s0, e0, _), (s1, _, _) in itertools.pairwise(iv):
         assert e0 == s1 and s0 < e0
     assert all(p in PHONES for _, _, p in iv)
     # the lead silence really is silent, speech is not

@@ -11,7 +11,7 @@ from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import FALLBACK
 from bayes_talk.synthesis.sequential import lowpass
 
-SMALL = dict(latent_dim=3, max_iter=40, min_count=4, max_frames_per_state=120, fallback_frames=150)
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_synthesis_beats_the_per_phone_mean_on_toy_data(vlmm_model, data, algori
         r = vlmm_model.synthesize(s.mfcc, s.labels, algorithm=algorithm)
         assert r.mean.shape == s.aam.shape and r.var.shape == s.aam.shape and np.all(r.var > 0)
         # the segmentation covers every frame once, in order
-        assert [seg.start for seg in r.segments][0] == 0 and r.segments[-1].stop == s.n_frames
+        assert next(seg.start for seg in r.segments) == 0 and r.segments[-1].stop == s.n_frames
         assert all(a.stop == b.start for a, b in zip(r.segments, r.segments[1:]))
         err_ours.append(((r.mean - s.aam) ** 2).mean())
         err_mean.append(((np.array([means[lab] for lab in s.labels]) - s.aam) ** 2).mean())

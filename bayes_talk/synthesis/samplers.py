@@ -200,7 +200,7 @@ def batch_log_prob(log_prob: LogProb) -> Callable[[np.ndarray], np.ndarray]:
             if state["vmap"]:
                 try:
                     lp = vm(P_t)
-                except Exception as exc:  # an op without a batching rule: loop instead
+                except (RuntimeError, NotImplementedError) as exc:  # no batching rule, data-dependent flow: loop
                     log.info("vmap over the log density failed (%s); looping over walkers", exc)
                     state["vmap"] = False
             if not state["vmap"]:

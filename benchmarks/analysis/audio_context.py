@@ -11,8 +11,13 @@ PCA fitted on the training frames to the original dimension (so only the informa
 not the size of the audio view). Scored on the held-out sentences with deena2010 settings and
 the 4 Hz post-filter, to compare with docs/results.md's row (posterior 8.343 / 0.351 / 0.881).
 """
-import dataclasses, json, sys, time
+import dataclasses
+import json
+import sys
+import time
+
 import numpy as np
+
 from bayes_talk.data.corpus import load_corpus
 from bayes_talk.evaluation.protocols import get_protocol, run_protocol
 
@@ -36,7 +41,8 @@ proto = get_protocol("deena2010", lowpass_hz=4.0)
 t0 = time.time()
 res, _ = run_protocol(proto, train, methods, test_sequences=test)
 res["experiment"] = {"audio_context": k, "seconds": time.time() - t0}
-json.dump(res, open(out, "w"), indent=1, default=str)
+with open(out, "w") as f:
+    json.dump(res, f, indent=1, default=str)
 for m in methods:
     r = res["methods"][m]
     print(m, r["headline"], {kk: r[kk]["mean"] for kk in r if isinstance(r[kk], dict) and "mean" in r[kk]}, flush=True)

@@ -8,15 +8,20 @@ Result (docs/results.md): the SGPDM residual makes every metric worse.
 
     .venv/bin/python benchmarks/analysis/context_residual.py TRAIN_CORPUS HELDOUT_CORPUS
 """
-import sys, time, dataclasses
+import dataclasses
+import sys
+import time
+
 import numpy as np
 from sklearn.model_selection import GroupKFold
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.evaluation import metrics as M
-from bayes_talk.estimators.switching import SwitchingSGPDM
+
 from bayes_talk.baselines.context import ContextRidge
+from bayes_talk.data.corpus import load_corpus
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.evaluation import metrics as M
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.posterior import sample_synthesis
+
 tr = load_corpus(sys.argv[1]); te = load_corpus(sys.argv[2], aam=tr.aam_path)
 train = tr.sequences
 t0 = time.time()

@@ -56,7 +56,8 @@ if __name__ == "__main__":
     # the band calibration scores residual predictions against residual truths (consistent)
     res, _ = run_protocol(proto, res_train, methods, test_sequences=test)
     res["experiment"] = {"residual_of": "context-ridge", "windows": [L, M], "seconds": time.time() - t0}
-    json.dump(res, open(out, "w"), indent=1, default=str)
+    with open(out, "w") as f:
+        json.dump(res, f, indent=1, default=str)
     for m in methods:
         r = res["methods"][m]
         print(m, {kk: r[kk]["mean"] for kk in r if isinstance(r[kk], dict) and "mean" in r[kk]}, flush=True)
