@@ -414,6 +414,11 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     assert r.n_draws >= 16 and r.latent_draws.shape[2] == 10 and np.all(np.isfinite(r.mean)) and np.all(r.var > 0)
     d = r.diagnostics
     assert {"rhat_max", "ess_bulk_min", "ess_tail_min", "map_converged"} <= set(d)
+    # the diagnostics are those of the latent draws the user receives (not the whitened z)
+    C, S = r.latent_draws.shape[:2]
+    cd = chain_diagnostics(r.latent_draws.reshape(C, S, -1))
+    assert d["rhat_max"] == pytest.approx(cd["rhat_max"], rel=1e-12)
+    assert d["ess_bulk_min"] == pytest.approx(cd["ess_bulk_min"], rel=1e-12)
     if method == "nuts":
         assert {"divergences", "step_size", "accept_stat_mean", "tree_depth_mean", "ebfmi_min", "mcse_mean_max"} <= set(d)
         assert set(r.sample_stats) >= {"acceptance_rate", "tree_depth", "diverging", "energy"}

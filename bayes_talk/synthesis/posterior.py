@@ -248,7 +248,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
             draws = run_emcee(g, np.zeros(T * d), n_draws=per_walker, seed=seed, n_walkers=W, ball=0.1,
                               n_keep=n_keep, **kw)
         Xs = g.to_x(draws.samples)
-        diag.update(_sampler_diagnostics(draws))
+        diag.update(_sampler_diagnostics(draws, Xs))
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
     if method != "map":
@@ -286,9 +286,13 @@ def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -
     return {"khat": psis_khat(lw), "khat_draws": len(lw)}
 
 
-def _sampler_diagnostics(draws: Draws) -> dict:
-    """Summary diagnostics of a NUTS or emcee run (JSON-ready scalars and short lists)."""
-    cd = chain_diagnostics(draws.samples)
+def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
+    """Summary diagnostics of a NUTS or emcee run (JSON-ready scalars and short lists).
+
+    R-hat, ESS and MCSE are those of the latent draws the user receives (``latents``,
+    (chains, draws, T·d): X = X_MAP + L z), not of the whitened coordinates z the sampler
+    moved in (the map is affine, but ESS and R-hat are per coordinate)."""
+    cd = chain_diagnostics(latents.reshape(latents.shape[0], latents.shape[1], -1))
     out = {k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max",
                               "n_chains", "n_draws")}
     st, ss = draws.stats, draws.sample_stats
