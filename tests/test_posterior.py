@@ -197,6 +197,19 @@ def test_numpy_twin_equals_the_pyro_program(toy, smoothness):
     assert n_linked > 0  # adjacent blocks of one state model are linked by its dynamics
 
 
+@pytest.mark.parametrize("smoothness", ["frame", "off"])
+def test_value_only_density_equals_the_density_with_gradient(toy, smoothness):
+    """UtteranceDensity.values (emcee's walkers, the k̂ draws) equals batch()'s log density
+    to 1e-12 relative at points near and far from Algorithm 1's path."""
+    model, test = toy
+    rng = np.random.default_rng(3)
+    for s in test:
+        dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels, smoothness))
+        X0 = model.synthesize(s.mfcc, s.labels, smoothness=smoothness).latents
+        Xb = X0[None] + np.array([0.0, 0.01, 0.3, 2.0])[:, None, None] * rng.standard_normal((4, *X0.shape))
+        np.testing.assert_allclose(dens.values(Xb), dens.batch(Xb)[0], rtol=1e-12)
+
+
 def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
     """The compiled GP predictive (bayes_talk.gp.predictive_fused: loglik, mean/variance,
     mean VJP) equals the NumPy/LAPACK reference to 1e-9 relative for every state model's
@@ -379,7 +392,7 @@ def test_laplace_synthesis_mixture_and_reproducibility(toy):
 
 
 def test_emcee_walkers_go_through_the_batched_density(toy):
-    """emcee's walkers are evaluated in one batched call of the numpy twin, equal to one call
+    """emcee's walkers are evaluated in one batched, value-only call of the numpy twin, equal to one call
     per walker (the loop it replaces), with -inf kept for non-finite values."""
     from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
     from bayes_talk.synthesis.posterior import _Whitened
@@ -393,11 +406,11 @@ def test_emcee_walkers_go_through_the_batched_density(toy):
     g = _Whitened(dens, rng.standard_normal(n) * 0.1, np.diag(rng.uniform(0.05, 0.2, n)))
     Z = rng.standard_normal((7, n))
     f = batch_log_prob(g)
-    calls, batch = [], dens.batch
-    dens.batch = lambda Xb: calls.append(len(Xb)) or batch(Xb)
+    calls, values = [], dens.values
+    dens.values = lambda Xb: calls.append(len(Xb)) or values(Xb)
     got = f(Z)
-    assert calls == [7]                          # one batched call for all walkers
-    dens.batch = batch
+    assert calls == [7]                          # one batched, value-only call for all walkers
+    dens.values = values
     np.testing.assert_allclose(got, [g.numpy(z)[0] for z in Z], rtol=1e-10)
     bad = Z.copy()
     bad[3] = np.nan

@@ -184,10 +184,9 @@ class _Whitened:
         return _Potential.apply(z, self.numpy)
 
     def batch_numpy(self, Z: np.ndarray) -> np.ndarray:
-        """ln p(X_MAP + L z) for a batch Z (W, n) in one :meth:`UtteranceDensity.batch` call
-        (emcee's walkers; ~5x cheaper per point than one call each)."""
-        lp, _ = self.dens.batch(self.to_x(np.asarray(Z, dtype=np.float64)))
-        return lp
+        """ln p(X_MAP + L z) for a batch Z (W, n) in one :meth:`UtteranceDensity.values` call
+        (emcee's walkers: no gradient needed)."""
+        return self.dens.values(self.to_x(np.asarray(Z, dtype=np.float64)))
 
     def to_x(self, Z: np.ndarray) -> np.ndarray:
         return self.x_map + Z @ self.L.T
@@ -279,9 +278,8 @@ KHAT_CHUNK = 50
 def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -> dict:
     """PSIS k̂ of the Laplace approximation q = N(x_MAP, L Lᵀ) to p from draws x_s = x_MAP + L z_s:
     log weights ln p(x_s) − ln q(x_s) = ln p(x_s) + ½‖z_s‖² + const (Vehtari et al. 2024)."""
-    # in chunks through UtteranceDensity.batch (one kernel matrix per block and chunk; a
-    # draw at a time cost half of a Laplace synthesis, benchmarks/results/synthesis.json)
-    lp = np.concatenate([dens.batch(X[i:i + KHAT_CHUNK])[0] for i in range(0, len(X), KHAT_CHUNK)])
+    # in chunks through UtteranceDensity.values (value only, all draws' rows of a GP in one run)
+    lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
     lw = lp + 0.5 * np.sum(Z * Z, axis=1)
     return {"khat": psis_khat(lw), "khat_draws": len(lw)}
 
