@@ -7,10 +7,10 @@ request of at least ``M_MMAP_THRESHOLD`` bytes (128 KiB at start-up) with its ow
 ``mmap``, returned to the system by ``free``; but the threshold is *dynamic*: each
 time such a block is freed, the threshold rises to its size (up to 32 MiB). From then
 on every N×N matrix is carved out of the heap, and the heap is only given back from its
-top end, so freed matrices below a live one stay resident. Over an SGPLVM fit this kept
-~170 MB more resident than the live arrays needed (measured on one deena2009 split:
-fit peak 897 MB with the dynamic threshold, 725 MB with a fixed one;
-docs/scaling.md, "Memory").
+top end, so freed matrices below a live one stay resident. On one deena2009 split this
+alone kept ~170 MB more resident than the live arrays needed (the SGPLVM fit peaked at
+897 MB with the dynamic threshold, 725 MB with a fixed one; docs/scaling.md, "Memory,
+session 5").
 
 :func:`release_large_blocks` fixes the threshold (which turns the dynamic adjustment
 off) so every large block keeps its own mapping and goes back to the system as soon as

@@ -3,7 +3,8 @@
 The first split of the deena2009 protocol on CORPUS (50 training utterances, the SGPLVM
 with the 1,500-frame cap and d = 8, then N_TEST of the split's test utterances through
 SGPLVM A and B, then Voice Puppetry), with this process's RSS sampled every 20 ms by a
-thread and attributed to the phase running; prints each phase's peak and ``ru_maxrss``.
+thread and attributed to the phase running; prints each phase's peak and ``ru_maxrss``
+(the SGPLVM is freed before Voice Puppetry's fit).
 MAX_ITER and SYNTH_ITER cap the SGPLVM's training and synthesis iterations (the peak
 depends on N, not on the iteration count). Large freed blocks go back to the system
 (:mod:`bayes_talk.memory`) unless ``BAYES_TALK_MALLOC=0``: run both to see its share.
@@ -60,7 +61,6 @@ def main() -> None:
         enter(f"{name} synthesis")
         for s in test:
             systems.predict(name, model, s, proto.system)
-    enter("SGPLVM freed")
     del model
     enter("Voice Puppetry fit")
     vp = systems.fit_family("voice-puppetry", train, proto.system)
