@@ -476,6 +476,9 @@ def main(argv: list[str] | None = None) -> int:
     from bayes_talk.progress import set_enabled
 
     set_enabled(not quiet)
+    from bayes_talk.memory import release_large_blocks
+
+    release_large_blocks()  # freed N×N matrices go back to the system (bayes_talk.memory)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

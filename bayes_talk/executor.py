@@ -81,7 +81,11 @@ def single_thread() -> Iterator[None]:
 
 
 def run_task(fn: Callable[[Any], Any], item: Any) -> Any:
-    """``fn(item)`` with one thread (:func:`single_thread`): what every engine runs."""
+    """``fn(item)`` with one thread (:func:`single_thread`): what every engine runs.
+    Large freed blocks go back to the system at once (:mod:`bayes_talk.memory`)."""
+    from bayes_talk.memory import release_large_blocks
+
+    release_large_blocks()
     with single_thread():
         return fn(item)
 

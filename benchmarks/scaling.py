@@ -22,7 +22,7 @@ Every section records the load average at its start and end (the machine is shar
 
     python benchmarks/scaling.py [--quick] [--corpus /work/data/v2/train250] [--n-train 100]
         [--sections executors,peak_rss,sparse] [--protocols deena2009,deena2010,englebienne2008]
-        [--executor local|processes|dask] [--repeats K] [--out PATH]
+        [--executor local|processes|dask] [--repeats K] [--out PATH] [--tag TAG]
 """
 from __future__ import annotations
 
@@ -240,6 +240,8 @@ def main() -> None:
                     help="peak_rss: run only this many of each protocol's repeats/folds (0: all); the peak "
                          "of one split does not grow with their number (each split's models are freed)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--tag", default=None, help="store each section under SECTION_TAG in the JSON (e.g. "
+                    "peak_rss_before_local), so runs of one section can sit side by side in one file")
     ap.add_argument("--rss-child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.rss_child:
@@ -255,11 +257,12 @@ def main() -> None:
         if name not in sections:
             raise SystemExit(f"--sections: unknown section {name!r}; choose among {', '.join(sections)}")
         t0 = time.perf_counter()
-        result[name] = sections[name](args)
-        result[name]["section_wall_s"] = round(time.perf_counter() - t0, 1)
+        key = f"{name}_{args.tag}" if args.tag else name
+        result[key] = sections[name](args)
+        result[key]["section_wall_s"] = round(time.perf_counter() - t0, 1)
         out_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(out_path, result)  # atomically, each section as soon as it is done
-    print(json.dumps({k: result[k] for k in args.sections.split(",")}, indent=1))
+    print(json.dumps({k: result[f"{k}_{args.tag}" if args.tag else k] for k in args.sections.split(",")}, indent=1))
     print(f"wrote {out_path}")
 
 

@@ -216,6 +216,9 @@ def run_protocol(
     switching states in turn; with one split it trains the states (as does anything else
     with a ``map``). The numbers do not depend on it (timings aside).
     """
+    from bayes_talk.memory import release_large_blocks
+
+    release_large_blocks()  # freed N×N matrices leave the process (issue 14, memory)
     names = resolve_methods(methods, protocol.default_methods)
     seqs = list(sequences)
     say = progress or (lambda msg: log.info("%s", msg))

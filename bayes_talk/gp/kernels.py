@@ -48,8 +48,28 @@ def train_cov(
     gamma: torch.Tensor | float,
     beta: torch.Tensor | float,
     alpha_lin: torch.Tensor | float | None = None,
+    *,
+    fixed: bool = False,
 ) -> torch.Tensor:
-    """Training covariance ``K = k(X, X) + β⁻¹ I``."""
+    """Training covariance ``K = k(X, X) + β⁻¹ I``. ``fixed``: X and the hyperparameters
+    are fixed (no gradient, e.g. a predictor after a fit): K is built in place in one N×N
+    array, at most two N×N arrays alive instead of five (36 MB instead of 90 MB at
+    N = 1,500); the same operations in the same order, so the same K bit for bit."""
+    if fixed:
+        return _train_cov_in_place(X.detach(), alpha, gamma, beta, alpha_lin)
     K = rbf(X, X, alpha, gamma, alpha_lin)
     n = X.shape[0]
     return K + torch.eye(n, dtype=X.dtype) / beta
+
+
+@torch.no_grad()
+def _train_cov_in_place(X: torch.Tensor, alpha, gamma, beta, alpha_lin) -> torch.Tensor:
+    """:func:`train_cov` (through :func:`rbf` and :func:`sq_dist`) op for op, in place."""
+    n2 = (X * X).sum(-1)
+    K = n2[:, None] + n2[None, :]
+    K.sub_((2.0 * X) @ X.mT).clamp_min_(0.0)  # sq_dist(X, X)
+    K.mul_(-0.5 * gamma).exp_().mul_(alpha)
+    if alpha_lin is not None:
+        K.add_(alpha_lin * (X @ X.mT))
+    K.diagonal().add_(1.0 / beta)
+    return K

@@ -41,7 +41,7 @@ class GPPredictor:
         D = Y.shape[1]
         self.w = (w.detach() if w is not None else torch.ones(D, dtype=torch.float64))
         self.mean = mean.detach() if mean is not None else torch.zeros(D, dtype=torch.float64)
-        self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin), what)
+        self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin, fixed=True), what)
         self.A = cho_solve(self.L, self.Y)
 
     @classmethod

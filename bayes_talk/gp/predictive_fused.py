@@ -216,7 +216,8 @@ class PackedGPs:
         self.loffs = np.concatenate([[0], np.cumsum(Ns * Ns)]).astype(np.int64)
         self.X = np.ascontiguousarray(np.concatenate([g.X for g in gps]))
         self.A = np.ascontiguousarray(np.concatenate([g.A for g in gps]))
-        self.L = np.concatenate([np.ascontiguousarray(g.L).reshape(-1) for g in gps])
+        # row-major factors: _NumpyGP keeps one (Lc); its column-major L is made only on demand
+        self.L = np.concatenate([np.ascontiguousarray(g.Lc if hasattr(g, "Lc") else g.L).reshape(-1) for g in gps])
         self.alpha = np.array([g.alpha for g in gps])
         self.gamma = np.array([g.gamma for g in gps])
         self.beta = np.array([g.beta for g in gps])

@@ -53,6 +53,7 @@ from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
 from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
 from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
+from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
 
 log = logging.getLogger(__name__)
 
@@ -243,8 +244,7 @@ class SGPDM:
 
     def _init_params(self, centred: Mapping[str, np.ndarray], X0: np.ndarray) -> None:
         cfg = self.config
-        sq = ((X0[:, None, :] - X0[None, :, :]) ** 2).sum(-1) if len(X0) <= 2000 else None
-        med = float(np.median(sq[np.triu_indices(len(X0), 1)])) if sq is not None and len(X0) > 1 else 1.0
+        med = _median_sq_dist(X0) if 1 < len(X0) <= 2000 else 1.0
         gamma0 = 1.0 / max(med, 1e-12)
         self._log: dict[str, torch.Tensor] = {}
         self._fixed: dict[str, torch.Tensor] = {}
@@ -292,7 +292,7 @@ class SGPDM:
             opt.zero_grad()
             loss = -self.log_joint()
             loss.backward()
-            return loss
+            return loss.detach()  # L-BFGS keeps it all step: its graph's N×N buffers go now
 
         self.history = FitHistory([float(self.log_joint().detach())])
         best, best_params, since = math.inf, None, 0
@@ -351,6 +351,7 @@ class SGPDM:
             )
         self.hyper_ = {k: (v.numpy().copy() if v.ndim else float(v)) for k, v in h.items()}
         X = torch.as_tensor(self.X_)
+        self.predictors_, self.dynamics_predictor_ = {}, None  # old N×N factors go first
         self.predictors_ = {
             v: GPPredictor(
                 X, self._Y[v], float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]), float(h[f"beta/{v}"]),

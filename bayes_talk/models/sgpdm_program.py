@@ -17,7 +17,7 @@ from pyro import poutine
 from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.terms import W_PRIOR_VARIANCE
 
-__all__ = ["FitHistory", "SGPDMConfig", "pca_scores", "sgpdm_model"]
+__all__ = ["FitHistory", "SGPDMConfig", "median_sq_dist", "pca_scores", "sgpdm_model"]
 
 
 @dataclass
@@ -70,6 +70,22 @@ def pca_scores(Y: np.ndarray, d: int) -> np.ndarray:
     # fix the sign so the largest-magnitude loading is positive (deterministic init)
     Z *= np.sign(Z[np.abs(Z).argmax(0), range(Z.shape[1])])
     return Z / np.maximum(Z.std(0), 1e-12)
+
+
+def median_sq_dist(X: np.ndarray, block_elems: int = 1 << 20) -> float:
+    """Median of ‖x_i − x_j‖² over the pairs i < j of the rows of X (N ≥ 2): the initial
+    inverse width γ₀ = 1/median of the kernels. Computed a block of rows at a time (about
+    ``block_elems`` differences each, 8 MB) instead of through the N×N×d array of all
+    differences (144 MB at N = 1,500, d = 8); each distance is the same sum, so the
+    median is the same bit for bit."""
+    N, d = X.shape
+    rows = max(1, block_elems // max(1, N * d))
+    upper = []
+    for a in range(0, N - 1, rows):
+        b = min(a + rows, N - 1)
+        sq = ((X[a:b, None, :] - X[None, :, :]) ** 2).sum(-1)  # rows a..b-1 against all
+        upper.extend(sq[k, a + k + 1:] for k in range(b - a))
+    return float(np.median(np.concatenate(upper)))
 
 
 def sgpdm_model(

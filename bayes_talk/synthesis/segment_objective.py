@@ -54,14 +54,23 @@ class _NumpyGP:
         # does when a process pool pickles the model: Tensor.share_memory_)
         self.X = p.X.numpy().copy()
         self.A = p.A.numpy().copy()
-        self.L = np.asfortranarray(p.L.numpy().copy())
+        # one copy of the N×N factor, row-major for the compiled path (row by row); the
+        # column-major one LAPACK wants is made only if the NumPy path runs (:attr:`L`)
+        self.Lc = np.array(p.L.numpy(), order="C", copy=True)
+        self._L: np.ndarray | None = None
         self.alpha, self.gamma, self.beta = float(p.alpha), float(p.gamma), float(p.beta)
         self.w2 = (p.w * p.w).numpy().copy()
         self.mean = p.mean.numpy().copy()
-        self.Lc = np.ascontiguousarray(self.L)      # for the compiled path (row by row)
         self._no_extra = np.zeros(self.A.shape[1])
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
+
+    @property
+    def L(self) -> np.ndarray:
+        """The Cholesky factor in column-major order (dtrtrs), made on first use."""
+        if self._L is None:
+            self._L = np.asfortranarray(self.Lc)
+        return self._L
 
     def _solve(self, B: np.ndarray, trans: int = 0) -> np.ndarray:
         """L⁻¹B (trans=0) or L⁻ᵀB (trans=1) by LAPACK's triangular solve (dtrtrs)."""
