@@ -41,7 +41,12 @@ _FRAGMENT = textwrap.dedent("""
 
 def _run(env_extra: dict) -> tuple[bool, float]:
     env = {**os.environ, **env_extra}
-    env.pop("MALLOC_MMAP_THRESHOLD_", None)
+    # glibc's own malloc settings turn its dynamic threshold off (dask's nanny puts
+    # MALLOC_TRIM_THRESHOLD_ into os.environ of the process that starts a LocalCluster,
+    # as earlier tests do): the fragment must see glibc's defaults
+    for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_",
+              "GLIBC_TUNABLES"):
+        env.pop(k, None)
     out = subprocess.run([sys.executable, "-c", _FRAGMENT], capture_output=True, text=True, env=env, check=True)
     on, kept = out.stdout.split()
     return on == "True", float(kept)
