@@ -272,6 +272,10 @@ class Runs:
         hi = np.concatenate([cut, [row_gp.size]])
         return cls(row_gp[lo], lo, hi)
 
+    def row_gp(self, k: int = 1) -> np.ndarray:
+        """The GP of every row, each row repeated k times in place."""
+        return np.repeat(np.repeat(self.gp, self.hi - self.lo), k)
+
     def repeat(self, k: int) -> Runs:
         """The runs of every row repeated k times in place."""
         return Runs(self.gp, self.lo * k, self.hi * k)

@@ -98,10 +98,10 @@ class UtteranceDensity:
         lp = np.zeros(K)
         if len(tm.a_idx):
             mu, s = tm.audio_gps.mean_var(tm.a_runs.repeat(K), rows(tm.a_idx))
-            lp += gauss(np.repeat(tm.a_Y, K, axis=0), mu, s[:, None] / tm.audio_gps.w2[tm.a_row_gp(K)])
+            lp += gauss(np.repeat(tm.a_Y, K, axis=0), mu, s[:, None] / tm.audio_gps.w2[tm.a_runs.row_gp(K)])
         if len(tm.d_src):
             mu, s = tm.dyn_gps.mean_var(tm.d_runs.repeat(K), rows(tm.d_src))
-            lp += gauss(rows(tm.d_dst), mu, s[:, None] / tm.dyn_gps.w2[tm.d_row_gp(K)])
+            lp += gauss(rows(tm.d_dst), mu, s[:, None] / tm.dyn_gps.w2[tm.d_runs.row_gp(K)])
         if len(tm.e_idx):
             lp += tm.entry_grad(Xb[:, tm.e_idx])[0]
         if len(tm.s_idx):
@@ -212,14 +212,6 @@ class _Terms:
         """Σ_e ln N(x_e; μ_e, Σ_e) (K,) and its gradient (K, E, d) at the entry frames Xe (K, E, d)."""
         u = np.einsum("eij,kej->kei", self.e_chol_inv, Xe - self.e_mean)        # L_e⁻¹ (x − μ)
         return -0.5 * (u * u).sum((1, 2)) - self.e_const, -np.einsum("eji,kej->kei", self.e_chol_inv, u)
-
-    def a_row_gp(self, k: int) -> np.ndarray:
-        """The audio GP of every row when each row is repeated k times in place."""
-        return np.repeat(np.repeat(self.a_runs.gp, self.a_runs.hi - self.a_runs.lo), k)
-
-    def d_row_gp(self, k: int) -> np.ndarray:
-        """The dynamics GP of every row when each row is repeated k times in place."""
-        return np.repeat(np.repeat(self.d_runs.gp, self.d_runs.hi - self.d_runs.lo), k)
 
     def audio_grad(self, R: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Per-row ℓ and ∂ℓ/∂x of the audio terms at rows R (len(a_idx)·k, d)."""
