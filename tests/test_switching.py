@@ -182,6 +182,41 @@ def test_closed_form_segment_objective_equals_the_torch_reference(vlmm_model):
     np.testing.assert_allclose(g, Xt.grad.numpy(), rtol=1e-6, atol=1e-6 * np.abs(g).max())
 
 
+def test_compiled_segment_objective_equals_the_term_by_term_one_bit_for_bit(vlmm_model):
+    """Algorithm 1's L-BFGS evaluates the segment objective in one compiled call; it must be
+    the per-term sum exactly (an iteration-capped L-BFGS path turns a last-bit difference
+    into a different segment), with and without each optional term, for segments short and
+    longer than NumPy's 8-way and 128-element summation blocks."""
+    from bayes_talk.synthesis.segment_objective import (
+        _numpy_sum,
+        compiled_segment_objective,
+        segment_objective,
+    )
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 8, 9, 127, 128, 129, 300, 1031):
+        a = rng.normal(size=n) * 10.0 ** rng.uniform(-3, 6, n)
+        assert _numpy_sum(a) == a.sum()
+    key = next(k for k, m in vlmm_model.models_.items() if m.dynamics_predictor_ is not None)
+    m = vlmm_model.models_[key]
+    mu, cov = vlmm_model.entry_[key]
+    first = (mu, np.linalg.inv(cov), float(np.linalg.slogdet(cov)[1]))
+    vis = m.predictors_["visual"]
+    z = (m._Y["visual"].numpy() + m.means_["visual"])[5:6]
+    smooth = (vis, z, vlmm_model.motion_var_)
+    Ytr = m._Y["audio"].numpy() + m.means_["audio"]
+    for T in (1, 2, 9, 140):
+        idx = rng.integers(0, len(m.X_), T)
+        X = m.X_[idx] + 0.05 * rng.normal(size=(T, m.X_.shape[1]))
+        Y = Ytr[idx] + 0.1 * rng.normal(size=(T, Ytr.shape[1]))
+        for dyn, fi, sm in [(m.dynamics_predictor_, first, smooth), (None, None, None),
+                            (m.dynamics_predictor_, None, None), (None, first, smooth)]:
+            f_ref, g_ref = segment_objective(X, Y, m.predictors_["audio"], dyn, fi, sm)
+            f, g = compiled_segment_objective(Y, m.predictors_["audio"], dyn, fi, sm)(X)
+            assert f == f_ref
+            np.testing.assert_array_equal(g, g_ref)
+
+
 def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     """audio_context=k: the state models see the PCA-reduced MFCCs of frames t−k..t+k, the
     transform travels with the model, and a later frame's audio changes an earlier frame's

@@ -22,7 +22,9 @@ The dynamics term ℓ(x_t | x_{t−1}) is the same expression with the dynamics 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
+import numba
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
@@ -164,6 +166,113 @@ def numpy_gp(p: GPPredictor) -> _NumpyGP:
     return cached
 
 
+def _gp_args(p: GPPredictor | None, D: int) -> tuple:
+    """The arrays :func:`_segment_compiled` takes for one GP (an empty stand-in for None)."""
+    if p is None:
+        z = np.zeros((0, 1))
+        return (z, z, z, np.zeros(D), 1.0, 1.0, 1.0, np.ones(D))
+    g = numpy_gp(p)
+    return (g.X, g.A, g.Lc, g.mean, g.alpha, g.gamma, g.beta, g.w2)
+
+
+@numba.njit(cache=True)
+def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """NumPy's pairwise-summation leaf (n ≤ 128): eight running sums, then the rest."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r = a[lo:lo + 8].copy()
+    i = 8
+    while i < n - (n % 8):
+        for j in range(8):
+            r[j] += a[lo + i + j]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True)
+def _numpy_sum(a: np.ndarray) -> float:
+    """Σ a in the order of NumPy's pairwise summation (``ndarray.sum`` of a contiguous
+    float64 vector: halves split at multiples of 8 down to blocks of ≤ 128), so the compiled
+    objective equals the per-term one bit for bit (L-BFGS paths that stop at the iteration
+    cap amplify a last-bit difference). The recursion is unrolled onto a stack: numba's
+    cache cannot hold recursive functions (a cached caller segfaulted on reload)."""
+    los = np.empty(64, np.int64)
+    ns = np.empty(64, np.int64)
+    st = np.zeros(64, np.int64)
+    left = np.empty(64)
+    los[0], ns[0], st[0] = 0, a.shape[0], 0
+    sp, ret = 1, 0.0
+    while sp > 0:
+        i = sp - 1
+        if ns[i] <= 128:
+            ret = _block_sum(a, los[i], ns[i])
+            sp -= 1
+            continue
+        n2 = ns[i] // 2
+        n2 -= n2 % 8
+        if st[i] == 0:
+            st[i] = 1
+            los[sp], ns[sp], st[sp] = los[i], n2, 0
+            sp += 1
+        elif st[i] == 1:
+            left[i] = ret
+            st[i] = 2
+            los[sp], ns[sp], st[sp] = los[i] + n2, ns[i] - n2, 0
+            sp += 1
+        else:
+            ret = left[i] + ret
+            sp -= 1
+    return ret
+
+
+@numba.njit(cache=True)
+def _segment_compiled(X, Y, obs, dyn, has_dyn, f_mu, f_prec, f_logdet, has_first, vis, z, e, has_smooth, g):
+    """:func:`segment_objective` in one compiled call (the same terms in the same order as
+    the per-term path below); the gradient goes into ``g`` (T×d), the value is returned."""
+    T, d = X.shape
+    ll = np.empty(T)
+    gy = np.empty(Y.shape)
+    predictive_loglik(obs[0], obs[1], obs[2], obs[3], obs[4], obs[5], obs[6], obs[7], Y, X,
+                      np.zeros(Y.shape[1]), ll, g, gy)
+    lp = _numpy_sum(ll)
+    if has_dyn and T > 1:
+        ld = np.empty(T - 1)
+        g_in = np.empty((T - 1, d))
+        g_out = np.empty((T - 1, d))
+        predictive_loglik(dyn[0], dyn[1], dyn[2], dyn[3], dyn[4], dyn[5], dyn[6], dyn[7],
+                          np.ascontiguousarray(X[1:]), np.ascontiguousarray(X[:-1]), np.zeros(d), ld, g_in, g_out)
+        lp += _numpy_sum(ld)
+        for t in range(T - 1):
+            for j in range(d):
+                g[t, j] += g_in[t, j]
+        for t in range(T - 1):
+            for j in range(d):
+                g[t + 1, j] += g_out[t, j]
+    if has_first:
+        r = X[0] - f_mu
+        pr = f_prec @ r
+        lp += -0.5 * ((r @ f_prec) @ r) - 0.5 * f_logdet - 0.5 * d * LOG_2PI
+        for j in range(d):
+            g[0, j] -= pr[j]
+    if has_smooth:
+        ls = np.empty(1)
+        gs = np.empty((1, d))
+        gz = np.empty(z.shape)
+        predictive_loglik(vis[0], vis[1], vis[2], vis[3], vis[4], vis[5], vis[6], vis[7], z,
+                          np.ascontiguousarray(X[:1]), e, ls, gs, gz)
+        lp += ls[0]
+        for j in range(d):
+            g[0, j] += gs[0, j]
+    return lp
+
+
 def segment_objective(
     X: np.ndarray,
     Y: np.ndarray,
@@ -176,7 +285,10 @@ def segment_objective(
 
     first: (μ_π, Σ_π⁻¹, log|Σ_π|) of the entry distribution on x_1.
     smooth: (visual predictor, ẑ_prev (1×D), extra variance (D,)) — the smoothness term
-    ln N(ẑ_prev; μ_Z(x_1), σ²_Z(x_1)/w² + e) on the first point.
+    ln N(ẑ_prev; μ_Z(x_1), σ²_Z/w²(x_1) + e) on the first point.
+
+    Evaluated term by term (the reference). :func:`maximise_segment` evaluates the same sum
+    in one compiled call (:func:`_segment_compiled`) unless ``BAYES_TALK_FUSED=0``.
     """
     lp, g = numpy_gp(obs).loglik(Y, X)[:2]
     g = g.copy()
@@ -196,6 +308,41 @@ def segment_objective(
         lp += l_s
         g[0] += g_s[0]
     return float(lp), g
+
+
+def compiled_segment_objective(
+    Y: np.ndarray,
+    obs: GPPredictor,
+    dynamics: GPPredictor | None = None,
+    first: tuple[np.ndarray, np.ndarray, float] | None = None,
+    smooth: tuple[GPPredictor, np.ndarray, np.ndarray] | None = None,
+) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+    """X ↦ :func:`segment_objective` (X, Y, obs, dynamics, first, smooth) as one compiled call
+    per evaluation: the GPs' arrays are gathered once, so an L-BFGS iteration pays one Python
+    call instead of three wrapped GP calls and a dozen small NumPy operations."""
+    Y = np.ascontiguousarray(Y, dtype=np.float64)
+    d = numpy_gp(obs).X.shape[1]
+    o = _gp_args(obs, Y.shape[1])
+    dy = _gp_args(dynamics, d)
+    if first is not None:
+        f_mu, f_prec, f_logdet = (np.ascontiguousarray(first[0], dtype=np.float64),
+                                  np.ascontiguousarray(first[1], dtype=np.float64), float(first[2]))
+    else:
+        f_mu, f_prec, f_logdet = np.zeros(d), np.zeros((d, d)), 0.0
+    if smooth is not None:
+        vis = _gp_args(smooth[0], smooth[1].shape[-1])
+        z = np.ascontiguousarray(np.reshape(smooth[1], (1, -1)), dtype=np.float64)
+        e = np.ascontiguousarray(smooth[2], dtype=np.float64)
+    else:
+        vis, z, e = o, Y[:1], np.zeros(Y.shape[1])
+
+    def f(X: np.ndarray) -> tuple[float, np.ndarray]:
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        g = np.empty(X.shape)
+        lp = _segment_compiled(X, Y, o, dy, dynamics is not None, f_mu, f_prec, f_logdet, first is not None,
+                               vis, z, e, smooth is not None, g)
+        return lp, g
+    return f
 
 
 def maximise_segment(
@@ -220,8 +367,14 @@ def maximise_segment(
         mu, cov = first
         first_p = (np.asarray(mu), np.linalg.inv(cov), float(np.linalg.slogdet(cov)[1]))
 
+    if fused.ENABLED:
+        objective = compiled_segment_objective(Y, obs, dynamics, first_p, smooth)
+    else:
+        def objective(X):
+            return segment_objective(X, Y, obs, dynamics, first_p, smooth)
+
     def neg(flat: np.ndarray):
-        f, g = segment_objective(flat.reshape(shape), Y, obs, dynamics, first_p, smooth)
+        f, g = objective(flat.reshape(shape))
         return -f, -g.ravel()
 
     x0 = np.asarray(X0, dtype=np.float64).ravel()
