@@ -223,6 +223,7 @@ class DaskExecutor(Executor):
                                "(pip install 'dask[distributed]')") from exc
         self._own_client = client is None
         self._cluster = None
+        self._environ = _nanny_environ()  # the caller's, before any nanny of ours runs
         if client is not None:
             self.client = client
         elif scheduler:
@@ -238,6 +239,7 @@ class DaskExecutor(Executor):
             kw.update(cluster_kwargs)
             self._cluster = LocalCluster(**kw)
             self.client = Client(self._cluster)
+        _restore_nanny_environ(self._environ)
         self.scheduler = self.client.scheduler.address
         if scheduler and self._own_client:
             self._check_worker_threads()
@@ -279,6 +281,7 @@ class DaskExecutor(Executor):
             return self.client.gather(futures)
         finally:
             self.client.cancel(futures)
+            _restore_nanny_environ(self._environ)  # a restarted worker's nanny set them again
 
     def close(self) -> None:
         """Close the client (and the LocalCluster this executor started, if any)."""
@@ -287,9 +290,35 @@ class DaskExecutor(Executor):
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+        _restore_nanny_environ(self._environ)
 
     def __repr__(self) -> str:
         return f"DaskExecutor(scheduler={self.scheduler!r})"
+
+
+def _nanny_keys() -> list[str]:
+    """The variables a dask nanny writes into its *own* process's ``os.environ`` before it
+    spawns a worker (``distributed.nanny.pre-spawn-environ``, e.g. MALLOC_TRIM_THRESHOLD_,
+    and PYTHONHASHSEED)."""
+    import dask
+
+    return sorted(set(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {}) | {"PYTHONHASHSEED"})
+
+
+def _nanny_environ() -> dict[str, str | None]:
+    """The caller's values of :func:`_nanny_keys` (None: unset)."""
+    return {k: os.environ.get(k) for k in _nanny_keys()}
+
+
+def _restore_nanny_environ(saved: dict[str, str | None]) -> None:
+    """Put back the caller's values: the nanny's settings are meant for the worker processes,
+    but it leaves them in the caller's ``os.environ``, where they change every process the
+    caller starts later (MALLOC_TRIM_THRESHOLD_ turns glibc's dynamic mmap threshold off)."""
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
 
 
 def _check_workers(n: int) -> int:

@@ -359,6 +359,29 @@ def test_nan_in_the_feature_cache_is_recomputed_with_a_warning(corpus_dir, tmp_p
     assert all(np.array_equal(a.mfcc, b.mfcc) for a, b in zip(good, again))
 
 
+def test_an_unwritable_corpus_directory_loads_uncached_with_a_warning(corpus_dir, tmp_path, caplog,
+                                                                     monkeypatch):
+    """A read-only (or full) corpus directory must not lose the features just computed."""
+    import bayes_talk.data.corpus.load as load_mod
+    from bayes_talk.data.corpus import load_corpus
+
+    c = tmp_path / "c"
+    shutil.copytree(corpus_dir, c)
+
+    def refuse(path, *a, **k):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(load_mod, "save_npz", refuse)
+    with caplog.at_level(logging.WARNING):
+        got = load_corpus(c, n_workers=1)
+    assert not list(c.glob("features*.npz"))
+    assert any("cannot write the feature cache" in r.getMessage() and "Permission denied" in r.getMessage()
+               for r in caplog.records)
+    monkeypatch.undo()
+    ref = load_corpus(c, cache=False, n_workers=1)
+    assert all(np.array_equal(a.mfcc, b.mfcc) and np.array_equal(a.aam, b.aam) for a, b in zip(got, ref))
+
+
 # --- row 13: what the outputs mean ----------------------------------------------------------
 
 def test_outputs_are_documented_and_the_recipe_gives_the_landmarks(model_dir, corpus_dir, tmp_path, capsys):

@@ -16,6 +16,10 @@ from toydata import make_utterances
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
 
+#: the caller's environment before this module's LocalCluster (a dask nanny writes its
+#: pre-spawn variables into its own process's os.environ)
+ENV_BEFORE = dict(os.environ)
+
 SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 4, "max_frames_per_state": 80, "fallback_frames": 100}
 
 
@@ -91,6 +95,17 @@ def test_killed_worker_in_mid_training_loses_nothing(dask_ex, train, local_model
     assert_same_model(local_model, model)
     # the nanny restarts the worker: the cluster is whole again for the next test
     client.wait_for_workers(2, timeout=120)
+
+
+def test_the_cluster_leaves_the_callers_environment_alone(dask_ex, train):
+    """Starting the LocalCluster, running tasks and restarting a lost worker must not leave
+    the nannies' worker settings (MALLOC_TRIM_THRESHOLD_, PYTHONHASHSEED, ...) in the
+    caller's environment: they change every process the caller starts later."""
+    import dask
+
+    keys = set(dask.config.get("distributed.nanny.pre-spawn-environ")) | {"PYTHONHASHSEED"}
+    dask_ex.map(len, [[1], [1, 2]])
+    assert {k: os.environ.get(k) for k in keys} == {k: ENV_BEFORE.get(k) for k in keys}
 
 
 def test_protocol_splits_on_dask_equal_the_local_run(dask_ex):

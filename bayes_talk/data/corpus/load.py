@@ -167,7 +167,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     ``mean_removal`` (default on, deena2010 §3.2): subtract each sequence's mean visual
     feature vector (recorded in ``meta["aam_mean"]``). ``cache``: derived features are
     stored in ``<path>/features.npz`` keyed by a SHA-256 of every input file, the AAM
-    and the feature settings; any change recomputes them. For a user corpus with image
+    and the feature settings; any change recomputes them (a directory that cannot be written
+to -- read-only, full -- gets a warning and the features are used uncached). For a user corpus with image
     or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
     offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
@@ -239,7 +240,11 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                 aam = AAM.load(aam_path)
             else:
                 aam = _fit_user_aam(root, items, labels, seed)
-                aam.save(aam_path)
+                try:
+                    aam.save(aam_path)
+                except OSError as exc:  # the featurisation workers read the AAM from this file
+                    raise ValueError(f"{aam_path}: cannot save the AAM fitted for this corpus ({exc}); "
+                                     f"make {root} writable or give a fitted AAM with aam=") from exc
             aam_files = sorted(p for p in root.iterdir() if p.name.startswith("aam") and p.is_file())
     key = _cache_key(items, aam_files, kind)
     cpath = root / _CACHE_NAME
@@ -276,7 +281,12 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
             arrays = {"key": np.array(key)}
             for n, (mf, vis, lab) in cached.items():
                 arrays[f"mfcc/{n}"], arrays[f"visual/{n}"], arrays[f"labels/{n}"] = mf, vis, lab
-            save_npz(cpath, **arrays)
+            try:
+                save_npz(cpath, **arrays)
+            except OSError as exc:  # a read-only or full corpus directory: keep the features
+                log.warning("%s: cannot write the feature cache (%s); the features computed now are "
+                            "used uncached and recomputed on the next load (cache=False skips this)",
+                            cpath, exc)
 
     # how the visual features were made, for method "oracle" (bayes_talk.evaluation.ceiling)
     gen = {"corpus_kind": kind, "aam_path": str(aam_path) if aam is not None else None}
