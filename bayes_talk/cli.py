@@ -211,7 +211,7 @@ outputs in --out (docs/outputs.md):
   posterior.nc     ArviZ InferenceData (az.from_netcdf; az.summary)
   bands.png        the first AAM parameters over time: mean, 50 %/90 % bands (+ --truth)
   uncertainty.mp4  mean face | per-pixel standard deviation of rendered draws (unless --no-video)
-  diagnostics.json with --posterior laplace|nuts|emcee
+  diagnostics.json with --posterior laplace|nuts|emcee|vi
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -405,8 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
     s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
                    help="initialiser (sgplvm: back-constraint = SGPLVM A, hmm = SGPLVM B)")
-    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee"), default=None,
-                   help="laplace (default for switching models)/nuts/emcee: the whole-utterance synthesis "
+    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee", "vi"), default=None,
+                   help="laplace (default for switching models)/nuts/emcee/vi: the whole-utterance synthesis "
                         "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
                         "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
                         "posterior.nc, bands.png)")

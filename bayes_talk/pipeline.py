@@ -272,7 +272,7 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
                         AudioSettings.from_dict(desc.get("audio"), where=str(d)), BandCalibration.load(d))
 
 
-POSTERIORS = ("map", "laplace", "nuts", "emcee")
+POSTERIORS = ("map", "laplace", "nuts", "emcee", "vi")
 #: every file name synth can write (docs/outputs.md)
 SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
                       "bands.npz", "diagnostics.json", "labels.lab", "posterior.nc", "bands.png",
@@ -289,7 +289,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
     posterior: for a switching model, the whole-utterance synthesis posterior by "laplace"
-    (the default), "nuts" or "emcee" (docs/uncertainty.md): the trajectory and variance are
+    (the default), "nuts", "emcee" or "vi" (docs/uncertainty.md): the trajectory and variance are
     the posterior mixture's mean and variance, and ``bands.npz`` (central 50 % and 90 %
     bands: lower50, upper50, lower90, upper90) and ``diagnostics.json`` (MAP convergence,
     R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path

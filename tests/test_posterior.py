@@ -18,6 +18,7 @@ from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
     energy_bfmi,
+    psis,
     psis_khat,
 )
 from bayes_talk.synthesis.joint import (
@@ -33,7 +34,7 @@ from bayes_talk.synthesis.posterior import (
     restart_map,
     sample_synthesis,
 )
-from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
+from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts, run_vi
 from bayes_talk.synthesis.segment_objective import numpy_gp
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
@@ -79,6 +80,20 @@ def test_laplace_is_exact_on_a_gaussian():
     d = run_laplace(gauss_lp, MU, n_draws=10, seed=0)
     np.testing.assert_allclose(d.stats["cov"], COV, rtol=1e-8)
     np.testing.assert_allclose(d.stats["mean"], MU)
+
+
+def test_vi_fits_a_known_gaussian():
+    """On a Gaussian target the full-rank Gaussian family contains p: VI started at N(0, I)
+    must reach its mean and covariance, and the importance weights p/q must be near constant."""
+    d = run_vi(gauss_lp, 2, n_draws=4000, seed=1, steps=1500, particles=4, lr=0.02)
+    x = d.samples[0]
+    np.testing.assert_allclose(x.mean(0), MU, atol=0.08)
+    np.testing.assert_allclose(np.cov(x.T), COV, rtol=0.1, atol=0.05)
+    lw = np.array([float(gauss_lp(torch.as_tensor(v))) for v in x[:400]]) - d.stats["log_q"][:400]
+    assert psis_khat(lw) < 0.5 and np.std(lw) < 0.2
+    assert d.stats["elbo_end"] > d.stats["elbo_start"] and d.stats["n_gradients"] >= 1500 * 4
+    again = run_vi(gauss_lp, 2, n_draws=50, seed=1, steps=200)
+    np.testing.assert_array_equal(again.samples, run_vi(gauss_lp, 2, n_draws=50, seed=1, steps=200).samples)
 
 
 def test_diagnostics_keys_and_rhat_near_one(gauss_draws):
@@ -139,6 +154,9 @@ def test_psis_khat_separates_good_and_bad_importance_proposals():
     bad = -np.log1p(z ** 2) + 0.5 * z ** 2
     assert psis_khat(good) < 0.5 < KHAT_MAX < psis_khat(bad)
     assert convergence_problems({"khat": psis_khat(bad)}) and not convergence_problems({"khat": psis_khat(good)})
+    # effective sample size of the smoothed weights: all of them for q = p, far fewer for the bad q
+    assert psis(np.zeros(400))[1] == pytest.approx(400.0)
+    assert 250 < psis(good)[1] < 400 and psis(bad)[1] < psis(good)[1]
 
 
 def test_diagnostics_flag_chains_that_disagree():
@@ -442,6 +460,22 @@ def test_mcmc_synthesis_runs_with_diagnostics(toy, method):
     assert r.warnings and any(f"{method} did not converge" in w for w in r.warnings)
     assert np.all(r.var >= r.gp_var)
     r2 = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method=method, n_draws=16, seed=0, **kw)
+    assert np.array_equal(r.latent_draws, r2.latent_draws)
+
+
+def test_vi_synthesis_reports_khat_and_its_elbo(toy):
+    model, test = toy
+    s = test[2]
+    kw = {"steps": 150, "particles": 2}
+    r = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method="vi", n_draws=16, seed=0, sampler_kw=kw)
+    assert r.method == "vi" and r.latent_draws.shape[:3] == (1, 16, 10)
+    d = r.diagnostics
+    assert {"khat", "khat_draws", "vi_elbo_start", "vi_elbo_end", "map_converged"} <= set(d)
+    # started at the Laplace approximation, which is already close on this small toy segment:
+    # the ELBO's change is within its Monte-Carlo noise here (it must rise on the Gaussian above)
+    assert d["khat_draws"] == 200 and np.isfinite(d["khat"]) and np.isfinite(d["vi_elbo_end"])
+    assert np.all(r.var >= r.gp_var) and np.all(np.isfinite(r.mean))
+    r2 = sample_synthesis(model, s.mfcc[:10], s.labels[:10], method="vi", n_draws=16, seed=0, sampler_kw=kw)
     assert np.array_equal(r.latent_draws, r2.latent_draws)
 
 

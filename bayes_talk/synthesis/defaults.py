@@ -12,7 +12,10 @@ from __future__ import annotations
 NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10}
 #: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
-                 "emcee": 320}
+                 "emcee": 320, "vi": 64}
+#: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
+#: particles per step, Adam's learning rate (decayed tenfold over the steps)
+VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
 #: emcee burn-in steps
 EMCEE_WARMUP = 500
 
@@ -21,7 +24,7 @@ def draws_help() -> str:
     """The default draws of each sampler as the CLI's ``--draws`` help states them."""
     n = NUTS_DEFAULTS
     return (f"default: laplace {DEFAULT_DRAWS['laplace']}, nuts {n['chains']} x {n['draws_per_chain']}, "
-            f"emcee {DEFAULT_DRAWS['emcee']}")
+            f"emcee {DEFAULT_DRAWS['emcee']}, vi {DEFAULT_DRAWS['vi']}")
 
 
-__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "draws_help"]
+__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "VI_DEFAULTS", "draws_help"]

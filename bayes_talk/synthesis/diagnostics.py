@@ -10,7 +10,8 @@ makes is here (``bayes_talk.evaluation.diagnostics`` re-exports this module for 
 * :func:`energy_bfmi` - the energy Bayesian fraction of missing information per chain
   (``arviz.bfmi``, Betancourt 2016): Σ(E_n − E_{n−1})² / Σ(E_n − Ē)² of the Hamiltonian at
   each NUTS iteration; below 0.3 the momentum resampling does not explore the energy levels.
-* :func:`psis_khat` - the Pareto shape k̂ of importance weights (``arviz.psislw``,
+* :func:`psis` / :func:`psis_khat` - the Pareto shape k̂ (and the effective sample size
+  1/Σ w̃² of the smoothed weights) of importance weights (``arviz.psislw``,
   Vehtari et al. 2024): for draws x_s of an approximation q (Laplace, VI) of p, the log
   weights ln p(x_s) − ln q(x_s); k̂ ≤ 0.7 means importance sampling from q, and so q
   itself for expectations of moderate functions, is reliable; above 0.7 it is not.
@@ -112,17 +113,27 @@ def energy_bfmi(energy: np.ndarray) -> np.ndarray:
     return np.asarray(az.bfmi(e), dtype=float).reshape(e.shape[0])
 
 
-def psis_khat(log_weights: np.ndarray) -> float:
-    """Pareto k̂ of the importance log weights (n,) = ln p(x_s) − ln q(x_s) (constants free)."""
+def psis(log_weights: np.ndarray) -> tuple[float, float]:
+    """(Pareto k̂, effective sample size) of the importance log weights (n,) =
+    ln p(x_s) − ln q(x_s) (constants free), by PSIS (``az.psislw``; Vehtari et al. 2024):
+    ESS = 1 / Σ w̃², w̃ the smoothed, normalised weights. With k̂ > 0.7 neither the
+    estimates nor this ESS are reliable."""
     lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
     if lw.size < 10:
         raise ValueError(f"need at least 10 importance weights for PSIS, got {lw.size}")
     if not np.all(np.isfinite(lw)):
-        return float("inf")
+        return float("inf"), 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # ArviZ warns when k̂ > 0.7: the caller reports it
-        _, k = az.psislw(lw)
-    return float(np.asarray(k).reshape(()))
+        lw_s, k = az.psislw(lw)
+    w = np.exp(np.asarray(lw_s, dtype=np.float64) - np.max(lw_s))
+    w /= w.sum()
+    return float(np.asarray(k).reshape(())), float(1.0 / np.sum(w * w))
+
+
+def psis_khat(log_weights: np.ndarray) -> float:
+    """Pareto k̂ of the importance log weights (n,) = ln p(x_s) − ln q(x_s) (:func:`psis`)."""
+    return psis(log_weights)[0]
 
 
 def convergence_problems(diag: dict) -> list[str]:
@@ -166,4 +177,4 @@ def inference_data(posterior: dict, sample_stats: dict | None = None, observed_d
 
 
 __all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
-           "convergence_problems", "energy_bfmi", "inference_data", "psis_khat"]
+           "convergence_problems", "energy_bfmi", "inference_data", "psis", "psis_khat"]

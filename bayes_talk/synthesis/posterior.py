@@ -1,6 +1,6 @@
-"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS and emcee (DESIGN.md §6).
+"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS, emcee and VI (DESIGN.md §6).
 
-All four read one density, the whole-utterance synthesis model of
+All five read one density, the whole-utterance synthesis model of
 :mod:`bayes_talk.synthesis.joint` (every segment's latents jointly: entry distributions,
 each state's dynamics, the audio GP, the smoothness factors across state changes, and
 adjacent blocks of one state model linked by its dynamics), through its closed-form numpy
@@ -26,9 +26,14 @@ their trained MAP values.
 4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
    run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
+5. **vi**: variational inference (Pyro SVI, :func:`~bayes_talk.synthesis.samplers.run_vi`):
+   a full-rank Gaussian on the same z, started at the Laplace approximation (m = 0,
+   S = I) and fitted by the ELBO (1000 steps × 4 particles,
+   :data:`~bayes_talk.synthesis.defaults.VI_DEFAULTS`); iid draws of q, judged like Laplace
+   by PSIS k̂ of p/q. A middle ground in cost between Laplace and the samplers.
 
 Every run reports rank R-hat, bulk/tail ESS and MCSE (NUTS, emcee), divergences, step
-size, tree depth, the acceptance statistic and E-BFMI (NUTS), k̂ (Laplace), and one
+size, tree depth, the acceptance statistic and E-BFMI (NUTS), k̂ (Laplace, VI), and one
 warning naming the failed thresholds (:func:`_convergence_warnings`).
 
 The visual prediction of frame t is the mixture over draws s of
@@ -53,7 +58,7 @@ from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
     energy_bfmi,
-    psis_khat,
+    psis,
 )
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult: re-exported
@@ -69,7 +74,14 @@ from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult
     restart_map,
 )
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
-from bayes_talk.synthesis.samplers import INIT_SCALE, NUTS_DEFAULTS, Draws, run_emcee, run_nuts
+from bayes_talk.synthesis.samplers import (
+    INIT_SCALE,
+    NUTS_DEFAULTS,
+    Draws,
+    run_emcee,
+    run_nuts,
+    run_vi,
+)
 from bayes_talk.synthesis.sequential import _check_inputs, synthesize
 
 if TYPE_CHECKING:
@@ -77,7 +89,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee")
+POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee", "vi")
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
 LAPLACE_KHAT_DRAWS = 200
 #: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
@@ -123,7 +135,7 @@ def sample_synthesis(
         :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP and Laplace).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
-        laplace: ``khat_draws`` (200)).
+        laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     """
     if method not in POSTERIOR_METHODS:
@@ -227,6 +239,19 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Xall = x_map[None] + Z @ L.T
         Xs = Xall[None, :n_draws]
         diag.update(_laplace_diagnostics(dens, Xall, Z))
+    elif method == "vi":
+        g = _Whitened(dens, x_map, L)
+        n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
+        draws = run_vi(g, T * d, n_draws=n_k, seed=seed, **skw)
+        Xall = g.to_x(draws.samples[0])
+        Xs = Xall[None, :n_draws]
+        lp = np.concatenate([dens.values(Xall[i:i + KHAT_CHUNK]) for i in range(0, n_k, KHAT_CHUNK)])
+        st = draws.stats
+        khat, ess = psis(lp - st["log_q"])
+        diag.update({"khat": khat, "psis_ess": ess, "khat_draws": n_k, "vi_steps": st["steps"],
+                     "vi_particles": st["particles"], "vi_elbo_start": st["elbo_start"],
+                     "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
+                     "sampler_seconds": float(draws.seconds)})
     else:
         g = _Whitened(dens, x_map, L)
         if method == "nuts":
@@ -281,7 +306,8 @@ def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -
     # in chunks through UtteranceDensity.values (value only, all draws' rows of a GP in one run)
     lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
     lw = lp + 0.5 * np.sum(Z * Z, axis=1)
-    return {"khat": psis_khat(lw), "khat_draws": len(lw)}
+    khat, ess = psis(lw)
+    return {"khat": khat, "psis_ess": ess, "khat_draws": len(lw)}
 
 
 def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
@@ -332,7 +358,9 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
                          "the approximation; --posterior nuts explores more but may not converge either",
               "nuts": "run more draws/warm-up (or raise the target acceptance for divergences); chains "
                       "in different modes of a multimodal posterior will not agree",
-              "emcee": "run it longer (max_steps) or use --posterior nuts"}.get(method, "")
+              "emcee": "run it longer (max_steps) or use --posterior nuts",
+              "vi": "the Gaussian q fitted within one mode is a poor importance proposal here (the "
+                    "posterior is multimodal and non-Gaussian); more steps will not change that"}.get(method, "")
     return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; " + advice]
 
 
