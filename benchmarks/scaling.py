@@ -133,16 +133,19 @@ def _rss_child(args: argparse.Namespace) -> None:
                       "train_seconds": {n: e["train_seconds"] for n, e in res["methods"].items()}}))
 
 
-def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.CompletedProcess, float]:
-    """Run ``cmd`` to completion; meanwhile sum the RSS of its whole process tree every
-    ``every_s`` seconds (psutil). Returns the completed process and the largest sum (MB):
-    a lower bound of the tree's true peak (a spike between samples is missed)."""
+def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.CompletedProcess, float, float]:
+    """Run ``cmd`` to completion; meanwhile sum the RSS, and the PSS, of its whole process
+    tree every ``every_s`` seconds (psutil). Returns the completed process and the largest
+    sums (MB). RSS counts a page shared by a forked child and its parent twice; PSS
+    (proportional set size) splits it between them, so the PSS sum is the tree's real
+    footprint at the sample. Both are lower bounds of the true peak (a spike between
+    samples is missed)."""
     import threading
 
     import psutil
 
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-    peak = [0.0]
+    peak = [0.0, 0.0]
     done = threading.Event()
 
     def sample() -> None:
@@ -151,7 +154,7 @@ def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.
         except psutil.NoSuchProcess:
             return
         while not done.is_set():
-            total = 0
+            total, pss = 0, 0
             try:
                 procs = [root, *root.children(recursive=True)]
             except psutil.NoSuchProcess:
@@ -159,9 +162,11 @@ def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.
             for q in procs:
                 try:
                     total += q.memory_info().rss
-                except psutil.NoSuchProcess:
+                    pss += getattr(q.memory_full_info(), "pss", 0)
+                except (psutil.NoSuchProcess, psutil.AccessDenied):
                     pass
             peak[0] = max(peak[0], total / 2**20)
+            peak[1] = max(peak[1], pss / 2**20)
             done.wait(every_s)
 
     t = threading.Thread(target=sample, daemon=True)
@@ -169,7 +174,7 @@ def _run_sampling_rss(cmd: list[str], every_s: float = 0.5) -> tuple[subprocess.
     stdout, stderr = proc.communicate()
     done.set()
     t.join()
-    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr), round(peak[0], 1)
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr), round(peak[0], 1), round(peak[1], 1)
 
 
 def peak_rss_section(args: argparse.Namespace) -> dict:
@@ -179,7 +184,10 @@ def peak_rss_section(args: argparse.Namespace) -> dict:
                          "(children_mb); peak_upper_bound_mb = self + workers x largest child (at most "
                          "`workers` children run at once); peak_tree_sampled_mb = the largest sum of the "
                          "RSS of the child and all its descendants, sampled every 0.5 s (psutil): a lower "
-                         "bound of the true peak"),
+                         "bound of the true peak; peak_tree_pss_sampled_mb = the same with PSS (a page "
+                         "shared by a forked child and its parent counted once). With --executor local "
+                         "the largest child is a fork whose ru_maxrss starts at the parent's high-water "
+                         "mark, so the upper bound double-counts: read self_mb and the PSS figure"),
                  "goal_deena2009_mb": 2048, "before": {"deena2009": {"peak_mb": 4600, "wall_s": 23 * 60}},
                  "protocols": {}}
     for proto in args.protocols.split(","):
@@ -188,7 +196,7 @@ def peak_rss_section(args: argparse.Namespace) -> dict:
         cmd = [sys.executable, str(Path(__file__).resolve()), "--rss-child", proto, "--corpus", args.corpus,
                "--executor", args.executor, "--workers", str(args.workers),
                "--repeats", str(args.repeats or 0)] + (["--quick"] if args.quick else [])
-        r, tree_mb = _run_sampling_rss(cmd)
+        r, tree_mb, tree_pss_mb = _run_sampling_rss(cmd)
         if r.returncode != 0:
             raise SystemExit(f"{proto}: evaluate failed:\n{r.stderr[-3000:]}")
         got = json.loads(r.stdout.strip().splitlines()[-1])
@@ -197,6 +205,7 @@ def peak_rss_section(args: argparse.Namespace) -> dict:
         got["workers"] = n_at_once
         got["peak_upper_bound_mb"] = round(got["self_mb"] + n_at_once * got["children_mb"], 1)
         got["peak_tree_sampled_mb"] = tree_mb
+        got["peak_tree_pss_sampled_mb"] = tree_pss_mb
         got["loadavg_start"], got["loadavg_end"] = load0, _load()
         if proto == "deena2009" and not args.quick and not args.repeats:  # the goal is the full protocol's
             got["within_goal"] = got["peak_upper_bound_mb"] <= out["goal_deena2009_mb"]
