@@ -394,9 +394,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map":
         problems = list(res.warnings)
         if problems:
+            # each warning names its failed checks and what to try (posterior._convergence_warnings);
+            # more draws help the samplers, not an approximation's k̂ (laplace, vi)
             log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
-                        "unreliable; raise --draws%s", posterior, "; ".join(problems),
-                        "" if posterior == "laplace" else " or use --posterior laplace")
+                        "unreliable%s", posterior, "; ".join(problems),
+                        "; raise --draws or --warmup" if posterior in ("nuts", "emcee") else "")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
                                                 "diagnostics": res.diagnostics})

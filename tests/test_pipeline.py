@@ -55,6 +55,31 @@ def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_
     assert (out / "trajectory.npy").stat().st_mtime_ns == before
 
 
+def test_synth_with_vi_writes_its_diagnostics_and_says_when_it_is_unreliable(model_dir, corpus_dir, tmp_path,
+                                                                             monkeypatch, caplog):
+    import functools
+    import logging
+
+    import bayes_talk.synthesis.posterior as post
+
+    monkeypatch.setattr(post, "run_vi", functools.partial(post.run_vi, steps=60, particles=2))  # fast
+    wav, lab = _first_utterance(corpus_dir)
+    out = tmp_path / "vi"
+    with caplog.at_level(logging.WARNING):
+        assert main(["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--no-video",
+                     "--posterior", "vi", "--draws", "16", "--out", str(out)]) == 0
+    diag = json.loads((out / "diagnostics.json").read_text())
+    assert diag["method"] == "vi" and diag["n_draws"] == 16
+    d = diag["diagnostics"]
+    assert {"khat", "psis_ess", "vi_elbo_start", "vi_elbo_end", "vi_steps"} <= set(d) and d["vi_steps"] == 60
+    assert diag["converged"] == (d["khat"] <= 0.7)
+    if not diag["converged"]:  # where the user looks: the log, naming k̂, without "raise --draws"
+        msg = [r.getMessage() for r in caplog.records if "did not converge" in r.getMessage()]
+        assert msg and "k̂" in msg[0] and "--draws" not in msg[0]
+    with np.load(out / "bands.npz") as b:
+        assert np.all(b["lower90"] <= b["upper90"])
+
+
 def test_synth_post_filters_the_mean_by_default_and_moves_the_bands_with_it(model_dir, corpus_dir, tmp_path):
     from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
 
