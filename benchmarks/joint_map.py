@@ -37,7 +37,7 @@ from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.posterior import (
     _floored_precision,
-    _laplace_diagnostics,
+    _psis_diagnostics,
     maximise_utterance,
 )
 from bayes_talk.synthesis.sequential import synthesize
@@ -95,7 +95,8 @@ def main() -> None:
             rng = np.random.default_rng(args.seed)
             Z = rng.standard_normal((max(args.khat_draws, args.restarts), x.size))
             if args.khat_draws:
-                row["khat"] = _laplace_diagnostics(dens, x[None] + Z[:args.khat_draws] @ L.T, Z[:args.khat_draws])["khat"]
+                Zk = Z[:args.khat_draws]
+                row["khat"] = _psis_diagnostics(dens, x[None] + Zk @ L.T, -0.5 * np.sum(Zk * Zk, axis=1))["khat"]
             restarts = []
             for k in range(args.restarts):
                 r, mk = _map_row(dens, (x + L @ Z[k]).reshape(plan.n_frames, -1))

@@ -132,7 +132,7 @@ def sample_synthesis(
         path is the start).
     map_restarts: restarts of the joint MAP per round from draws of its Laplace
         approximation, keeping the highest mode (:func:`restart_map`; default
-        :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP and Laplace).
+        :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP, Laplace and VI).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
@@ -238,17 +238,16 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Z = rng.standard_normal((max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS))), T * d))
         Xall = x_map[None] + Z @ L.T
         Xs = Xall[None, :n_draws]
-        diag.update(_laplace_diagnostics(dens, Xall, Z))
+        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1)))  # ln q up to a constant
     elif method == "vi":
         g = _Whitened(dens, x_map, L)
         n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
         draws = run_vi(g, T * d, n_draws=n_k, seed=seed, **skw)
         Xall = g.to_x(draws.samples[0])
         Xs = Xall[None, :n_draws]
-        lp = np.concatenate([dens.values(Xall[i:i + KHAT_CHUNK]) for i in range(0, n_k, KHAT_CHUNK)])
         st = draws.stats
-        khat, ess = psis(lp - st["log_q"])
-        diag.update({"khat": khat, "psis_ess": ess, "khat_draws": n_k, "vi_steps": st["steps"],
+        diag.update(_psis_diagnostics(dens, Xall, st["log_q"]))
+        diag.update({"vi_steps": st["steps"],
                      "vi_particles": st["particles"], "vi_elbo_start": st["elbo_start"],
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
                      "sampler_seconds": float(draws.seconds)})
@@ -300,14 +299,14 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 KHAT_CHUNK = 50
 
 
-def _laplace_diagnostics(dens: UtteranceDensity, X: np.ndarray, Z: np.ndarray) -> dict:
-    """PSIS k̂ of the Laplace approximation q = N(x_MAP, L Lᵀ) to p from draws x_s = x_MAP + L z_s:
-    log weights ln p(x_s) − ln q(x_s) = ln p(x_s) + ½‖z_s‖² + const (Vehtari et al. 2024)."""
-    # in chunks through UtteranceDensity.values (value only, all draws' rows of a GP in one run)
+def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray) -> dict:
+    """PSIS k̂ and ESS of an approximation q of p (Laplace, VI) from its draws X (S, T·d) and
+    their ln q (constants free): log weights ln p(x_s) − ln q(x_s) (Vehtari et al. 2024); ln p
+    in chunks through :meth:`UtteranceDensity.values` (value only, all draws' rows of a GP in
+    one run)."""
     lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
-    lw = lp + 0.5 * np.sum(Z * Z, axis=1)
-    khat, ess = psis(lw)
-    return {"khat": khat, "psis_ess": ess, "khat_draws": len(lw)}
+    khat, ess = psis(lp - log_q)
+    return {"khat": khat, "psis_ess": ess, "khat_draws": len(lp)}
 
 
 def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:

@@ -167,9 +167,9 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     ``mean_removal`` (default on, deena2010 §3.2): subtract each sequence's mean visual
     feature vector (recorded in ``meta["aam_mean"]``). ``cache``: derived features are
     stored in ``<path>/features.npz`` keyed by a SHA-256 of every input file, the AAM
-    and the feature settings; any change recomputes them (a directory that cannot be written
-to -- read-only, full -- gets a warning and the features are used uncached). For a user corpus with image
-    or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
+    and the feature settings; any change recomputes them (a directory that cannot be
+    written to -- read-only, full -- gets a warning and the features are used uncached).
+    For a user corpus with image or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
     offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
     sequences on, else none); the features do not depend on it. ``executor`` / ``scheduler``: as
