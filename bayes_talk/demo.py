@@ -2,8 +2,9 @@
 
 1. build (or reuse) a small built-in corpus in ``OUT/corpus``;
 2. hold out the last utterances, train the default model of ``train`` on the rest (the
-   switching SGPDM with right-context phone states, ``DEMO_MODEL``) and fit its band
-   calibration (mean shrinkage, scale, level map) on 20 % of the training utterances;
+   switching SGPDM with right-context phone states and ±2 frames of audio, ``DEMO_MODEL``)
+   and fit its band calibration (mean shrinkage, scale, level map) on 20 % of the training
+   utterances;
 3. synthesise the held-out sentences from their audio and phone labels: the default, what
    ``synth`` writes (the whole-utterance synthesis posterior, Laplace, calibrated, its mean
    post-filtered by the zero-phase 4 Hz low-pass of deena2010 §4.2.3), the same posterior

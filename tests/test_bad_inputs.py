@@ -75,16 +75,39 @@ def test_other_sample_rates_are_resampled_to_the_models_and_logged(corpus_dir, m
             caplog.clear()
             assert _feature_ratio(wav, lab, p, silent) < 0.1
         assert any(f"{rate} Hz audio resampled to {sr} Hz" in r.getMessage() for r in caplog.records)
-    # end to end: the synthesised trajectory barely moves (it moved as much as with silence)
+    _resampled_synthesis_barely_moves(model_dir, wav, lab, tmp_path / "r44100.wav", silent, tmp_path)
+
+
+def _resampled_synthesis_barely_moves(model_dir: Path, wav: Path, lab: Path, resampled: Path, silent: Path,
+                                      tmp_path: Path) -> None:
+    """End to end: the synthesised trajectory from resampled audio moves < 10 % of what
+    silence moves it."""
     outs = {}
-    for name, path in (("orig", wav), ("r44", tmp_path / "r44100.wav"), ("silent", silent)):
+    for name, path in (("orig", wav), ("resampled", resampled), ("silent", silent)):
         out = tmp_path / f"o_{name}"
         assert main(["-q", "synth", str(model_dir), "--audio", str(path), "--labels", str(lab),
                      "--out", str(out), "--no-video", "--algorithm", "predict"]) == 0
         outs[name] = np.load(out / "trajectory.npy")
     T = min(len(v) for v in outs.values())
-    d = {k: np.sqrt(np.mean((outs[k][:T] - outs["orig"][:T]) ** 2)) for k in ("r44", "silent")}
-    assert d["r44"] < 0.1 * d["silent"]
+    d = {k: np.sqrt(np.mean((outs[k][:T] - outs["orig"][:T]) ** 2)) for k in ("resampled", "silent")}
+    assert d["resampled"] < 0.1 * d["silent"]
+
+
+def test_resampled_audio_barely_moves_the_default_models_audio_context(corpus_dir, tmp_path):
+    """The same robustness with the default family's audio context window (±2 frames,
+    registry.FAMILY_DEFAULTS): the spliced, PCA-reduced MFCCs must not amplify the
+    resampling's small feature change."""
+    from bayes_talk.pipeline import DEFAULT_MODEL, train
+
+    model = tmp_path / "model"
+    train(corpus_dir, DEFAULT_MODEL, model, workers=1, **SMALL)
+    assert json.loads((model / "model.json").read_text())["config"]["audio_context"] == 2
+    wav, lab = _utt(corpus_dir)
+    y, sr = sf.read(wav, dtype="float64")
+    silent, r44 = tmp_path / "silent.wav", tmp_path / "r44100.wav"
+    sf.write(silent, np.zeros_like(y), sr)
+    sf.write(r44, resample(y, sr, 44100), 44100, subtype="FLOAT")
+    _resampled_synthesis_barely_moves(model, wav, lab, r44, silent, tmp_path)
 
 
 # --- row 2: gain and a one-sided stereo recording ---------------------------------------

@@ -123,3 +123,17 @@ def test_swapped_or_truncated_file_refuses_to_load_naming_it(name, fitted, data,
     target.write_bytes(backup[: len(backup) // 2])  # half-written
     with pytest.raises(ValueError, match=target.name):
         cls.load(tmp_path / "a" / "m")
+
+
+def test_the_default_family_sets_its_audio_context_and_the_paper_families_do_not():
+    """ssgpdm-phone-rc (the default model) sees ±2 frames of audio unless told otherwise;
+    deena2010's families keep the paper's per-frame audio."""
+    from bayes_talk.pipeline import DEFAULT_MODEL
+
+    assert DEFAULT_MODEL == "ssgpdm-phone-rc"
+    assert make_estimator(DEFAULT_MODEL).audio_context == 2
+    assert make_estimator(DEFAULT_MODEL, audio_context=0).audio_context == 0
+    for paper in ("ssgpdm-vlmm", "ssgpdm-phone"):
+        assert make_estimator(paper).audio_context == 0
+    with pytest.raises(ValueError, match="fixed by the family name"):
+        make_estimator(DEFAULT_MODEL, right_context=False)

@@ -6,6 +6,7 @@ training AAM; writes OUT_PREFIX.json (the evaluate result) and OUT_PREFIX.npz (e
 prediction with its truth).
 
 Usage: python benchmarks/analysis/heldout_default_model.py OUT_PREFIX METHODS [AUDIO_CONTEXT]
+(AUDIO_CONTEXT given: every ssgpdm-* family is trained with it; omitted: each family's own.)
 e.g. ... /tmp/final ssgpdm-phone-rc-posterior,ssgpdm-phone-rc-optimise,hmm-mean,voice-puppetry,zero
 (22 min wall at load 3-5)."""
 import json
@@ -27,8 +28,11 @@ def predict(name, model, seq, cfg):
     REC[(name, seq.name)] = (np.asarray(p.mean), seq.aam.copy(), None if p.raw is None else np.asarray(p.raw.mean))
     return p
 harness.predict = predict
-K = int(sys.argv[3]) if len(sys.argv) > 3 else 0
-use_audio_context(K)
+# AUDIO_CONTEXT: every ssgpdm-* family trained with this audio context (0: none); omitted,
+# each family keeps its own (the default family ssgpdm-phone-rc: 2, registry.FAMILY_DEFAULTS)
+K = int(sys.argv[3]) if len(sys.argv) > 3 else None
+if K is not None:
+    use_audio_context(K)
 out = sys.argv[1]; methods = sys.argv[2].split(",")
 t0 = time.time()
 tr = load_corpus("/work/data/v2/train250", cmvn="mean")
