@@ -15,7 +15,9 @@ ssgpdm-vlmm-posterior       ssgpdm-vlmm         ours: mean and variance of the w
                                                 synthesis posterior (Laplace), VLMM states
 ssgpdm-phone-posterior      ssgpdm-phone        the same with phone states
 ssgpdm-vlmm-rc-posterior    ssgpdm-vlmm-rc      the posterior with right-context (anticipatory)
-ssgpdm-phone-rc-posterior   ssgpdm-phone-rc     states, bayes_talk.models.right_context
+ssgpdm-phone-rc-posterior   ssgpdm-phone-rc     states, bayes_talk.models.right_context (the
+                                                phone-rc family, the default model, also sees
+                                                ±2 frames of audio: registry.FAMILY_DEFAULTS)
 ssgpdm-vlmm-rc-optimise     ssgpdm-vlmm-rc      Algorithm 1 with right-context states
 ssgpdm-phone-rc-optimise    ssgpdm-phone-rc
 sgplvm-a                    sgplvm              deena2009, back-constraint initialiser
@@ -198,11 +200,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            True, {"posterior": "laplace"}),
     Method("ssgpdm-vlmm-rc-posterior", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, posterior (ours)", True,
            {"posterior": "laplace"}),
-    Method("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context, posterior (ours)",
+    Method("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, posterior (ours)",
            True, {"posterior": "laplace"}),
     Method("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation", True,
            {"algorithm": "optimise"}),
-    Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context, seq. optimisation",
+    Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, seq. optimisation",
            True, {"algorithm": "optimise"}),
     Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
     Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
