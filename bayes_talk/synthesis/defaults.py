@@ -8,8 +8,11 @@ from __future__ import annotations
 
 #: NUTS defaults of the library and the CLI (docs/uncertainty.md "Sampler options"): chains,
 #: warm-up iterations per chain, draws kept per chain, target acceptance statistic of the
-#: step-size adaptation, max tree depth
-NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10}
+#: step-size adaptation, max tree depth, mode-jumping Metropolis attempts per displacement per
+#: iteration, warm-up iterations of the synthesis posterior's pilot phase (after which the
+#: modes the chains reached are searched for and turned into jumps; part of ``warmup``)
+NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10,
+                 "jump_attempts": 2, "pilot": 150}
 #: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
                  "emcee": 320, "vi": 64}

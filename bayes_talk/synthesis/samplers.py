@@ -9,7 +9,8 @@ statistics for :mod:`bayes_talk.synthesis.diagnostics`. Same seed -> same draws.
   adapted during warm-up; chains run one after another in this process (chain c seeded
   ``seed + c``), so there is no multiprocessing and the draws are reproducible. Every
   post-warm-up iteration's acceptance statistic, leapfrog steps, tree depth, divergence,
-  energy and ln p are recorded (``Draws.sample_stats``).
+  energy and ln p are recorded (``Draws.sample_stats``). Given displacements between known
+  modes, every iteration is followed by mode-jumping Metropolis moves (below).
 * :func:`run_emcee` - emcee's affine-invariant ensemble with a differential-evolution move
   mix (80 % ``DEMove``, 20 % ``DESnookerMove``: the default stretch move mixes badly on
   correlated, higher-dimensional targets, FACTS.md "Samplers"); walkers start in a small
@@ -83,11 +84,26 @@ class _RecordingNUTS:
     targets; Pyro's ``diagnostics()["acceptance rate"]`` is the fraction of iterations that
     moved, a different number), the number of leapfrog steps and the tree depth, whether
     the iteration diverged, the Hamiltonian energy after the momentum draw (for E-BFMI)
-    and ln p at the draw."""
+    and ln p at the draw.
+
+    Mode-jumping moves (``jumps``: (K, n) displacements δ_k, e.g. between the modes a
+    multi-start optimisation found; ``jump_attempts`` per displacement per iteration):
+    after each NUTS transition, propose z' = z + s δ_k with k uniform and s = ±1 with
+    probability ½ each, and accept with probability min(1, p(z')/p(z)). The proposal is
+    symmetric and does not depend on z, so the move leaves the target invariant (a
+    Metropolis kernel; composed with NUTS, the chain keeps its stationary distribution),
+    and it lets a chain cross between modes whose barrier NUTS cannot cross
+    (Tjelmeland & Hegstad 2001, "Mode jumping proposals in MCMC"). Runs in warm-up too;
+    recorded per iteration as ``jumps`` (accepted moves)."""
 
     @staticmethod
-    def make(potential, counter: list, **kw):
+    def make(potential, counter: list, jumps: np.ndarray | None = None, jump_attempts: int = 0,
+             rng: np.random.Generator | None = None, **kw):
         from pyro.infer.mcmc import NUTS
+        from pyro.ops.integrator import potential_grad
+
+        n_jump = 0 if jumps is None else len(jumps) * int(jump_attempts)
+        jump_t = None if jumps is None else torch.as_tensor(np.asarray(jumps, dtype=np.float64))
 
         class Kernel(NUTS):
             def _sample_r(self, name):
@@ -96,9 +112,25 @@ class _RecordingNUTS:
                     self._energy_now = float(self._kinetic_energy(r_unscaled)) + float(self._potential_energy_last)
                 return r, r_unscaled
 
+            def _jump(self, z):
+                accepted = 0
+                pe = float(self._potential_energy_last)
+                for _ in range(n_jump):
+                    k, sign = int(rng.integers(len(jump_t))), (1.0 if rng.random() < 0.5 else -1.0)
+                    z_new = {"x": z["x"] + sign * jump_t[k]}
+                    grads, pe_new = potential_grad(self.potential_fn, z_new)
+                    pe_new = float(pe_new)
+                    if np.isfinite(pe_new) and np.log(rng.random()) < pe - pe_new:
+                        z, pe, accepted = z_new, pe_new, accepted + 1
+                        self._cache(z, torch.as_tensor(pe, dtype=torch.float64), grads)
+                self.jump_counts[0] += n_jump
+                self.jump_counts[1] += accepted
+                return z, accepted
+
             def sample(self, params):
                 m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
                 z = super().sample(params)
+                z, accepted = self._jump(z) if n_jump else (z, 0)
                 if self._t == self._warmup_steps:
                     self.warmup_end = time.perf_counter()
                 if self._t > self._warmup_steps:
@@ -112,21 +144,28 @@ class _RecordingNUTS:
                     rec["diverging"].append(len(self._divergences) > n_div)
                     rec["energy"].append(self._energy_now)
                     rec["lp"].append(-float(self._potential_energy_last))
+                    rec["jumps"].append(accepted)
                 return z
 
         k = Kernel(potential_fn=potential, **kw)
         k.warmup_end = None
-        k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp")}
+        k.jump_counts = [0, 0]  # attempted, accepted (warm-up included)
+        k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp",
+                                         "jumps")}
         return k
 
 
 def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chain"],
              warmup: int = NUTS_DEFAULTS["warmup"], chains: int = 1, seed: int = 0,
              target_accept: float = NUTS_DEFAULTS["target_accept"],
-             max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"]) -> Draws:
+             max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"], jumps: np.ndarray | None = None,
+             jump_attempts: int = NUTS_DEFAULTS["jump_attempts"]) -> Draws:
     """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
     start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
     step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
+    ``jumps`` (K, n): displacements for mode-jumping Metropolis moves after every
+    iteration, ``jump_attempts`` per displacement (:class:`_RecordingNUTS`; chain c's move
+    draws seeded by (seed, c)).
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
@@ -140,7 +179,16 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
         raise ValueError(f"target_accept must be in (0, 1), got {target_accept}")
     if max_tree_depth < 1:
         raise ValueError(f"max_tree_depth must be >= 1, got {max_tree_depth}")
+    if jump_attempts < 0:
+        raise ValueError(f"jump_attempts must be >= 0, got {jump_attempts}")
     x0 = _as_tensor(x0)
+    if jumps is not None:
+        jumps = np.asarray(jumps, dtype=np.float64)
+        jumps = jumps.reshape(len(jumps), -1) if jumps.size else jumps.reshape(0, x0.shape[-1])
+        if jumps.ndim != 2 or jumps.shape[1] != x0.shape[-1] or not np.all(np.isfinite(jumps)):
+            raise ValueError(f"jumps must be finite, (K, {x0.shape[-1]}); got {jumps.shape}")
+        if len(jumps) == 0:
+            jumps = None
     if x0.ndim == 2 and x0.shape[0] != chains:
         raise ValueError(f"x0 holds {x0.shape[0]} starts for {chains} chains")
     counter = [0]
@@ -149,7 +197,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
         counter[0] += 1
         return -log_prob(params["x"])
 
-    out, steps, recs, warm_s = [], [], [], 0.0
+    out, steps, recs, jump_counts, warm_s = [], [], [], [], 0.0
     t0 = time.perf_counter()
     with torch_threads(1):
         for c in range(chains):
@@ -157,7 +205,8 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             start = (x0[c] if x0.ndim == 2 else x0).reshape(-1).clone()
             kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
                                          full_mass=False, target_accept_prob=target_accept,
-                                         max_tree_depth=max_tree_depth)
+                                         max_tree_depth=max_tree_depth, jumps=jumps, jump_attempts=jump_attempts,
+                                         rng=np.random.default_rng([seed, c, 0x6A756D70]))
             mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": start},
                         num_chains=1, disable_progbar=not progress.enabled())
             log.info("NUTS chain %d/%d: %d warm-up + %d draws", c + 1, chains, warmup, n_draws)
@@ -167,13 +216,16 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
             steps.append(float(kernel.step_size))
             recs.append(kernel.records)
+            jump_counts.append(kernel.jump_counts)
     ss = {k: np.array([r[k] for r in recs]) for k in recs[0]}
     ss["step_size"] = np.repeat(np.array(steps)[:, None], n_draws, axis=1)
     stats = {"divergences": [int(d.sum()) for d in ss["diverging"]], "step_size": steps,
              "accept_prob": [float(a.mean()) for a in ss["acceptance_rate"]],
              "max_tree_depth": int(max_tree_depth), "target_accept": float(target_accept),
              "max_tree_depth_hits": int(np.sum(ss["tree_depth"] >= max_tree_depth)),
-             "warmup": int(warmup), "n_gradients": int(counter[0]), "warmup_seconds": float(warm_s)}
+             "warmup": int(warmup), "n_gradients": int(counter[0]), "warmup_seconds": float(warm_s),
+             "n_jumps": 0 if jumps is None else len(jumps), "jump_attempts": [int(a) for a, _ in jump_counts],
+             "jumps_accepted": [int(b) for _, b in jump_counts]}
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
 
 
