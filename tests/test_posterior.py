@@ -36,8 +36,9 @@ from bayes_talk.synthesis.posterior import (
     restart_map,
     sample_synthesis,
 )
-from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts, run_vi
+from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
 from bayes_talk.synthesis.segment_objective import numpy_gp
+from bayes_talk.synthesis.variational import run_vi
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -480,15 +481,15 @@ def test_emcee_walkers_go_through_the_batched_density(toy):
     """emcee's walkers are evaluated in one batched, value-only call of the numpy twin, equal to one call
     per walker (the loop it replaces), with -inf kept for non-finite values."""
     from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-    from bayes_talk.synthesis.posterior import _Whitened
     from bayes_talk.synthesis.samplers import batch_log_prob
+    from bayes_talk.synthesis.whitening import Whitened
 
     model, test = toy
     s = test[0]
     dens = UtteranceDensity(make_plan(model, s.mfcc[:12], s.labels[:12], "frame"))
     n = dens.T * dens.d
     rng = np.random.default_rng(0)
-    g = _Whitened(dens, rng.standard_normal(n) * 0.1, np.diag(rng.uniform(0.05, 0.2, n)))
+    g = Whitened(dens, rng.standard_normal(n) * 0.1, np.diag(rng.uniform(0.05, 0.2, n)))
     Z = rng.standard_normal((7, n))
     f = batch_log_prob(g)
     calls, values = [], dens.values

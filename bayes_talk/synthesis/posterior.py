@@ -24,14 +24,14 @@ their trained MAP values.
    500 warm-up iterations, 250 draws per chain, target acceptance 0.8, tree depth ≤ 10
    (:data:`~bayes_talk.synthesis.samplers.NUTS_DEFAULTS`). The density is multimodal, so
    every NUTS iteration is followed by mode-jumping Metropolis moves along displacements
-   between known modes (:func:`~bayes_talk.synthesis.joint_map.mode_jumps`), and the first
+   between known modes (:func:`~bayes_talk.synthesis.mode_search.mode_jumps`), and the first
    150 warm-up iterations are a pilot: the MAP is then maximised from each chain's state,
    the highest mode found becomes the whitening point, and the jumps are rebuilt from all
-   modes found (:func:`_nuts_with_mode_search`).
+   modes found (:func:`~bayes_talk.synthesis.mode_search.nuts_with_mode_search`).
 4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
    run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
-5. **vi**: variational inference (Pyro SVI, :func:`~bayes_talk.synthesis.samplers.run_vi`):
+5. **vi**: variational inference (Pyro SVI, :func:`~bayes_talk.synthesis.variational.run_vi`):
    a full-rank Gaussian on the same z, started at the Laplace approximation (m = 0,
    S = I) and fitted by the ELBO (1000 steps × 4 particles,
    :data:`~bayes_talk.synthesis.defaults.VI_DEFAULTS`); iid draws of q, judged like Laplace
@@ -55,7 +55,6 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
@@ -76,19 +75,19 @@ from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult
     MapResult,
     _floored_precision,
     maximise_utterance,
-    mode_jumps,
     restart_map,
 )
+from bayes_talk.synthesis.mode_search import mode_jumps, nuts_with_mode_search
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import (
     INIT_SCALE,
     NUTS_DEFAULTS,
     Draws,
     run_emcee,
-    run_nuts,
-    run_vi,
 )
 from bayes_talk.synthesis.sequential import _check_inputs, synthesize
+from bayes_talk.synthesis.variational import run_vi
+from bayes_talk.synthesis.whitening import Whitened
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingModel as SwitchingSGPDM
@@ -171,45 +170,6 @@ def sample_synthesis(
     return res
 
 
-class _Potential(torch.autograd.Function):
-    """ln p(X_MAP + L z) and its gradient Lᵀ∇ln p from the numpy twin, as a torch function."""
-
-    @staticmethod
-    def forward(ctx, z, fn):
-        f, g = fn(z.detach().numpy())
-        ctx.save_for_backward(torch.as_tensor(g))
-        return torch.as_tensor(f, dtype=torch.float64)
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        (g,) = ctx.saved_tensors
-        return grad_out * g, None
-
-
-class _Whitened:
-    """z ↦ (ln p(X_MAP + L z), Lᵀ ∇ ln p) for the samplers."""
-
-    def __init__(self, dens: UtteranceDensity, x_map: np.ndarray, L: np.ndarray):
-        self.dens, self.x_map, self.L = dens, x_map.reshape(-1), L
-
-    def numpy(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        f, g = self.dens(self.x_map + self.L @ z)
-        return f, self.L.T @ g.reshape(-1)
-
-    def __call__(self, z: torch.Tensor) -> torch.Tensor:
-        if z.ndim == 2:  # a batch of walkers (emcee)
-            return torch.stack([self(zz) for zz in z])
-        return _Potential.apply(z, self.numpy)
-
-    def batch_numpy(self, Z: np.ndarray) -> np.ndarray:
-        """ln p(X_MAP + L z) for a batch Z (W, n) in one :meth:`UtteranceDensity.values` call
-        (emcee's walkers: no gradient needed)."""
-        return self.dens.values(self.to_x(np.asarray(Z, dtype=np.float64)))
-
-    def to_x(self, Z: np.ndarray) -> np.ndarray:
-        return self.x_map + Z @ self.L.T
-
-
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
             skw, map_restarts: int = 0) -> SynthesisResult:
     plan = make_plan(model, mfcc, labels, smoothness)
@@ -246,7 +206,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Xs = Xall[None, :n_draws]
         diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1)))  # ln q up to a constant
     elif method == "vi":
-        g = _Whitened(dens, x_map, L)
+        g = Whitened(dens, x_map, L)
         n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
         draws = run_vi(g, T * d, n_draws=n_k, seed=seed, **skw)
         Xall = g.to_x(draws.samples[0])
@@ -258,11 +218,11 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
                      "sampler_seconds": float(draws.seconds)})
     else:
-        g = _Whitened(dens, x_map, L)
+        g = Whitened(dens, x_map, L)
         if method == "nuts":
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
-            draws, mp, g, found = _nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
+            draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
                                                          chains, seed, map_iter, skw)
             x_map = g.x_map
             diag.update({"map_log_density": mp.log_density, "map_converged": mp.converged,
@@ -290,62 +250,6 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     zm, zv = visual_predictive(plan, Xs)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
                            warnings=warn, sample_stats=sample_stats)
-
-
-def _whitening(mp: MapResult) -> tuple[np.ndarray, np.ndarray]:
-    """L with L Lᵀ = (−∇² ln p)⁻¹ at the mode (floored eigenvalues) and its inverse L⁻¹."""
-    lam, U, _ = _floored_precision(mp.hessian)
-    return U / np.sqrt(lam), (U * np.sqrt(lam)).T
-
-
-def _nuts_with_mode_search(dens: UtteranceDensity, mp: MapResult, modes: list, z0: np.ndarray, per_chain: int,
-                           warmup: int, chains: int, seed: int, map_iter: int, skw: dict):
-    """NUTS with mode-jumping moves, the modes searched for in a pilot phase of the warm-up.
-
-    The chains run ``pilot`` (default ``NUTS_DEFAULTS["pilot"]``, at most a third of
-    ``warmup``) warm-up iterations from their overdispersed starts, with jumps between the modes the
-    restarts found; the joint MAP is then maximised from each chain's state. The modes the
-    chains reached are far above those the restarts find (a 3-s held-out utterance: ln p
-    −3158 … −3201 against −3217), so the highest of all becomes the whitening mode, and
-    :func:`mode_jumps` turns the differences from it into jumps. The chains go on from
-    their pilot states (re-expressed in the new whitening) for the rest of the warm-up and
-    the draws, with those jumps. Only the second phase's kernel yields draws, so it is a
-    fixed Markov kernel. Returns (draws with the pilot's gradients and seconds added, the
-    whitening mode, its :class:`_Whitened`, the modes maximised from the pilot states)."""
-    T, d = dens.T, dens.d
-    pilot = min(int(skw.pop("pilot", NUTS_DEFAULTS["pilot"])), warmup // 3)
-    L, Linv = _whitening(mp)
-    g = _Whitened(dens, mp.latents, L)
-    jumps = mode_jumps(mp, modes).reshape(-1, T * d) @ Linv.T
-    found: list = []
-    extra = {"n_gradients": 0, "warmup_seconds": 0.0, "jump_attempts": 0, "jumps_accepted": 0, "seconds": 0.0}
-    if pilot > 0:
-        t0 = time.perf_counter()
-        pd = run_nuts(g, z0, n_draws=1, warmup=pilot, chains=chains, seed=seed, jumps=jumps, **skw)
-        ends = g.to_x(pd.samples[:, -1])
-        found = [maximise_utterance(dens, e.reshape(T, d), max_iter=map_iter) for e in ends]
-        top = max([mp] + [r for r in found if r.converged], key=lambda r: r.log_density)
-        if top is not mp:
-            top.start_log_density = mp.start_log_density
-            mp = top
-            L, Linv = _whitening(mp)
-            g = _Whitened(dens, mp.latents, L)
-        z0 = (ends - g.x_map) @ Linv.T
-        jumps = mode_jumps(mp, list(modes) + found).reshape(-1, T * d) @ Linv.T
-        st = pd.stats
-        spent = time.perf_counter() - t0
-        extra = {"n_gradients": st["n_gradients"], "warmup_seconds": spent, "jump_attempts": sum(st["jump_attempts"]),
-                 "jumps_accepted": sum(st["jumps_accepted"]), "seconds": spent}
-    draws = run_nuts(g, z0, n_draws=per_chain, warmup=warmup - pilot, chains=chains, seed=seed + chains,
-                     jumps=jumps, **skw)
-    st = draws.stats
-    st["pilot"] = pilot
-    st["n_gradients"] += extra["n_gradients"]
-    st["warmup_seconds"] += extra["warmup_seconds"]
-    st["warmup"] = warmup
-    st["pilot_jump_attempts"], st["pilot_jumps_accepted"] = extra["jump_attempts"], extra["jumps_accepted"]
-    draws.seconds += extra["seconds"]
-    return draws, mp, g, found
 
 
 def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

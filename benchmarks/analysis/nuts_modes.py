@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from bayes_talk.data.corpus import load_corpus  # noqa: E402
-from bayes_talk.files import write_json  # noqa: E402
-from bayes_talk.pipeline import load_trained  # noqa: E402
-from bayes_talk.synthesis.joint import UtteranceDensity, make_plan  # noqa: E402
-from bayes_talk.synthesis.joint_density import LOG_2PI  # noqa: E402
-from bayes_talk.synthesis.joint_map import maximise_utterance  # noqa: E402
-from bayes_talk.synthesis.posterior import sample_synthesis, visual_predictive  # noqa: E402
+from bayes_talk.data.corpus import load_corpus
+from bayes_talk.files import write_json
+from bayes_talk.pipeline import load_trained
+from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
+from bayes_talk.synthesis.joint_density import LOG_2PI
+from bayes_talk.synthesis.joint_map import maximise_utterance
+from bayes_talk.synthesis.posterior import sample_synthesis, visual_predictive
 
 
 def terms(dens: UtteranceDensity, x: np.ndarray) -> dict:

@@ -1,0 +1,63 @@
+"""The synthesis posterior in whitened coordinates (DESIGN.md §6).
+
+Every sampler of :mod:`bayes_talk.synthesis.posterior` moves in z with X = X_MAP + L z, L Lᵀ
+the Laplace covariance (−∇² ln p)⁻¹ at a mode (:func:`whitening`): an affine map, so the
+target is unchanged, and close to N(0, I) where the Laplace approximation is good.
+:class:`Whitened` is ln p(X_MAP + L z) with its gradient from the numpy twin
+(:class:`~bayes_talk.synthesis.joint.UtteranceDensity`), as a torch function for Pyro.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from bayes_talk.synthesis.joint import UtteranceDensity
+from bayes_talk.synthesis.joint_map import MapResult, _floored_precision
+
+
+def whitening(mp: MapResult) -> tuple[np.ndarray, np.ndarray]:
+    """L with L Lᵀ = (−∇² ln p)⁻¹ at the mode (eigenvalues floored) and its inverse L⁻¹."""
+    lam, U, _ = _floored_precision(mp.hessian)
+    return U / np.sqrt(lam), (U * np.sqrt(lam)).T
+
+
+class Potential(torch.autograd.Function):
+    """ln p(X_MAP + L z) and its gradient Lᵀ∇ln p from the numpy twin, as a torch function."""
+
+    @staticmethod
+    def forward(ctx, z, fn):
+        f, g = fn(z.detach().numpy())
+        ctx.save_for_backward(torch.as_tensor(g))
+        return torch.as_tensor(f, dtype=torch.float64)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        (g,) = ctx.saved_tensors
+        return grad_out * g, None
+
+
+class Whitened:
+    """z ↦ (ln p(X_MAP + L z), Lᵀ ∇ ln p) for the samplers."""
+
+    def __init__(self, dens: UtteranceDensity, x_map: np.ndarray, L: np.ndarray):
+        self.dens, self.x_map, self.L = dens, x_map.reshape(-1), L
+
+    def numpy(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = self.dens(self.x_map + self.L @ z)
+        return f, self.L.T @ g.reshape(-1)
+
+    def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        if z.ndim == 2:  # a batch of walkers (emcee)
+            return torch.stack([self(zz) for zz in z])
+        return Potential.apply(z, self.numpy)
+
+    def batch_numpy(self, Z: np.ndarray) -> np.ndarray:
+        """ln p(X_MAP + L z) for a batch Z (W, n) in one :meth:`UtteranceDensity.values` call
+        (emcee's walkers: no gradient needed)."""
+        return self.dens.values(self.to_x(np.asarray(Z, dtype=np.float64)))
+
+    def to_x(self, Z: np.ndarray) -> np.ndarray:
+        return self.x_map + Z @ self.L.T
+
+
+__all__ = ["Potential", "Whitened", "whitening"]
