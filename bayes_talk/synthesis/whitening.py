@@ -26,12 +26,14 @@ class Potential(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, z, fn):
+        """ln p at z by ``fn`` (numpy: value and gradient); the gradient is kept for backward."""
         f, g = fn(z.detach().numpy())
         ctx.save_for_backward(torch.as_tensor(g))
         return torch.as_tensor(f, dtype=torch.float64)
 
     @staticmethod
     def backward(ctx, grad_out):
+        """The kept gradient times the incoming one (z only; ``fn`` has none)."""
         (g,) = ctx.saved_tensors
         return grad_out * g, None
 
@@ -43,6 +45,7 @@ class Whitened:
         self.dens, self.x_map, self.L = dens, x_map.reshape(-1), L
 
     def numpy(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """(ln p(X_MAP + L z), Lᵀ ∇ ln p) for one z (n,), in numpy."""
         f, g = self.dens(self.x_map + self.L @ z)
         return f, self.L.T @ g.reshape(-1)
 
@@ -57,6 +60,7 @@ class Whitened:
         return self.dens.values(self.to_x(np.asarray(Z, dtype=np.float64)))
 
     def to_x(self, Z: np.ndarray) -> np.ndarray:
+        """X_MAP + L z for every row of Z (..., n): whitened draws back to latents."""
         return self.x_map + Z @ self.L.T
 
 
