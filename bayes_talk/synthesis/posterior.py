@@ -218,18 +218,17 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
                      "sampler_seconds": float(draws.seconds)})
     else:
-        g = Whitened(dens, x_map, L)
         if method == "nuts":
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
             draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
                                                          chains, seed, map_iter, skw)
-            x_map = g.x_map
             diag.update({"map_log_density": mp.log_density, "map_converged": mp.converged,
                          "map_grad_norm": mp.grad_norm, "map_decrement": mp.decrement,
                          "hessian_modified": mp.hessian_modified,
                          "pilot_mode_log_densities": [r.log_density for r in found]})
         else:  # emcee
+            g = Whitened(dens, x_map, L)
             W = skw.pop("n_walkers", None) or max(32, 2 * T * d)
             W += W % 2
             n_keep = min(W, EMCEE_REPORTED_WALKERS)
