@@ -92,7 +92,7 @@ def nuts_with_mode_search(dens: UtteranceDensity, mp: MapResult, modes: list, z0
     g = Whitened(dens, mp.latents, L)
     jumps = mode_jumps(mp, modes).reshape(-1, T * d) @ Linv.T
     found: list = []
-    extra = {"n_gradients": 0, "warmup_seconds": 0.0, "jump_attempts": 0, "jumps_accepted": 0, "seconds": 0.0}
+    pilot_gradients, pilot_seconds = 0, 0.0
     if pilot > 0:
         t0 = time.perf_counter()
         pd = run_nuts(g, z0, n_draws=1, warmup=pilot, chains=chains, seed=seed, jumps=jumps, **skw)
@@ -106,19 +106,14 @@ def nuts_with_mode_search(dens: UtteranceDensity, mp: MapResult, modes: list, z0
             g = Whitened(dens, mp.latents, L)
         z0 = (ends - g.x_map) @ Linv.T
         jumps = mode_jumps(mp, list(modes) + found).reshape(-1, T * d) @ Linv.T
-        st = pd.stats
-        spent = time.perf_counter() - t0
-        extra = {"n_gradients": st["n_gradients"], "warmup_seconds": spent, "jump_attempts": sum(st["jump_attempts"]),
-                 "jumps_accepted": sum(st["jumps_accepted"]), "seconds": spent}
+        pilot_gradients, pilot_seconds = pd.stats["n_gradients"], time.perf_counter() - t0
     draws = run_nuts(g, z0, n_draws=per_chain, warmup=warmup - pilot, chains=chains, seed=seed + chains,
                      jumps=jumps, **skw)
     st = draws.stats
-    st["pilot"] = pilot
-    st["n_gradients"] += extra["n_gradients"]
-    st["warmup_seconds"] += extra["warmup_seconds"]
-    st["warmup"] = warmup
-    st["pilot_jump_attempts"], st["pilot_jumps_accepted"] = extra["jump_attempts"], extra["jumps_accepted"]
-    draws.seconds += extra["seconds"]
+    st["pilot"], st["warmup"] = pilot, warmup
+    st["n_gradients"] += pilot_gradients
+    st["warmup_seconds"] += pilot_seconds
+    draws.seconds += pilot_seconds
     return draws, mp, g, found
 
 
