@@ -2,15 +2,12 @@
 predictive, reproducibility, ArviZ diagnostics and band coverage on toy data."""
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 import torch
 from toydata import make_utterances
 
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.evaluation.metrics import coverage
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.diagnostics import (
     DIAGNOSTIC_KEYS,
@@ -424,21 +421,69 @@ def test_a_converged_joint_map_has_its_gradient_or_decrement_within_tolerance(to
         assert np.abs(g).max() <= MAP_GTOL or (lam[0] > 0 and decrement <= MAP_DTOL)
 
 
-def test_map_restarts_from_laplace_draws_find_a_higher_mode(toy):
-    """The joint density is multimodal: from a converged local mode (reached from a perturbed
-    start), restarts from two draws of its Laplace approximation find a converged mode at
-    least 1 nat higher (23 nats here), and ``restart_map`` keeps it."""
+def test_map_restarts_keep_the_highest_converged_mode_and_are_repeatable(toy):
+    """What ``restart_map`` guarantees, whatever the density's mode structure and the
+    machine's load: the result is the highest of the starting mode and the converged
+    restarts (never lower than the start), its log density is the density at its latents,
+    every restart is reported, and the same seed gives the same search bit for bit (the
+    search is chaotic, so this holds only because the thread count is fixed: MKL's dynamic
+    threading is off, :mod:`bayes_talk.gp.threads`). A different seed draws other starts."""
     model, test = toy
     s = test[2]
-    dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels))
-    X0 = model.synthesize(s.mfcc, s.labels).latents
     with torch_threads(1):
+        dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels))
+        X0 = model.synthesize(s.mfcc, s.labels).latents
         mp = maximise_utterance(dens, X0 + 0.1 * np.random.default_rng(2).standard_normal(X0.shape))
         best, found = restart_map(dens, mp, 2, seed=0, rounds=1)
+        again, found_again = restart_map(dens, mp, 2, seed=0, rounds=1)
+        _, found_other = restart_map(dens, mp, 2, seed=1, rounds=1)
         f, _ = dens(best.latents)
-    assert mp.converged and best.converged and len(found) == 2
-    assert best.log_density >= mp.log_density + 1.0 and f == pytest.approx(best.log_density, rel=1e-12)
-    assert best.log_density == max(r.log_density for r in found)
+    assert mp.converged and len(found) == 2
+    candidates = [mp] + [r for r in found if r.converged]
+    assert best.log_density == max(r.log_density for r in candidates) >= mp.log_density
+    assert f == pytest.approx(best.log_density, rel=1e-12)
+    assert best.log_density == again.log_density and np.array_equal(best.latents, again.latents)
+    assert [r.log_density for r in found] == [r.log_density for r in found_again]
+    assert not np.array_equal(found[0].latents, found_other[0].latents)
+
+
+def test_map_restarts_from_laplace_draws_climb_out_of_a_lower_mode():
+    """On a density with two known, separated modes, restarts from Laplace draws at the lower
+    mode reach the higher one (the search's purpose), deterministically: the lower mode's
+    Laplace spread covers the valley, so the draws fall on both sides."""
+    from bayes_talk.synthesis.joint_map import restart_map
+
+    class TwoModes:
+        """ln p(x) = ln(0.3 N(x; a, s²I) + 0.7 N(x; b, s²I)) on 3×2 latents, b − a = 2.8 s
+        along the first coordinate: two modes with a valley between them."""
+        T, d, s = 3, 2, 0.5
+        a, b = np.zeros(6), np.r_[1.4, np.zeros(5)]
+
+        def _parts(self, X):
+            x = np.asarray(X, float).reshape(-1)
+            mus, logw = (self.a, self.b), np.log([0.3, 0.7])
+            lc = np.array([lw - 0.5 * np.sum((x - m) ** 2) / self.s ** 2 for lw, m in zip(logw, mus)])
+            f = lc.max() + np.log(np.exp(lc - lc.max()).sum())
+            r = np.exp(lc - f)
+            gs = [-(x - m) / self.s ** 2 for m in mus]
+            return f, r, gs
+
+        def __call__(self, X):
+            f, r, gs = self._parts(X)
+            return f, (r[0] * gs[0] + r[1] * gs[1]).reshape(self.T, self.d)
+
+        def hessian(self, X):
+            _, r, gs = self._parts(X)
+            g = r[0] * gs[0] + r[1] * gs[1]
+            return (-np.eye(6) / self.s ** 2 + r[0] * np.outer(gs[0], gs[0])
+                    + r[1] * np.outer(gs[1], gs[1]) - np.outer(g, g))
+
+    dens = TwoModes()
+    start = maximise_utterance(dens, np.full((3, 2), -0.3))
+    assert start.converged and start.latents.reshape(-1)[0] < 0.5  # the lower mode, near a
+    best, found = restart_map(dens, start, 16, seed=0, rounds=2)
+    assert best.converged and np.abs(best.latents.reshape(-1) - dens.b).max() < 0.1  # the higher, near b
+    assert best.log_density >= start.log_density + 0.5 and len(found) >= 16
 
 
 def test_synthesis_does_not_depend_on_the_thread_count(toy):
@@ -547,24 +592,30 @@ def test_vi_synthesis_reports_khat_and_its_elbo(toy):
     assert np.array_equal(r.latent_draws, r2.latent_draws)
 
 
-def test_band_coverage_on_held_out_toy_data_is_monotone(toy):
+def test_bands_are_exact_mixture_quantiles_and_cover_held_out_toy_data_near_nominal(toy):
+    """Each band's edges are the mixture's (1 ∓ q)/2 quantiles (the mixture CDF there, summed
+    over the posterior's Gaussian components, equals (1 ∓ q)/2 to 1e-6), and on held-out toy
+    utterances (data of the model's own kind) the Laplace bands cover the truth within 0.1 of
+    their level (measured 0.54 / 0.80 / 0.88 / 0.94 at 50 / 80 / 90 / 95 %): a posterior half
+    as wide, or twice as wide, misses that."""
+    from scipy.stats import norm
+
     model, test = toy
     levels = (0.5, 0.8, 0.9, 0.95)
-    bands = {q: ([], []) for q in levels}
-    truth = []
+    inside = {q: [] for q in levels}
     for s in test[:2]:
         r = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=64, seed=0)
         q = r.quantiles(levels)
-        truth.append(s.aam)
+        m = r.draw_mean.reshape(-1, *r.mean.shape)
+        sd = np.sqrt(r.draw_var.reshape(-1, *r.mean.shape))
         for k in levels:
-            bands[k][0].append(q[k][0])
-            bands[k][1].append(q[k][1])
-    cov = [coverage(truth, *bands[k]) for k in levels]
-    print("coverage", dict(zip(levels, cov)))
-    assert all(0.0 <= c <= 1.0 for c in cov)
-    assert all(a <= b for a, b in itertools.pairwise(cov)) and cov[-1] > cov[0]
-    widths = [np.mean([np.mean(hi - lo) for lo, hi in zip(*bands[k])]) for k in levels]
-    assert all(a < b for a, b in itertools.pairwise(widths))
+            lo, hi = q[k]
+            np.testing.assert_allclose(norm.cdf((lo - m) / sd).mean(0), (1 - k) / 2, atol=1e-6)
+            np.testing.assert_allclose(norm.cdf((hi - m) / sd).mean(0), (1 + k) / 2, atol=1e-6)
+            inside[k].append(((s.aam >= lo) & (s.aam <= hi)).reshape(-1))
+    cov = {k: float(np.mean(np.concatenate(v))) for k, v in inside.items()}
+    print("coverage", cov)
+    assert all(abs(cov[k] - k) <= 0.1 for k in levels), cov
 
 
 def test_synth_cli_sampler_options_reach_sample_synthesis():

@@ -5,13 +5,52 @@ OpenBLAS's) threads cost more in synchronisation than they gain, and when other 
 share the cores they oversubscribe them (measured: synthesis 14x slower with 2 threads
 than with 1 under a load of 6 on 2 cores). Work on small matrices therefore runs inside
 :func:`torch_threads` (1 thread), and parallelism comes from processes instead.
+
+Results must not depend on the machine's load. MKL (torch's BLAS/LAPACK on x86-64) is
+"dynamic" by default: it may run a call on fewer threads than asked when the cores are
+busy, which changes the order of floating-point reductions, so the same computation gives
+results that differ in the last bits from one run to the next — enough to send a chaotic
+search (MAP restarts, L-BFGS on a multimodal density) to another mode. Importing this module
+switches that off (``mkl_set_dynamic(0)``, :func:`fix_mkl_thread_count`): MKL then runs on
+exactly the thread count torch was given, and a run with a given count is repeatable
+whatever the load. Code whose results must be bit-stable runs inside :func:`torch_threads`.
 """
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import logging
 from collections.abc import Iterator
+from pathlib import Path
 
 import torch
+
+log = logging.getLogger(__name__)
+
+
+def fix_mkl_thread_count() -> bool:
+    """Stop MKL from lowering its thread count under load (``mkl_set_dynamic(0)`` in the MKL
+    that torch's CPU library is linked with). Returns whether the call was made (False where
+    this torch build has no MKL, e.g. on ARM or macOS, where nothing adapts to load)."""
+    lib_dir = Path(torch.__file__).resolve().parent / "lib"
+    for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
+        path = lib_dir / name
+        if not path.exists():
+            continue
+        try:
+            lib = ctypes.CDLL(str(path))
+        except OSError:
+            return False
+        set_dynamic = getattr(lib, "MKL_Set_Dynamic", None)
+        if set_dynamic is None:
+            return False
+        set_dynamic(0)
+        log.debug("MKL dynamic threading switched off (%s)", path.name)
+        return True
+    return False
+
+
+MKL_THREADS_FIXED = fix_mkl_thread_count()
 
 
 @contextlib.contextmanager
