@@ -183,3 +183,60 @@ def test_mean_shrinkage_pulls_unpredicted_parameters_to_zero_and_lowers_the_erro
     (tmp_path / CALIBRATION_FILE).write_text(json.dumps(d))
     with pytest.raises(ValueError, match="mean_scale"):
         BandCalibration.load(tmp_path)
+
+
+def _with_spread(n, seed, informative, T=30, D=3):
+    """Gaussian predictives whose variance v_td varies 25-fold over entries; the truth's error
+    has variance v_td (``informative``: the posterior knows where it is unsure) or the
+    entries' average variance (the variance pattern carries nothing)."""
+    rng = np.random.default_rng(seed)
+    res, truths = [], []
+    for _ in range(n):
+        m = rng.normal(size=(T, D))
+        v = np.exp(rng.uniform(np.log(0.1), np.log(2.5), size=(T, D)))
+        err_var = v if informative else np.full_like(v, 0.8)
+        truths.append(m + np.sqrt(err_var) * rng.standard_normal((T, D)))
+        res.append(SynthesisResult.gaussian(m, v, method="laplace"))
+    return res, truths
+
+
+@pytest.mark.parametrize("informative", [True, False])
+def test_constant_band_control_is_beaten_only_by_an_informative_spread(informative):
+    """The control (the calibrated mean with one constant band per parameter, calibrated the
+    same way) has a constant variance over frames, equal to the held-out mean squared error
+    before its own calibration; a predictive whose variance tracks its error beats it on NLPD
+    and CRPS on fresh data, one whose variance pattern is noise does not."""
+    from bayes_talk.evaluation.calibration import (
+        control_verdict,
+        score_utterance,
+        summarise_calibration,
+    )
+
+    res, truths = _with_spread(80, seed=3, informative=informative)
+    cal = BandCalibration.fit(res, truths, method="laplace")
+    resid = np.concatenate([z - cal.apply(r).mean for r, z in zip(res, truths)])
+    np.testing.assert_allclose(cal.control_var, np.mean(resid ** 2, axis=0), rtol=1e-10)
+    fresh, fresh_truths = _with_spread(60, seed=4, informative=informative)
+    entry = {}
+    for key, make in (("calibration", cal.apply), ("calibration_control", cal.control_result)):
+        entry[key] = summarise_calibration([score_utterance(make(r), z) for r, z in zip(fresh, fresh_truths)])
+    c = cal.control_result(fresh[0])
+    np.testing.assert_allclose(c.mean, cal.apply(fresh[0]).mean, atol=1e-12)
+    lo, hi = c.interval(0.9)
+    np.testing.assert_allclose(hi - lo, np.broadcast_to((hi - lo)[0], lo.shape), rtol=1e-9)  # constant in t
+    v = control_verdict(entry)
+    assert v["beats"] is informative, v
+    assert (v["nlpd"]["difference"] < 0) is informative and (v["crps"]["difference"] < 0) is informative
+
+
+def test_control_survives_save_and_load_and_old_files_have_none(fitted, tmp_path):
+    cal, res, _ = fitted
+    cal.save(tmp_path)
+    back = BandCalibration.load(tmp_path)
+    np.testing.assert_array_equal(back.control_var, cal.control_var)
+    np.testing.assert_allclose(back.control_result(res[0]).interval(0.9), cal.control_result(res[0]).interval(0.9))
+    d = cal.to_dict()
+    d.update(version=3, control=None, control_var=None)
+    old = BandCalibration.from_dict(d)
+    with pytest.raises(ValueError, match="no constant-band control"):
+        old.control_result(res[0])

@@ -409,3 +409,14 @@ def test_harness_reports_calibration_and_calibrated_and_raw_posterior(gp_run):
     assert len(bc["level_raw"]) == traj.truth.shape[1]
     assert "## Calibration" in res["markdown_sections"][0] and "ssgpdm-vlmm-posterior (raw)" in \
         res["markdown_sections"][0]
+    # the constant-band control: the calibrated mean, one band per parameter over all frames
+    np.testing.assert_allclose(pred.control.mean, pred.result.mean, atol=1e-12)
+    lo, hi = pred.control.interval(0.9)
+    np.testing.assert_allclose(hi - lo, np.broadcast_to((hi - lo)[0], lo.shape), rtol=1e-9)
+    v = post["uncertainty_beats_control"]
+    assert post["calibration_control"]["n_utterances"] == 2
+    assert v["beats"] == (v["nlpd"]["difference"] < 0 and v["crps"]["difference"] < 0)
+    assert v["nlpd"]["control"] == post["calibration_control"]["nlpd"]["mean"]
+    assert "ssgpdm-vlmm-posterior (constant-band control)" in res["markdown_sections"][0]
+    assert f"ssgpdm-vlmm-posterior: its uncertainty {'beats' if v['beats'] else 'does NOT beat'}" in \
+        res["markdown_sections"][0]

@@ -55,11 +55,14 @@ from bayes_talk.evaluation.metrics import crps_gaussian_entries, crps_sample_ent
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
 __all__ = [
+    "CALIBRATION_KEYS",
     "CRPS_SAMPLES",
     "LEVELS",
     "PARAM_RANGE_90",
     "PIT_BINS",
     "UtteranceCalibration",
+    "calibration_tags",
+    "control_verdict",
     "markdown_calibration",
     "plot_calibration",
     "ratio_se",
@@ -75,6 +78,33 @@ PIT_BINS = 20
 CRPS_SAMPLES = 1000
 #: the issue's acceptance range for the per-parameter 90 % coverage
 PARAM_RANGE_90 = (0.80, 0.97)
+#: the predictives scored per method: as reported, before the band calibration, and the
+#: constant-band control (:func:`bayes_talk.evaluation.scoring.calibration_inputs`)
+CALIBRATION_KEYS: tuple[str, ...] = ("calibration", "calibration_raw", "calibration_control")
+_TAGS = {"calibration": "", "calibration_raw": " (raw)", "calibration_control": " (constant-band control)"}
+
+
+def calibration_tags() -> dict[str, str]:
+    """{calibration key: the suffix its rows carry in tables and figures}."""
+    return dict(_TAGS)
+
+
+def control_verdict(entry: Mapping[str, Any]) -> dict[str, Any] | None:
+    """Whether a method's reported predictive (``entry["calibration"]``) beats its
+    constant-band control (``entry["calibration_control"]``) on NLPD and on CRPS: the
+    per-entry means, their difference (method − control; negative = better) and each one's
+    standard error over utterances; ``beats`` is true only when both scores are lower.
+    None without a control."""
+    c, k = entry.get("calibration"), entry.get("calibration_control")
+    if not isinstance(c, Mapping) or not isinstance(k, Mapping):
+        return None
+    out: dict[str, Any] = {}
+    for key in ("nlpd", "crps"):
+        out[key] = {"method": c[key]["mean"], "control": k[key]["mean"],
+                    "difference": c[key]["mean"] - k[key]["mean"], "method_se": c[key]["se"],
+                    "control_se": k[key]["se"]}
+    out["beats"] = bool(out["nlpd"]["difference"] < 0 and out["crps"]["difference"] < 0)
+    return out
 
 
 @dataclass
@@ -196,8 +226,14 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
     of parameters inside the acceptance range, mixture NLPD, CRPS and the PIT KS distance."""
     rows = []
     levels: list[float] = []
+    verdicts = []
     for name, e in methods.items():
-        for key, tag in (("calibration", ""), ("calibration_raw", " (raw)")):
+        v = e.get("uncertainty_beats_control")
+        if isinstance(v, Mapping):
+            verdicts.append(f"- {name}: its uncertainty {'beats' if v['beats'] else 'does NOT beat'} the "
+                            f"constant-band control (NLPD {v['nlpd']['method']:.4g} vs {v['nlpd']['control']:.4g}, "
+                            f"CRPS {v['crps']['method']:.4g} vs {v['crps']['control']:.4g}).")
+        for key, tag in _TAGS.items():
             c = e.get(key)
             if isinstance(c, Mapping) and c.get("coverage"):
                 rows.append((name + tag, c))
@@ -211,7 +247,10 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
              "standard error over utterances; NLPD is the mixture's own log density per entry, CRPS "
              "per entry; PIT KS is the largest gap between the pooled PIT histogram's CDF and the "
              "uniform one. Rows marked (raw) are the same predictive before the band calibration "
-             "fitted on held-out training utterances (docs/uncertainty.md).\n")
+             "fitted on held-out training utterances (docs/uncertainty.md); rows marked (constant-band "
+             "control) have the calibrated mean with one constant band per AAM parameter, calibrated "
+             "the same way: a method whose NLPD and CRPS do not beat it says no more about its "
+             "uncertainty than a constant would.\n")
     lines = ["## Calibration\n", intro, "| " + " | ".join(head) + " |",
              "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
     for name, c in rows:
@@ -223,6 +262,8 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
             rng, "–" if frac is None else f"{frac:.2f}", f"{c['nlpd']['mean']:.4g}", f"{c['crps']['mean']:.4g}",
             f"{c['pit']['ks']:.3f}"]
         lines.append("| " + " | ".join(cells) + " |")
+    if verdicts:
+        lines += ["", *verdicts]
     return "\n".join(lines) + "\n"
 
 

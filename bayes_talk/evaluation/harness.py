@@ -21,8 +21,12 @@ mixture NLPD and CRPS. The ``*-posterior`` methods use a band calibration fitted
 held-out *training* utterances (``SystemConfig.band_calibration``, one extra fit per
 split: :func:`~bayes_talk.evaluation.systems.fit_band_calibration`; its seconds are
 added to ``train_seconds`` and reported as ``calibration_seconds``); their
-``calibration_raw`` scores the same predictive before it, and ``band_calibration``
-holds the fitted factors.
+``calibration_raw`` scores the same predictive before it, ``band_calibration``
+holds the fitted factors, ``calibration_control`` scores the constant-band control (the
+calibrated mean with a constant per-parameter band, calibrated the same way:
+:meth:`~bayes_talk.synthesis.band_calibration.BandCalibration.control_result`) and
+``uncertainty_beats_control`` says whether the calibrated predictive's NLPD and CRPS are
+below the control's (:func:`~bayes_talk.evaluation.calibration.control_verdict`).
 """
 from __future__ import annotations
 
@@ -163,7 +167,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
             train_s[fam] += calib_s[fam]
         for name in fam_methods:
             rows = []
-            cal_rows[name] = {"calibration": [], "calibration_raw": []}
+            cal_rows[name] = {k: [] for k in CAL.CALIBRATION_KEYS}
             synth_s[name], synth_frames[name] = 0.0, 0
             for j, seq in enumerate(test):
                 t0 = time.perf_counter()
@@ -239,7 +243,7 @@ def run_protocol(
     synth_s = {n: 0.0 for n in names}
     synth_frames = {n: 0 for n in names}
     calib_s = {f: 0.0 for f in families}
-    cal_rows: dict[str, dict[str, list]] = {n: {"calibration": [], "calibration_raw": []} for n in names}
+    cal_rows: dict[str, dict[str, list]] = {n: {k: [] for k in CAL.CALIBRATION_KEYS} for n in names}
     band_cal: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     t_start = time.perf_counter()
     jobs = [_SplitJob(split, len(splits), [pool[i] for i in split.train], [pool[i] for i in split.test],
@@ -282,6 +286,9 @@ def run_protocol(
         for key, sc in cal_rows[name].items():
             if sc:
                 entry[key] = CAL.summarise_calibration(sc)
+        verdict = CAL.control_verdict(entry)
+        if verdict is not None:
+            entry["uncertainty_beats_control"] = verdict
         if band_cal[name]:
             entry["band_calibration"] = band_cal[name]
             entry["calibration_seconds"] = calib_s[m.family]
@@ -421,7 +428,7 @@ def evaluate(
         report.plot_trajectories(traj, png_path, title=f"{result['description']} — first AAM parameter, "
                                  f"utterance {traj.utterance}")
         summaries = {f"{n}{tag}": e[k] for n, e in result["methods"].items()
-                     for k, tag in (("calibration", ""), ("calibration_raw", " (raw)")) if isinstance(e.get(k), dict)}
+                     for k, tag in CAL.calibration_tags().items() if isinstance(e.get(k), dict)}
         if summaries:
             from bayes_talk.evaluation.calibration import plot_calibration
 

@@ -69,8 +69,10 @@ def _clean(obj: Any) -> Any:
 
 
 def calibration_inputs(name: str, pred) -> dict[str, Any]:
-    """{"calibration": predictive, "calibration_raw": uncalibrated predictive} of a method
-    with a variance (a Gaussian SynthesisResult where the method gives mean and variance only)."""
+    """{"calibration": predictive, "calibration_raw": uncalibrated predictive,
+    "calibration_control": the constant-band control} of a method with a variance (a
+    Gaussian SynthesisResult where the method gives mean and variance only); the last two
+    where the method has them."""
     from bayes_talk.synthesis.result import SynthesisResult
 
     if pred.var is None:
@@ -80,4 +82,6 @@ def calibration_inputs(name: str, pred) -> dict[str, Any]:
     out = {"calibration": res}
     if pred.raw is not None:
         out["calibration_raw"] = pred.raw
+    if getattr(pred, "control", None) is not None:
+        out["calibration_control"] = pred.control
     return out

@@ -229,7 +229,9 @@ class Prediction:
     s^2 / K), subtracted in the ``*_corrected`` metrics; None for every other method;
     result: the method's :class:`~bayes_talk.synthesis.result.SynthesisResult` (its bands,
     :meth:`interval`, are the ones scored, as ``synth`` writes them), or None; raw: when a
-    band calibration was applied to ``result``, the uncalibrated one."""
+    band calibration was applied to ``result``, the uncalibrated one; control: the
+    constant-band control fitted with that calibration (the calibrated mean with a constant
+    per-parameter band, calibrated the same way), or None."""
 
     mean: np.ndarray
     var: np.ndarray | None = None
@@ -237,6 +239,8 @@ class Prediction:
     result: Any = None
     #: the predictive before the band calibration, where one was applied
     raw: Any = None
+    #: the constant-band control of a band-calibrated predictive
+    control: Any = None
 
     def band(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """The central ``level`` band (lower, upper) of the predictive: the result's exact
@@ -374,10 +378,12 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
 
         r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
                              n_draws=cfg.posterior_draws, seed=cfg.seed)
-        cal, raw = getattr(model, "band_calibration_", None), None
+        cal, raw, control = getattr(model, "band_calibration_", None), None, None
         if cal is not None and cal.method == r.method:
             raw, r = r, cal.apply(r)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r, raw=raw)
+            control = cal.control_result(raw) if cal.control is not None else None
+        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r, raw=raw,
+                          control=control)
     if m.family.startswith("ssgpdm-"):
         r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
                              max_iter=cfg.synth_max_iter)

@@ -53,6 +53,15 @@ and the state models' own training residuals are in-sample (too small by constru
 The full model has seen 25 % more data than the calibration model, so its bands are if
 anything slightly conservative after calibration.
 
+**The constant-band control** (issue 27 item 1). Whether the posterior's *shape* of
+uncertainty — wider where the face is harder to predict — carries information is judged
+against a control fitted on the same held-out utterances: the calibrated predictive's mean
+(after stage 0) with one constant variance per parameter, v_d = mean over held-out entries
+of (y − m)², and that Gaussian then calibrated by stages 1–2 exactly as above
+(``control``, no mean stage). A posterior whose NLPD and CRPS do not beat this control
+says no more about its uncertainty than a constant band would.
+:meth:`BandCalibration.control_result` builds it for a new prediction.
+
 Saved with the model as ``band_calibration.json`` (:meth:`BandCalibration.save`;
 ``bayes-talk train --calibrate-bands``), applied by ``synth`` to the posterior method it
 was fitted on, and reported calibrated and raw side by side by ``evaluate``.
@@ -80,8 +89,8 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "band_calibration.json"
 _FORMAT = "bayes_talk.band_calibration"
-_VERSION = 3
-_READS = (1, 2, 3)
+_VERSION = 4
+_READS = (1, 2, 3, 4)
 #: default fraction of the training utterances held out to fit the calibration
 HOLDOUT_FRACTION = 0.2
 _GRID = np.exp(np.linspace(math.log(1 / 8), math.log(8), 2001))
@@ -123,6 +132,12 @@ def mean_shrinkage(results: Sequence[SynthesisResult], truths: Sequence[np.ndarr
     return np.clip(np.where(den > 0, np.sum(m * y, axis=0) / np.where(den > 0, den, 1.0), 1.0), 0.0, 1.0)
 
 
+def _constant_band(result: SynthesisResult, var: np.ndarray) -> SynthesisResult:
+    """N(mixture mean of ``result``, var_d) per entry: the constant-band control's predictive."""
+    return SynthesisResult.gaussian(result.mean, np.broadcast_to(var, result.mean.shape).copy(),
+                                    method=f"{result.method}-control", seed=result.seed)
+
+
 def _coverage_at(s_star: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
     """(L,) coverage at each level of bands scaled by ``scale`` (per last axis)."""
     return np.mean(s_star <= scale, axis=tuple(range(1, s_star.ndim)))
@@ -160,6 +175,8 @@ class BandCalibration:
     held_out: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
     mean_scale: np.ndarray | None = None
+    control_var: np.ndarray | None = None
+    control: BandCalibration | None = None
 
     def __post_init__(self) -> None:
         self.scale = np.asarray(self.scale, dtype=np.float64)
@@ -174,6 +191,11 @@ class BandCalibration:
                              f"found shape {self.scale.shape}")
         if not np.all(np.isfinite(self.scale) & (self.scale > 0)):
             raise ValueError("scale: expected finite factors > 0")
+        if self.control_var is not None:
+            self.control_var = np.asarray(self.control_var, dtype=np.float64)
+            if self.control_var.shape != self.scale.shape or not np.all(
+                    np.isfinite(self.control_var) & (self.control_var > 0)):
+                raise ValueError(f"control_var: expected {self.scale.size} finite variances > 0")
         self.levels = tuple(float(q) for q in self.levels)
         if self.level_raw is not None:
             raw, cal = check_level_map(self.level_raw, self.level_cal, self.scale.size, "band calibration")
@@ -183,10 +205,11 @@ class BandCalibration:
     @classmethod
     def fit(cls, results: Sequence[SynthesisResult], truths: Sequence[np.ndarray], method: str | None = None,
             levels: Sequence[float] = DEFAULT_LEVELS, per_parameter: bool = True,
-            names: Sequence[str] = (), shrink_mean: bool = True) -> BandCalibration:
+            names: Sequence[str] = (), shrink_mean: bool = True, with_control: bool = True) -> BandCalibration:
         """Fit a_d (``shrink_mean``), s_d and the level map on held-out predictions
         ``results`` and their truths (each (T_i, D)). per_parameter=False fits one factor and
-        one map for all parameters (pooled)."""
+        one map for all parameters (pooled). ``with_control``: also fit the constant-band
+        control (module docstring)."""
         if not results or len(results) != len(truths):
             raise ValueError(f"fit: need one truth per result and at least one, got {len(results)} results "
                              f"and {len(truths)} truths")
@@ -219,12 +242,32 @@ class BandCalibration:
         cal = [np.mean(c <= np.array([np.interp(q, np.r_[0, knots, 1], np.r_[0, r_dj[d], 1]) for d in range(D)]))
                for q in levels]
         meth = method if method is not None else results[0].method
+        control_var = control = None
+        if with_control:
+            resid = np.concatenate([np.asarray(z, np.float64) - r.mean for r, z in zip(results, truths)])
+            control_var = np.maximum(np.mean(resid ** 2, axis=0), 1e-12)
+            control = cls.fit([_constant_band(r, control_var) for r in results], truths, method=f"{meth}-control",
+                              levels=levels, per_parameter=per_parameter, shrink_mean=False, with_control=False)
         return cls(scale, meth, levels, r_dj, LEVEL_KNOTS, len(results), int(N),
                    {f"{q:g}": float(v) for q, v in zip(levels, raw)},
                    {f"{q:g}": float(v) for q, v in zip(levels, cal)}, list(names),
                    {"per_parameter": bool(per_parameter),
                     "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}},
-                   a)
+                   a, control_var, control)
+
+    def control_result(self, result: SynthesisResult) -> SynthesisResult:
+        """The constant-band control for the raw prediction ``result``: the calibrated mean
+        (stage 0 applied) with the constant variances ``control_var``, calibrated by
+        ``control`` (module docstring). ValueError when this calibration has no control."""
+        if self.control is None or self.control_var is None:
+            raise ValueError("this band calibration has no constant-band control (fitted with "
+                             "with_control=False, or saved by a version before 4)")
+        if result.n_dims != self.scale.size:
+            raise ValueError(f"band calibration has {self.scale.size} factors but the prediction has "
+                             f"{result.n_dims} AAM parameters: it belongs to another model")
+        if self.mean_scale is not None:
+            result = _shrunk(result, self.mean_scale)
+        return self.control.apply(_constant_band(result, self.control_var))
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
         """The calibrated result: (0) and (1) applied to every component, then the level map (a
@@ -259,7 +302,9 @@ class BandCalibration:
                 "level_raw": None if self.level_raw is None else self.level_raw.tolist(), "n_utterances": self.n_utterances, "n_frames": self.n_frames,
                 "coverage_raw": self.coverage_raw, "coverage_calibrated": self.coverage_calibrated,
                 "held_out": list(self.held_out), "info": self.info,
-                "mean_scale": None if self.mean_scale is None else self.mean_scale.tolist()}
+                "mean_scale": None if self.mean_scale is None else self.mean_scale.tolist(),
+                "control_var": None if self.control_var is None else self.control_var.tolist(),
+                "control": None if self.control is None else self.control.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "band calibration") -> BandCalibration:
@@ -276,7 +321,9 @@ class BandCalibration:
                        None if raw is None else np.asarray(raw, dtype=np.float64),
                        tuple(d["level_cal"]) if raw is not None else LEVEL_KNOTS, int(d["n_utterances"]), int(d["n_frames"]), dict(d["coverage_raw"]),
                        dict(d["coverage_calibrated"]), list(d["held_out"]), dict(d.get("info", {})),
-                       None if d.get("mean_scale") is None else np.asarray(d["mean_scale"], dtype=np.float64))
+                       None if d.get("mean_scale") is None else np.asarray(d["mean_scale"], dtype=np.float64),
+                       None if d.get("control_var") is None else np.asarray(d["control_var"], dtype=np.float64),
+                       None if d.get("control") is None else cls.from_dict(d["control"], where=f"{where}, control"))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: incomplete or invalid band calibration ({exc})") from None
 
@@ -297,6 +344,21 @@ class BandCalibration:
         except (OSError, ValueError) as exc:
             raise ValueError(f"{p}: unreadable band calibration ({exc})") from None
         return cls.from_dict(d, where=str(p))
+
+
+def _synthesis_record(results: Sequence[SynthesisResult]) -> dict[str, Any]:
+    """What the held-out syntheses said about themselves (their warnings are not logged while
+    the calibration is fitted, so they are kept here): per utterance the MAP's convergence,
+    the PSIS k̂ (Laplace) or the largest R-hat (samplers) where reported, and the number of
+    results that carried a convergence warning."""
+    def num(d: dict, key: str) -> float | None:
+        v = d.get(key)
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
+
+    diags = [r.diagnostics for r in results]
+    return {"map_converged": [bool(d["map_converged"]) if "map_converged" in d else None for d in diags],
+            "khat": [num(d, "khat") for d in diags], "rhat_max": [num(d, "rhat_max") for d in diags],
+            "n_with_warnings": int(sum(bool(r.warnings) for r in results)), "n": len(results)}
 
 
 def split_for_calibration(n: int, holdout: float = HOLDOUT_FRACTION, seed: int = 0) -> tuple[list[int], list[int]]:
@@ -345,7 +407,8 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
         if (j + 1) % 10 == 0 or j + 1 == len(held_idx):
             say(f"band calibration: synthesised {j + 1}/{len(held_idx)} held-out utterances")
     cal = BandCalibration.fit(results, truths, method=method, names=[seqs[i].name for i in held_idx])
-    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=len(fit_idx))
+    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=len(fit_idx),
+                    held_out_diagnostics=_synthesis_record(results))
     say("band calibration: 90 % coverage on the held-out utterances {:.3f} raw -> {:.3f} calibrated; "
         "factors {:.2f}-{:.2f} (median {:.2f})".format(cal.coverage_raw.get("0.9", float("nan")),
                                                       cal.coverage_calibrated.get("0.9", float("nan")),
