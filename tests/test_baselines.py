@@ -7,7 +7,6 @@ import scipy.optimize
 import scipy.stats
 
 from bayes_talk.baselines import DPDS, REGISTRY, SLDS, HMMMean, VoicePuppetry
-from bayes_talk.baselines.base import LabelEncoder
 from bayes_talk.baselines.dpds import (
     dpds_forward,
     dpds_grad_A,
@@ -20,6 +19,7 @@ from bayes_talk.baselines.slds import kalman_smoother
 from bayes_talk.baselines.voice_puppetry import delta_features, delta_matrix, trajectory_solve
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError
+from bayes_talk.features.phone_encoding import LabelEncoder
 
 PH = ["aa", "m", "sil", "iy"]  # sorted by LabelEncoder to aa, iy, m, sil
 

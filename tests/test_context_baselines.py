@@ -13,11 +13,11 @@ from toydata import make_utterances
 import bayes_talk.baselines.context as C
 from bayes_talk.baselines import REGISTRY
 from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
-from bayes_talk.baselines.context_features import ContextFeatures, stack_context
 from bayes_talk.baselines.context_mlp import ContextMLP
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError
 from bayes_talk.evaluation import systems as S
+from bayes_talk.features.context_window import ContextFeatures, stack_context
 
 PH = sorted(["sil", "aa", "m", "iy", "s", "uw"])   # LabelEncoder order
 Z90 = scipy.stats.norm.ppf(0.95)

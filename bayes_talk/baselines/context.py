@@ -55,8 +55,9 @@ import scipy.sparse as sp
 from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 
-from bayes_talk.baselines.base import Baseline, check_test, check_train
-from bayes_talk.baselines.context_features import (
+from bayes_talk.baselines.base import Baseline, check_train
+from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.features.context_window import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,
     ContextFeatures,
@@ -66,7 +67,6 @@ from bayes_talk.baselines.context_features import (
     tupled,
     window_grid,
 )
-from bayes_talk.data.utterance import Utterance
 from bayes_talk.files import check_format, read_model_files, write_model_files
 
 __all__ = [

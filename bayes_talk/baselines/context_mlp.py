@@ -41,7 +41,8 @@ from sklearn.neural_network import MLPRegressor
 
 from bayes_talk.baselines.base import check_train
 from bayes_talk.baselines.context import ContextBaseline, read_saved, select_context, write_saved
-from bayes_talk.baselines.context_features import (
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.features.context_window import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,
     ContextFeatures,
@@ -51,7 +52,6 @@ from bayes_talk.baselines.context_features import (
     tupled,
     window_grid,
 )
-from bayes_talk.data.utterance import Utterance
 
 __all__ = ["ContextMLP", "mlp_forward"]
 

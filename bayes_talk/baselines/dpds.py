@@ -9,7 +9,6 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from bayes_talk.baselines.base import check_test
 from bayes_talk.baselines.lds import (
     LOG2PI,
     Batch,
@@ -18,7 +17,7 @@ from bayes_talk.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = ["DPDS", "dpds_forward", "dpds_grad_A", "dpds_loglik", "dpds_profile", "dpds_solve_mu_nu"]
 

@@ -25,9 +25,9 @@ from typing import ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.baselines.base import Baseline, check_test, check_train
+from bayes_talk.baselines.base import Baseline, check_train
 from bayes_talk.data.phones import check_phone, replace_unseen
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = ["HMMMean"]
 

@@ -34,8 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_talk.baselines.base import Baseline, LabelEncoder, check_test, check_train
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.baselines.base import Baseline, check_train
+from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.features.phone_encoding import LabelEncoder
 
 __all__ = [
     "LOG2PI",

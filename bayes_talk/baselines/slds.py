@@ -6,7 +6,6 @@ from typing import ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.baselines.base import check_test
 from bayes_talk.baselines.lds import (
     LOG2PI,
     Batch,
@@ -16,7 +15,7 @@ from bayes_talk.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = ["SLDS", "kalman_smoother"]
 

@@ -48,8 +48,8 @@ import scipy.sparse as sp
 from hmmlearn.hmm import GaussianHMM
 from sklearn.cluster import KMeans
 
-from bayes_talk.baselines.base import Baseline, check_test, check_train
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.baselines.base import Baseline, check_train
+from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = [
     "VoicePuppetry",

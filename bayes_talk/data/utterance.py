@@ -59,3 +59,21 @@ class Utterance:
     def n_frames(self) -> int:
         """Number of frames T."""
         return int(self.mfcc.shape[0])
+
+
+def check_test(seq: Utterance, *, n_audio: int | None = None, n_visual: int | None = None,
+               need_aam: bool = False) -> None:
+    """Validate a test sequence against the fitted dimensions (ValueError on mismatch)."""
+    if not isinstance(seq, Utterance):
+        raise ValueError(f"expected a Utterance, got {type(seq).__name__}")  # noqa: TRY004
+    if seq.n_frames < 1:
+        raise ValueError(f"sequence {seq.name!r} has no frames")
+    if n_audio is not None and seq.mfcc.shape[1] != n_audio:
+        raise ValueError(
+            f"sequence {seq.name!r}: mfcc has shape {seq.mfcc.shape}, expected (T, {n_audio})")
+    if need_aam:
+        if seq.aam is None:
+            raise ValueError(f"sequence {seq.name!r} has no ground-truth aam to score")
+        if n_visual is not None and seq.aam.shape[1] != n_visual:
+            raise ValueError(
+                f"sequence {seq.name!r}: aam has shape {seq.aam.shape}, expected (T, {n_visual})")

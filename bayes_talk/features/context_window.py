@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from bayes_talk.baselines.base import LabelEncoder, check_test
 from bayes_talk.data.phones import SILENCE
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.features.phone_encoding import LabelEncoder
 
 __all__ = ["LABEL_WINDOWS", "MFCC_WINDOWS", "ContextFeatures", "Window", "listed", "stack_context", "tupled",
            "window_grid"]
