@@ -20,6 +20,7 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-phone": (SwitchingSGPDM, {"states": "phone"}),
     "ssgpdm-vlmm-rc": (SwitchingSGPDM, {"states": "vlmm", "right_context": True}),
     "ssgpdm-phone-rc": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
+    "ssgpdm-phone-ctx": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "sgplvm": (SGPLVM, {}),
     **{name: (cls, {}) for name, cls in _BASELINES.items()},
 }
@@ -30,6 +31,9 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
 #: 90 % band in range (docs/results.md "Audio context in the default model, session 6")
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     "ssgpdm-phone-rc": {"audio_context": 2},
+    # the default's states and audio, with the phonetic-context view of labels ±8 frames
+    # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
+    "ssgpdm-phone-ctx": {"audio_context": 2, "context_view": 8},
 }
 
 

@@ -202,6 +202,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            {"posterior": "laplace"}),
     Method("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, posterior (ours)",
            True, {"posterior": "laplace"}),
+    Method("ssgpdm-phone-ctx-posterior", "ssgpdm-phone-ctx",
+           "SSGPDM-phoneme + right context + audio ±2 + phonetic-context view ±8, posterior (ours)",
+           True, {"posterior": "laplace"}),
     Method("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation", True,
            {"algorithm": "optimise"}),
     Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, seq. optimisation",
@@ -309,7 +312,7 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         "dpds": {"max_iter": cfg.dpds_max_iter},
         "context-mlp": {"seed": cfg.seed},
     }
-    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc"):
+    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx"):
         params[fam] = params["ssgpdm-vlmm"]
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")

@@ -41,6 +41,7 @@ from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
+from bayes_talk.features.context_view import ContextView
 from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.right_context import RightContextStates
@@ -129,6 +130,10 @@ class SwitchingConfig:
         the posterior from AMSE 8.42 / ACC 0.345 / NMSE 0.887 to 7.37 / 0.377 / 0.872; not
         the default until it passes the resampling robustness test on its own
         (docs/results.md).
+    context_view: L, the phonetic-context view (:mod:`bayes_talk.features.context_view`):
+        the audio view of frame t is joined by a supervised reduction of the phone labels
+        t−L..t+L and the MFCCs t−4..t+4 to D_z columns, which the latent space must explain
+        too; 0 (the default) is deena2010's audio-only view.
     """
 
     states: str = "vlmm"
@@ -143,6 +148,7 @@ class SwitchingConfig:
     seed: int = 0
     audio_context: int = 0
     right_context: bool = False
+    context_view: int = 0
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -184,7 +190,8 @@ class SwitchingModel:
                  latent_dim: int = _DEFAULTS.latent_dim, max_frames_per_state: int = _DEFAULTS.max_frames_per_state,
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
                  fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
-                 audio_context: int = _DEFAULTS.audio_context, right_context: bool = _DEFAULTS.right_context):
+                 audio_context: int = _DEFAULTS.audio_context, right_context: bool = _DEFAULTS.right_context,
+                 context_view: int = _DEFAULTS.context_view):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         if not isinstance(right_context, (bool, np.bool_)):
@@ -196,6 +203,8 @@ class SwitchingModel:
         self.audio_context = audio_context
         self.right_context = bool(right_context)
         self.audio_ = AudioContext(audio_context)
+        self.context_view = context_view
+        self.context_ = ContextView(context_view)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
         self.phone_counts_: dict[str, int] = {}
@@ -212,11 +221,16 @@ class SwitchingModel:
         right-context states."""
         return f"ssgpdm-{self.config.states}" + ("-rc" if self.config.right_context else "")
 
-    def audio_input(self, mfcc: np.ndarray) -> np.ndarray:
-        """The audio view the state models see for these MFCCs (T, D): the MFCCs
-        themselves, or with ``audio_context`` > 0 their context window (eq. 1 of
-        :mod:`bayes_talk.features.audio_context`)."""
-        return self.audio_.transform(mfcc)
+    def audio_input(self, mfcc: np.ndarray, labels=None) -> np.ndarray:
+        """The observed view the state models' "audio" GPs explain for these MFCCs (T, D):
+        the MFCCs themselves, or with ``audio_context`` > 0 their context window (eq. 1 of
+        :mod:`bayes_talk.features.audio_context`), joined with ``context_view`` > 0 by the
+        phonetic-context view of the frame labels ``labels`` (eq. 1 of
+        :mod:`bayes_talk.features.context_view`)."""
+        a = self.audio_.transform(mfcc)
+        if not self.context_.enabled:
+            return a
+        return np.hstack([a, self.context_.transform(mfcc, labels)])
 
     # ------------------------------------------------------------------ training
     def _state_cfg(self) -> dict:
@@ -241,7 +255,9 @@ class SwitchingModel:
         self.dims_ = next(iter(dims))
         n_frames = sum(s.n_frames for s in train)
         self.audio_ = AudioContext(cfg.audio_context).fit([s.mfcc for s in train])
-        audio_in = [self.audio_input(s.mfcc) for s in train]
+        self.context_ = ContextView(cfg.context_view)
+        context_in = self.context_.fit(train)   # out-of-fold on the training frames
+        audio_in = [np.hstack([self.audio_.transform(s.mfcc), c]) for s, c in zip(train, context_in)]
         if cfg.states == "vlmm":
             eps = cfg.epsilon if cfg.epsilon is not None else 2e-4 * 19000.0 / n_frames
             mc = cfg.min_count if cfg.min_count is not None else max(10, round(40 * n_frames / 15000))
@@ -331,7 +347,9 @@ class SwitchingModel:
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
                 "n_training_frames": self.n_training_frames_, "phone_counts": self.phone_counts_, "models": []}
-        arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_, **self.audio_.arrays()}
+        arrays: dict[str, np.ndarray] = {"motion_var": self.motion_var_, **self.audio_.arrays(),
+                                         **self.context_.arrays()}
+        meta["context_view"] = self.context_.to_meta()
         for j, (st, m) in enumerate(self.models_.items()):
             mmeta, marr = m.state()
             meta["models"].append({"state": list(st), "meta": mmeta})
@@ -357,6 +375,7 @@ class SwitchingModel:
             obj.states_model_ = _states_from_dict(sm)
             obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
             obj.audio_ = AudioContext.from_arrays(obj.audio_context, arrays)
+            obj.context_ = ContextView.from_saved(meta.get("context_view"), arrays)
             grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
             for k, a in arrays.items():
                 if "/" not in k:

@@ -127,7 +127,7 @@ def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str =
         mu, cov = model.entry_[key]
         blocks.append(Block(seg.start, seg.stop, key, m, np.asarray(mu, np.float64),
                             np.asarray(cov, np.float64), linked, smooth))
-    return UtterancePlan(blocks, model.audio_input(mfcc), np.asarray(model.motion_var_, np.float64),
+    return UtterancePlan(blocks, model.audio_input(mfcc, labels), np.asarray(model.motion_var_, np.float64),
                          int(model.config.latent_dim), segments)
 
 

@@ -101,7 +101,7 @@ def synthesize(
 
 def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter) -> SynthesisResult:
     segments = model.segment(list(labels))
-    audio = model.audio_input(mfcc)   # what the state models' audio GPs explain
+    audio = model.audio_input(mfcc, labels)   # what the state models' audio GPs explain
     T, Dz = mfcc.shape[0], model.dims_[1]
     d = model.config.latent_dim
     mean, var, X = np.zeros((T, Dz)), np.zeros((T, Dz)), np.zeros((T, d))
