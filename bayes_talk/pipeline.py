@@ -280,6 +280,25 @@ SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segmen
                       "uncertainty.mp4")
 
 
+def _mean_shrinkage(res, tm) -> list[float] | None:
+    """The band calibration's per-parameter mean factors a_d applied to ``res``, or None."""
+    bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
+    if not bc or tm.calibration is None or tm.calibration.mean_scale is None:
+        return None
+    return [float(a) for a in tm.calibration.mean_scale]
+
+
+def _trajectory_description(res, lowpass_hz) -> str:
+    """What ``trajectory.npy`` holds, in words (written to ``diagnostics.json``)."""
+    calibrated = isinstance(res.diagnostics, dict) and "band_calibration" in res.diagnostics
+    what = (f"the mean of the band-calibrated {res.method} predictive: the posterior mean with each AAM "
+            "parameter d multiplied by the calibration's mean factor a_d (mean_shrinkage; 1 = unchanged, "
+            "0 = the parameter is predicted as its utterance mean)" if calibrated else
+            f"the mean of the {res.method} posterior predictive (no band calibration applied)")
+    filt = f", low-passed at {lowpass_hz:g} Hz (zero phase)" if lowpass_hz is not None else ""
+    return what + filt + "; mean-removed AAM parameters (add the model's offset)"
+
+
 def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
           force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int | None = None,
           seed: int = 0, tier: str | None = None, text: str | None = None,
@@ -402,6 +421,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                         "; raise --draws or --warmup" if posterior in ("nuts", "emcee") else "")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
+                                                "trajectory_holds": _trajectory_description(res, lowpass_hz),
+                                                "mean_shrinkage": _mean_shrinkage(res, tm),
                                                 "diagnostics": res.diagnostics})
         written.update(diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):

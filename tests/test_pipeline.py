@@ -160,9 +160,12 @@ def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_pat
                                np.load(tmp_path / "raw" / "variance.npy") * scale**2, rtol=1e-8)
     with np.load(tmp_path / "cal" / "bands.npz") as c, np.load(tmp_path / "raw" / "bands.npz") as r:
         np.testing.assert_allclose(c["upper90"] - t_cal, scale * (r["upper90"] - t_raw), rtol=1e-5, atol=1e-8)
-    diag = json.loads((tmp_path / "cal" / "diagnostics.json").read_text())["diagnostics"]
+    full = json.loads((tmp_path / "cal" / "diagnostics.json").read_text())
+    diag = full["diagnostics"]
     assert diag["band_calibration"]["scale_max"] == pytest.approx(3.0)
-    assert "band_calibration" not in json.loads((tmp_path / "raw" / "diagnostics.json").read_text())["diagnostics"]
+    assert "band-calibrated" in full["trajectory_holds"] and full["mean_shrinkage"] is None   # no stage 0 here
+    raw = json.loads((tmp_path / "raw" / "diagnostics.json").read_text())
+    assert "band_calibration" not in raw["diagnostics"] and "no band calibration" in raw["trajectory_holds"]
     # a calibration of another model's size is refused by name
     BandCalibration(np.ones(D + 1), "laplace").save(m)
     write_bundle_manifest(m)

@@ -50,8 +50,8 @@ the posterior method, and the factors are fitted to them. The factors are then a
 to the model trained on all utterances. Cost: one extra fit (on 80 % of the data) and
 the synthesis of the held-out utterances; K-fold cross-validation would cost K fits,
 and the state models' own training residuals are in-sample (too small by construction).
-The full model has seen 25 % more data than the calibration model, so its bands are if
-anything slightly conservative after calibration.
+The full model has seen 25 % more data than the calibration model; measured on new
+sentences the calibrated bands are still slightly narrow (docs/uncertainty.md).
 
 **The constant-band control** (issue 27 item 1). Whether the posterior's *shape* of
 uncertainty — wider where the face is harder to predict — carries information is judged

@@ -334,7 +334,7 @@ class SynthesisResult:
             kw["sample_stats"] = {k: np.asarray(v) for k, v in self.sample_stats.items()}
         per = max(1, -(-int(n_predictive) // self.n_draws))
         with warnings.catch_warnings():  # a point method has one draw: ArviZ's shape warning is expected
-            warnings.simplefilter("ignore")
+            warnings.filterwarnings("ignore", message="More chains", category=UserWarning)
             idata = az.from_dict(posterior=posterior,
                                  posterior_predictive={"aam": self.predictive_draws(per)},
                                  coords=coords, dims=dims, **kw)
