@@ -35,7 +35,9 @@ from pathlib import Path
 
 def _cmd_corpus_build(args: argparse.Namespace) -> int:
     from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.data.corpus.workers import suggested_workers
 
+    workers = args.workers if args.workers is not None else suggested_workers(args.n_utterances)
     build_corpus(
         Path(args.out_dir),
         n_utterances=args.n_utterances,
@@ -46,7 +48,7 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         force=args.force,
         rate=args.rate,
         pitch=args.pitch,
-        n_workers=args.workers,
+        n_workers=workers,
         executor=args.executor,
         scheduler=args.scheduler,
     )
@@ -143,7 +145,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from bayes_talk.demo import run_demo
 
-    return run_demo(Path(args.out))
+    return run_demo(Path(args.out), workers=2)
 
 
 # --- evaluate (issue #5) -------------------------------------------------------------------

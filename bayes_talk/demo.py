@@ -41,8 +41,10 @@ DEMO_ORACLE_DRAWS = 8
 DEMO_MODEL = DEFAULT_MODEL
 
 
-def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_HELD_OUT, seed: int = 0) -> int:
-    """Build a small corpus, train, synthesise and score held-out utterances into ``out`` (``make demo``); returns the exit status."""
+def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_HELD_OUT, seed: int = 0,
+             workers: int = 1) -> int:
+    """Build a small corpus, train, synthesise and score held-out utterances into ``out`` (``make demo``,
+    ``workers`` = 2 processes); returns the exit status."""
     from bayes_talk.baselines import REGISTRY
     from bayes_talk.data.corpus import build_corpus, load_corpus
     from bayes_talk.estimators.registry import make_estimator
@@ -59,19 +61,19 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     cdir = out / "corpus"
     if not (cdir / "manifest.json").exists():
         print(f"[demo] building a {n_utterances}-utterance corpus in {cdir} ...", flush=True)
-        build_corpus(cdir, n_utterances=n_utterances, seed=seed)
-    corpus = load_corpus(cdir)
+        build_corpus(cdir, n_utterances=n_utterances, seed=seed, n_workers=workers)
+    corpus = load_corpus(cdir, n_workers=workers)
     seqs = list(corpus.sequences)
     train, test = seqs[:-n_test], seqs[-n_test:]
     print(f"[demo] corpus ready ({len(train)} train / {len(test)} test utterances, "
           f"{corpus.sequences[0].aam.shape[1]} AAM parameters) after {time.time() - t0:.0f} s", flush=True)
 
     t1 = time.time()
-    model = fit_model(make_estimator(DEMO_MODEL, seed=seed), train, workers=2)
+    model = fit_model(make_estimator(DEMO_MODEL, seed=seed), train, workers=workers)
     train_s = time.time() - t1
     print(f"[demo] trained {len(model.models_)} state models ({DEMO_MODEL}) in {train_s:.0f} s", flush=True)
     t1 = time.time()
-    with executor_for(None, 2) as ex:
+    with executor_for(None, workers) as ex:
         cal = fit_band_calibration(model, train, method="laplace", seed=seed, executor=ex)
     print(f"[demo] fitted the band calibration (mean shrinkage, scale, level map) on "
           f"{cal.n_utterances} held-out training utterances in {time.time() - t1:.0f} s", flush=True)

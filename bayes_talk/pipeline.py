@@ -76,10 +76,10 @@ def new_model(kind: str, **overrides):
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
-def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, scheduler: str | None = None):
+def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, scheduler: str | None = None):
     """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
     "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
-    or this process when ``workers`` is 1; ``scheduler``: a running dask scheduler), with a
+    or this process when ``workers`` is 1, the default; ``scheduler``: a running dask scheduler), with a
     progress bar of states done / total on a terminal (bayes_talk.progress). The model
     does not depend on the executor."""
     from bayes_talk.estimators.switching import SwitchingSGPDM
@@ -92,7 +92,7 @@ def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, sc
         return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
 
 
-def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
+def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 1,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
           alignment: bool = True, executor=None, scheduler: str | None = None,
@@ -113,7 +113,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     same directory, so that ``synth`` runs from a transcript or from audio alone.
 
     ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
-    (:func:`fit_model`; docs/scaling.md); the model does not depend on it.
+    (:func:`fit_model`; docs/scaling.md); the model does not depend on it. ``workers``:
+    processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
     ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
     the band calibration of the Laplace posterior (switching models;
     bayes_talk.synthesis.band_calibration: one extra fit on the rest, saved as
