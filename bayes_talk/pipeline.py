@@ -326,9 +326,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     :data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz, the setting of the
     held-out figures in docs/results.md; None: off). Recorded in ``segments.json``.
     """
-    from bayes_talk.bundle import OutputSet
+    from bayes_talk.bundle import OutputSet, check_output_dir
     from bayes_talk.video import write_video
 
+    check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
     tm = load_trained(model_dir)
     if posterior is None:
         posterior = "map" if tm.kind == "sgplvm" else "laplace"
@@ -337,6 +338,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
+    _check_speech(wav, recognise=labels is None and text is None and transcript is None)
     derived = None
     if labels is None:
         derived = _derived_labels(model_dir, wav, text, transcript, align_method)
@@ -360,7 +362,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         names["uncertainty"] = "uncertainty.mp4"
     if posterior != "map":
         names.update(diagnostics="diagnostics.json")
-    existing = sorted({n for n in list(names.values()) + outputs.previous() if (out / n).exists()})
+    existing = sorted({n for n in list(names.values()) + outputs.present() if (out / n).exists()})
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
@@ -459,6 +461,25 @@ def _sampler_args(options: dict | None) -> dict:
         raise ValueError(f"unknown sampler options {sorted(unknown)}")
     kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}
     return {**kw, "sampler_kw": opts} if opts else kw
+
+
+def _check_speech(wav, recognise: bool) -> None:
+    """No speech in ``wav`` (:func:`bayes_talk.audio.speech_problem`): an error before the
+    phone recogniser invents phones for it; a warning when labels or a transcript were given
+    (the face then follows them, not the audio)."""
+    import warnings
+
+    from bayes_talk.audio import load_audio, speech_problem
+
+    y, sr = load_audio(wav)
+    problem = speech_problem(y, sr)
+    if problem is None:
+        return
+    if recognise:
+        raise ValueError(f"{wav}: no speech found, the audio is {problem}; the phone recogniser would "
+                         "invent phones for it. Check the file, or give --labels/--text if this is intended")
+    warnings.warn(f"{wav}: no speech found, the audio is {problem}: the face follows the given labels, "
+                  "not the audio", UserWarning, stacklevel=3)
 
 
 def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:

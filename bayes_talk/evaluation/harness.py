@@ -393,6 +393,13 @@ def evaluate(
         small_note = None
         if min_utterances is not None and test_c is None:
             proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
+        elif test_c is None and len(train_c.sequences) < proto.n_needed:
+            n = len(train_c.sequences)
+            raise ValueError(f"protocol {proto.name}{' --quick' if proto.quick else ''} needs at least "
+                             f"{proto.n_needed} utterances, corpus {corpus} has {n}: build a larger corpus "
+                             f"(corpus build --n-utterances {proto.n_needed}), or pass --min-utterances {n} "
+                             "to run the protocol with its split scaled to this corpus (not the paper's "
+                             "protocol; the report says so)")
 
         def phone_set(c):
             return list(c.manifest.get("phone_set", PHONES))
