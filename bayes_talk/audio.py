@@ -32,6 +32,12 @@ and when it synthesises (``pipeline.read_utterance``):
   corpus's utterances are tonal, 29-31 % with white noise added at 10 dB SNR, 10-14 % at
   5 dB, 0-2 % at 0 dB (flagged), 0 % of white noise alone). Coloured stationary noise can
   pass it: it is a check for the obvious cases.
+* **MP3**. An MP3 encoder delays the audio (LAME: 576 samples, plus 529 of the decoder)
+  and pads its end; a gapless header (the Xing/Info "LAME" tag of the first frame) records
+  both, and libsndfile (through soundfile) removes them: measured, an ffmpeg/LAME MP3 of a
+  corpus utterance decodes to the original length, 0 samples off. Without that header no
+  decoder can know the delay: the same MP3 without it decoded 1105 samples (50 ms at
+  22.05 kHz) late, against labels made from the original. :func:`load_audio` warns then.
 """
 from __future__ import annotations
 
@@ -44,8 +50,8 @@ import numpy as np
 from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
 __all__ = ["CLIP_FRACTION", "CLIP_LEVEL", "CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings",
-           "clipped_fraction", "cmvn", "downmix", "feature_statistics", "load_audio", "resample",
-           "speech_problem"]
+           "clipped_fraction", "cmvn", "downmix", "feature_statistics", "load_audio",
+           "mp3_without_gapless_header", "resample", "speech_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +75,23 @@ def clipped_fraction(y: np.ndarray) -> float:
     """The fraction of samples of ``y`` (in [-1, 1] full scale) at or above :data:`CLIP_LEVEL`."""
     y = np.asarray(y)
     return float(np.mean(np.abs(y) >= CLIP_LEVEL)) if y.size else 0.0
+
+
+def mp3_without_gapless_header(path: str | Path) -> bool:
+    """True when ``path`` is an MP3 whose first frame has no Xing/Info (LAME) tag: its
+    encoder delay and padding cannot be removed by the decoder (module docstring)."""
+    with open(path, "rb") as f:
+        head = f.read(10)
+        start = 0
+        if len(head) == 10 and head[:3] == b"ID3":     # skip an ID3v2 tag (syncsafe size)
+            size = (head[6] & 0x7F) << 21 | (head[7] & 0x7F) << 14 | (head[8] & 0x7F) << 7 | head[9] & 0x7F
+            start = 10 + size + (10 if head[5] & 0x10 else 0)
+        f.seek(start)
+        data = f.read(16384)
+    for i in range(len(data) - 1):                     # the first frame sync: 11 set bits
+        if data[i] == 0xFF and data[i + 1] & 0xE0 == 0xE0:
+            return b"Xing" not in data[i:i + 200] and b"Info" not in data[i:i + 200]
+    return False
 
 
 def speech_problem(y: np.ndarray, sr: int) -> str | None:
@@ -143,6 +166,13 @@ def load_audio(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarr
         raise ValueError(f"{path}: cannot read audio ({exc})") from exc
     if y.size == 0:
         raise ValueError(f"{path}: empty audio (0 samples)")
+    if path.suffix.lower() == ".mp3" and mp3_without_gapless_header(path):
+        import warnings
+
+        warnings.warn(f"{path}: an MP3 without a gapless (Xing/Info LAME) header: the decoder cannot remove "
+                      "the encoder delay, so the audio is probably late against labels made from the original "
+                      "(LAME: 1105 samples, 50 ms at 22.05 kHz). Use the original WAV, or an MP3 written with "
+                      "that header (LAME's and ffmpeg's default)", UserWarning)
     if not np.all(np.isfinite(y)):
         raise ValueError(f"{path}: audio contains NaN or inf")
     clipped = clipped_fraction(y)

@@ -177,3 +177,34 @@ def test_synth_refuses_to_recognise_phones_in_noise_and_warns_with_labels(tmp_pa
     with (pytest.warns(UserWarning, match=r"no speech found, the audio is noise-like.*: the face follows the given"),
           pytest.raises(RuntimeError, match="stop after the check")):
         pl.synth(tmp_path / "model", noise, lab, tmp_path / "out2")
+
+
+def _lag(a, b, maxlag: int = 3000) -> int:
+    import numpy as np
+
+    n = min(len(a), len(b)) - maxlag
+    return max(range(-maxlag, maxlag), key=lambda k: float(np.dot(a[maxlag:n], b[maxlag + k:n + k])))
+
+
+def test_mp3_with_a_gapless_header_is_aligned_and_one_without_warns(speech_wav, tmp_path):
+    import subprocess
+    import warnings
+
+    import imageio_ffmpeg
+    import soundfile as sf
+
+    from bayes_talk.audio import load_audio
+
+    ff = imageio_ffmpeg.get_ffmpeg_exe()
+    y, sr = sf.read(str(speech_wav))
+    tagged, bare = tmp_path / "tagged.mp3", tmp_path / "bare.mp3"
+    for path, extra in ((tagged, []), (bare, ["-write_xing", "0"])):
+        subprocess.run([ff, "-y", "-v", "error", "-i", str(speech_wav), "-codec:a", "libmp3lame", "-b:a", "128k",
+                        *extra, str(path)], check=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z, zsr = load_audio(tagged)
+    assert zsr == sr and len(z) == len(y) and _lag(y, z) == 0            # delay and padding removed
+    with pytest.warns(UserWarning, match=r"bare\.mp3: an MP3 without a gapless .* probably late"):
+        z, _ = load_audio(bare)
+    assert _lag(y, z) == 1105                                         # what the warning is about
