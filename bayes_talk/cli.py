@@ -471,6 +471,22 @@ def build_parser() -> argparse.ArgumentParser:
 _HANDLER: logging.Handler | None = None
 
 
+class _CurrentStderrHandler(logging.StreamHandler):
+    """A StreamHandler on whatever ``sys.stderr`` is when a record is written, not the one
+    of its creation: ``main`` called in-process (tests, notebooks) under a replaced stderr
+    that is later closed must not leave the root logger writing to a closed file (every
+    later record -- e.g. dask's at a cluster's shutdown -- printed "--- Logging error ---
+    ... ValueError: I/O operation on closed file")."""
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ assigns it: ignored
+        pass
+
+
 def _log_to_stderr(level: int, fmt: str) -> None:
     """One stderr handler on the root logger (replacing the one an earlier ``main`` added,
     leaving any other handler alone)."""
@@ -478,7 +494,7 @@ def _log_to_stderr(level: int, fmt: str) -> None:
     root = logging.getLogger()
     if _HANDLER is not None:
         root.removeHandler(_HANDLER)
-    _HANDLER = logging.StreamHandler(sys.stderr)
+    _HANDLER = _CurrentStderrHandler()
     _HANDLER.setFormatter(logging.Formatter(fmt))
     root.addHandler(_HANDLER)
     root.setLevel(level)

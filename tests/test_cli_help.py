@@ -64,3 +64,27 @@ def test_every_positional_argument_has_help():
     missing = [f"{' '.join(p)} {a.dest}" for p, _, a in _actions(build_parser())
                if not a.option_strings and not a.help]
     assert not missing, missing
+
+
+def test_the_log_handler_writes_to_the_current_stderr_never_a_closed_one(capsys):
+    """main() called in-process under a replaced stderr (pytest's capsys, a notebook) that is
+    closed afterwards: later records -- dask's at a cluster's shutdown -- printed "--- Logging
+    error --- ValueError: I/O operation on closed file" tracebacks."""
+    import contextlib
+    import io
+    import logging
+
+    from bayes_talk import cli
+
+    first = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(first):
+            cli._log_to_stderr(logging.WARNING, "bayes-talk: %(levelname)s: %(message)s")
+        first.close()
+        logging.getLogger("distributed.nanny").warning("after that stream closed")
+        err = capsys.readouterr().err
+        assert "bayes-talk: WARNING: after that stream closed" in err
+        assert "Logging error" not in err and "closed file" not in err
+    finally:
+        logging.getLogger().removeHandler(cli._HANDLER)
+        cli._HANDLER = None
