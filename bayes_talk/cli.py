@@ -507,6 +507,9 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
     _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
                    else "bayes-talk: %(levelname)s: %(message)s")
+    # hmmlearn logs "Model is not converging" for every EM step whose log-likelihood drops by
+    # rounding (the aligner, the recogniser, baselines): noise to a user; kept with -v
+    logging.getLogger("hmmlearn").setLevel(logging.INFO if verbose else logging.ERROR)
     logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
     import warnings
 

@@ -88,3 +88,26 @@ def test_the_log_handler_writes_to_the_current_stderr_never_a_closed_one(capsys)
     finally:
         logging.getLogger().removeHandler(cli._HANDLER)
         cli._HANDLER = None
+
+
+def test_hmmlearn_convergence_chatter_is_kept_out_of_the_output_unless_verbose(tmp_path, capsys, monkeypatch):
+    import logging
+
+    from bayes_talk import cli
+
+    def chatty(args):
+        logging.getLogger("hmmlearn.base").warning("Model is not converging.  Current: -1 is not greater than -0.9")
+        logging.getLogger("bayes_talk.test").warning("a warning of ours")
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_demo", chatty)
+    try:
+        assert main(["demo", "--out", str(tmp_path)]) == 0
+        err = capsys.readouterr().err
+        assert "a warning of ours" in err and "not converging" not in err
+        assert main(["-v", "demo", "--out", str(tmp_path)]) == 0
+        assert "not converging" in capsys.readouterr().err
+    finally:
+        logging.getLogger().removeHandler(cli._HANDLER)
+        cli._HANDLER = None
+        logging.getLogger("hmmlearn").setLevel(logging.NOTSET)
