@@ -72,9 +72,11 @@ VOICED_MIN = 0.05
 
 
 def clipped_fraction(y: np.ndarray) -> float:
-    """The fraction of samples of ``y`` (in [-1, 1] full scale) at or above :data:`CLIP_LEVEL`."""
-    y = np.asarray(y)
-    return float(np.mean(np.abs(y) >= CLIP_LEVEL)) if y.size else 0.0
+    """The fraction of samples of ``y`` (full scale 1) at full scale: :data:`CLIP_LEVEL` <=
+    |y| <= 1. Samples of a floating-point file beyond 1 were not clipped (they are read as
+    they are) and do not count."""
+    a = np.abs(np.asarray(y))
+    return float(np.mean((a >= CLIP_LEVEL) & (a <= 1.0))) if a.size else 0.0
 
 
 def mp3_without_gapless_header(path: str | Path) -> bool:

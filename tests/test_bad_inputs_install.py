@@ -132,6 +132,11 @@ def test_clipped_audio_warns_with_the_fraction(speech_wav, tmp_path):
     loud = _write(tmp_path / "loud.wav", y / gain, sr)
     with pytest.warns(UserWarning, match=r"loud\.wav: 0\.[3-5]\d % of the samples are at full scale \(clipped"):
         load_audio(loud)
+    hot = tmp_path / "hot.wav"                          # floating point beyond full scale: nothing clipped
+    sf.write(str(hot), 2 * y, sr, subtype="FLOAT")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.abs(load_audio(hot)[0]).max() > 1.5
 
 
 def test_silence_and_white_noise_hold_no_speech_and_speech_does(speech_wav, tmp_path):
