@@ -110,12 +110,17 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     _add_ceiling(rows, kept, train, test, seed)
 
     w = max(len(n) for n in rows) + 2
-    print(f"\n{'method':<{w}}{'AMSE':>10}{'ACC':>8}{'gain AMSE':>10}{'gain NMSE':>10}{'frames/s':>10}")
+    print(f"\n{'method':<{w}}{'AMSE':>10}{'NMSE':>8}{'ACC':>8}{'gain AMSE':>10}{'gain NMSE':>10}{'frames/s':>10}")
     for name, r in rows.items():
         fps = r.get("synth_frames_per_second")
         gains = "".join("" if r.get(k) is None else f"{r[k]:>10.3f}" for k in ("gain_amse", "gain_nmse"))
         gains = gains or " " * 20
-        print(f"{name:<{w}}{r['amse']:>10.4f}{r['acc']:>8.3f}{gains}{'' if fps is None else f'{fps:10.0f}'}")
+        nmse = "" if r.get("nmse") is None else f"{r['nmse']:>8.3f}"
+        print(f"{name:<{w}}{r['amse']:>10.4f}{nmse or ' ' * 8}{r['acc']:>8.3f}{gains}"
+              f"{'' if fps is None else f'{fps:10.0f}'}")
+    print("(AMSE: average mean squared error of the AAM parameters over the held-out utterances; NMSE: "
+          "the same divided by each parameter's ground-truth variance; ACC: average correlation "
+          "coefficient of predicted and true parameter tracks (deena2010 §5); higher is better only for ACC)")
     print("(gain = (zero - method) / (zero - oracle): 0 = a still face, 1 = the generator's own mean "
           f"given the true timing; oracle from {DEMO_ORACLE_DRAWS} draws, bias-corrected)")
     var_gt = float(np.mean([t.var(0).mean() for t in truth]))
