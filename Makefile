@@ -1,15 +1,18 @@
 # Two commands are the whole set-up on a fresh machine: `make demo` and `make test`.
-# Each creates .venv and installs the pinned packages when they are missing.
+# Each creates .venv and installs the pinned packages when they are missing: pyproject.toml
+# holds lower bounds, constraints.txt the exact versions. PIP_ARGS adds pip options, e.g.
+# PIP_ARGS='--extra-index-url https://download.pytorch.org/whl/cpu' for CPU-only torch.
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
+PIP_ARGS ?=
 
 .PHONY: demo test bench lint clean-venv
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt $(PIP_ARGS) -e '.[dev]'
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -14,17 +14,21 @@ every file in the directory, written *last* and atomically. :func:`verify_bundle
 Output set (``bayes-talk synth``). :class:`OutputSet` records in ``.bayes_talk_outputs.json``
 the files one run wrote into its output directory; the next run with ``--force`` removes
 the files of the earlier run that it does not write itself (only files listed there,
-never anything else), so the directory always holds one run's complete output.
+never anything else: a directory without the record has no files of ours to remove), so
+the directory always holds one run's complete output. :func:`check_output_dir` refuses,
+before any work, an output path that is a file or lies where nothing can be written.
 """
 from __future__ import annotations
 
 import json
 import logging
+import os
+import tempfile
 from pathlib import Path
 
 from bayes_talk.files import sha256_file, write_json
 
-__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "sha256_file",
+__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "check_output_dir", "sha256_file",
            "verify_bundle", "write_bundle_manifest"]
 
 log = logging.getLogger(__name__)
@@ -46,6 +50,32 @@ class BundleError(ValueError):
 def _bundle_files(directory: Path) -> list[Path]:
     return sorted(p for p in directory.rglob("*")
                   if p.is_file() and p.name != BUNDLE_MANIFEST and not p.name.startswith("."))
+
+
+def check_output_dir(directory: str | Path, flag: str = "--out") -> Path:
+    """``directory`` as a Path, after checking -- before any work -- that it is a directory
+    or can be created as one, and that files can be created in it (a probe file, removed
+    at once, in it or in its nearest existing ancestor). ValueError naming the path, the
+    reason and what to do otherwise; nothing is created."""
+    d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"{flag} {d}: is a file, not a directory; choose a directory (created if missing)")
+    probe = d
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"{flag} {d}: {probe} is a file, so the directory cannot be created")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".bayes_talk_probe.", dir=probe)
+    except OSError as exc:
+        where = "into it" if probe == d else f"into {probe} to create it"
+        raise ValueError(f"{flag} {d}: cannot write {where} ({exc.strerror or exc}); choose a writable "
+                         "directory") from None
+    os.close(fd)
+    os.unlink(tmp)
+    return d
 
 
 def begin_bundle(directory: str | Path, descriptor: str) -> None:
@@ -98,13 +128,19 @@ class OutputSet:
         self.known = tuple(known)
 
     def previous(self) -> list[str]:
-        """Files the previous run recorded (relative names); without a record (a run from
-        before records were kept), those of the tool's fixed output names (``known``) present."""
+        """Files the previous run recorded (relative names). Without a record: none -- a file
+        named like one of the tool's outputs (``known``) may be the user's, so it is never
+        removed (it is only overwritten when this run writes that name, with ``--force``)."""
         try:
             files = json.loads(self.record.read_text(encoding="utf-8"))["files"]
         except (OSError, ValueError, KeyError, TypeError):
-            return [n for n in self.known if (self.directory / n).is_file()]
+            return []
         return [f for f in files if isinstance(f, str) and ".." not in Path(f).parts and "/" not in f]
+
+    def present(self) -> list[str]:
+        """The tool's output names (``known``) and the recorded files that exist now: what a
+        run without ``--force`` must not overwrite."""
+        return sorted({n for n in (*self.known, *self.previous()) if (self.directory / n).exists()})
 
     def commit(self, written: list[str | Path]) -> list[str]:
         """After a run wrote ``written``: remove the earlier run's files it did not rewrite,

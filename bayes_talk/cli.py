@@ -35,7 +35,9 @@ from pathlib import Path
 
 def _cmd_corpus_build(args: argparse.Namespace) -> int:
     from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.data.corpus.workers import suggested_workers
 
+    workers = args.workers if args.workers is not None else suggested_workers(args.n_utterances)
     build_corpus(
         Path(args.out_dir),
         n_utterances=args.n_utterances,
@@ -46,7 +48,7 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         force=args.force,
         rate=args.rate,
         pitch=args.pitch,
-        n_workers=args.workers,
+        n_workers=workers,
         executor=args.executor,
         scheduler=args.scheduler,
     )
@@ -95,7 +97,7 @@ def _add_track_parsers(csub) -> None:
                    help="interpolate lost frames (flagged) instead of not writing the video's landmarks")
     t.add_argument("--lost-threshold", type=float, default=LOST_THRESHOLD,
                    help="texture residual RMS above which a frame is lost")
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0, help="random seed of the prototype frames proposed")
     t.add_argument("--force", action="store_true", help="overwrite files track did not write")
     t.set_defaults(func=_cmd_corpus_track)
     q = csub.add_parser("propose-prototypes", help="write the frames to annotate as PNG images", **_SUB_KW)
@@ -104,7 +106,7 @@ def _add_track_parsers(csub) -> None:
     q.add_argument("--per-video", type=int, default=0,
                    help="extra random frames for each video without one")
     q.add_argument("--out", default=None, help="output folder (default DIR/prototypes)")
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--seed", type=int, default=0, help="random seed of the frames drawn")
     q.add_argument("--force", action="store_true", help="write into a non-empty --out")
     q.set_defaults(func=_cmd_corpus_propose)
 
@@ -143,7 +145,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from bayes_talk.demo import run_demo
 
-    return run_demo(Path(args.out))
+    return run_demo(Path(args.out), workers=2)
 
 
 # --- evaluate (issue #5) -------------------------------------------------------------------
@@ -219,12 +221,29 @@ frames in Python:
 """
 
 
+DESCRIPTION = """\
+Speech in, talking face out, with the model's own account of how sure it is: a switching
+shared Gaussian-process dynamical model (Deena, Hou & Galata 2010) maps MFCCs of speech to
+the Active Appearance Model parameters of a face, and synthesis returns the trajectory with
+its posterior uncertainty bands."""
+
+EPILOG = """\
+a first run (docs in the repository's README.md and docs/):
+  bayes-talk corpus build CORPUS --n-utterances 300      # the built-in corpus
+  bayes-talk train CORPUS --out MODEL
+  bayes-talk synth MODEL --audio X.wav --labels X.lab --out OUT
+  bayes-talk evaluate --protocol deena2010 --corpus CORPUS --quick --json results.json
+  bayes-talk demo --out demo_out                          # all of it on a small corpus
+COMMAND --help shows each command's options and their defaults."""
+
+
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Defaults in every option's help (not for required options, flags, or a None default,
     whose help says what happens); epilogs kept as written."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
-        if action.required or action.default in (None, False, argparse.SUPPRESS):
+        # identity, not ==: a default of 0 (== False) is shown like any other
+        if action.required or any(action.default is x for x in (None, False, argparse.SUPPRESS)):
             return action.help or ""
         return super()._get_help_string(action)
 
@@ -303,38 +322,41 @@ def _cmd_align_train(args: argparse.Namespace) -> int:
 
 def _add_alignment_parsers(sub) -> None:
     a = sub.add_parser("align", help="align a transcript to a WAV: phone labels (.lab / .TextGrid)", **_SUB_KW)
-    a.add_argument("wav")
+    a.add_argument("wav", help="the recording (WAV, any sample rate)")
     a.add_argument("--model", required=True, help="trained model directory (holds alignment.json)")
     a.add_argument("--text", default=None, help="the transcript")
     a.add_argument("--transcript", default=None, help="UTF-8 file holding the transcript")
-    a.add_argument("--method", choices=("hmm", "dtw"), default="dtw", help="aligner (default dtw)")
+    a.add_argument("--method", choices=("hmm", "dtw"), default="dtw", help="aligner (docs/alignment.md)")
     a.add_argument("--out", required=True, help="X.lab or X.TextGrid")
     a.add_argument("--force", action="store_true", help="overwrite --out")
     a.set_defaults(func=_cmd_align)
     r = sub.add_parser("recognise", help="phone labels of a WAV from the audio alone", **_SUB_KW)
-    r.add_argument("wav")
+    r.add_argument("wav", help="the recording (WAV, any sample rate)")
     r.add_argument("--model", required=True, help="trained model directory (holds alignment.json)")
     r.add_argument("--out", required=True, help="X.lab or X.TextGrid")
     r.add_argument("--force", action="store_true", help="overwrite --out")
     r.set_defaults(func=_cmd_recognise)
     t = sub.add_parser("align-train", help="fit the aligner/recogniser of an existing model directory",
                        **_SUB_KW)
-    t.add_argument("corpus_dir")
-    t.add_argument("--model-dir", required=True)
+    t.add_argument("corpus_dir", help="the corpus the model was trained on (built or user corpus)")
+    t.add_argument("--model-dir", required=True, help="model directory written by train, to add the models to")
     t.add_argument("--force", action="store_true", help="replace existing alignment models")
     t.set_defaults(func=_cmd_align_train)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bayes-talk`` argument parser with every sub-command."""
+    from bayes_talk import __version__
     from bayes_talk.synthesis.defaults import EMCEE_WARMUP, NUTS_DEFAULTS, draws_help
 
-    p = argparse.ArgumentParser(prog="bayes-talk", description=__doc__.splitlines()[0],
+    p = argparse.ArgumentParser(prog="bayes-talk", description=DESCRIPTION, epilog=EPILOG,
                                 parents=[_verbosity_parser(False)], formatter_class=_HelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", title="commands")
 
     # --- corpus -------------------------------------------------------------------------
-    corpus = sub.add_parser("corpus", help="build the built-in talking-head corpus", **_SUB_KW)
+    corpus = sub.add_parser("corpus", help="build the built-in corpus; track or annotate a user corpus",
+                            **_SUB_KW)
     csub = corpus.add_subparsers(dest="corpus_command", required=True)
     b = csub.add_parser("build", help="synthesise speech, faces and frames into OUT_DIR", **_SUB_KW)
     b.add_argument("out_dir", help="directory to create (or an empty one)")
@@ -361,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a model on a corpus directory", **_SUB_KW)
     t.add_argument("corpus_dir", help="built or user corpus directory")
     t.add_argument("--model", choices=MODEL_KINDS, default=DEFAULT_MODEL,
-                   help=f"model kind (docs/model.md; default {DEFAULT_MODEL}: right-context phone states; "
+                   help=f"model kind (docs/model.md; {DEFAULT_MODEL}: right-context phone states; "
                         "ssgpdm-vlmm: deena2010's)")
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--workers", type=int, default=2, help="processes for the per-state models")
@@ -426,8 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "drawn in bands.png and stored as observed_data in posterior.nc")
     s.add_argument("--no-video", action="store_true", help="skip the MP4s")
     s.add_argument("--lowpass-hz", type=float, default=4.0, metavar="HZ",
-                   help="zero-phase low-pass of a switching model's mean, bands moving with it "
-                        "(deena2010 §4.2.3; default 4 Hz, the setting of the held-out figures; 0: off)")
+                   help="zero-phase low-pass (Hz) of a switching model's mean, bands moving with it "
+                        "(deena2010 §4.2.3; 4 Hz is the setting of the held-out figures; 0: off)")
     s.add_argument("--raw-bands", action="store_true",
                    help="do not apply the model's band calibration (train --calibrate-bands)")
     s.add_argument("--force", action="store_true",
@@ -449,6 +471,22 @@ def build_parser() -> argparse.ArgumentParser:
 _HANDLER: logging.Handler | None = None
 
 
+class _CurrentStderrHandler(logging.StreamHandler):
+    """A StreamHandler on whatever ``sys.stderr`` is when a record is written, not the one
+    of its creation: ``main`` called in-process (tests, notebooks) under a replaced stderr
+    that is later closed must not leave the root logger writing to a closed file (every
+    later record -- e.g. dask's at a cluster's shutdown -- printed "--- Logging error ---
+    ... ValueError: I/O operation on closed file")."""
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ assigns it: ignored
+        pass
+
+
 def _log_to_stderr(level: int, fmt: str) -> None:
     """One stderr handler on the root logger (replacing the one an earlier ``main`` added,
     leaving any other handler alone)."""
@@ -456,7 +494,7 @@ def _log_to_stderr(level: int, fmt: str) -> None:
     root = logging.getLogger()
     if _HANDLER is not None:
         root.removeHandler(_HANDLER)
-    _HANDLER = logging.StreamHandler(sys.stderr)
+    _HANDLER = _CurrentStderrHandler()
     _HANDLER.setFormatter(logging.Formatter(fmt))
     root.addHandler(_HANDLER)
     root.setLevel(level)
@@ -469,6 +507,9 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
     _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
                    else "bayes-talk: %(levelname)s: %(message)s")
+    # hmmlearn logs "Model is not converging" for every EM step whose log-likelihood drops by
+    # rounding (the aligner, the recogniser, baselines): noise to a user; kept with -v
+    logging.getLogger("hmmlearn").setLevel(logging.INFO if verbose else logging.ERROR)
     logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
     import warnings
 

@@ -187,10 +187,21 @@ class ProcessExecutor(Executor):
         items = list(items)
         futures = [self._pool.submit(_run_pickled, pickle.dumps((fn, x), protocol=pickle.HIGHEST_PROTOCOL))
                    for x in items]
+        from concurrent.futures.process import BrokenProcessPool
+
         try:
             for f in _bar(as_completed(futures), len(futures), desc, unit):
                 f.result()  # raises the first failure at once
             return [pickle.loads(f.result()) for f in futures]
+        except BrokenProcessPool as exc:
+            for f in futures:
+                f.cancel()
+            raise RuntimeError(
+                f"a worker process died ({exc}). Worker processes are fresh interpreters that import "
+                "your main module: a script that asks for workers (workers= / n_workers= > 1, "
+                "executor=\"processes\") must run its work under `if __name__ == \"__main__\":`; "
+                "or leave workers at 1 (this process). It also happens when a worker runs out of "
+                "memory.") from exc
         except BaseException:
             for f in futures:
                 f.cancel()

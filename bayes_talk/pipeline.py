@@ -76,10 +76,10 @@ def new_model(kind: str, **overrides):
     raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
 
 
-def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, scheduler: str | None = None):
+def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, scheduler: str | None = None):
     """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
     "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
-    or this process when ``workers`` is 1; ``scheduler``: a running dask scheduler), with a
+    or this process when ``workers`` is 1, the default; ``scheduler``: a running dask scheduler), with a
     progress bar of states done / total on a terminal (bayes_talk.progress). The model
     does not depend on the executor."""
     from bayes_talk.estimators.switching import SwitchingSGPDM
@@ -92,7 +92,7 @@ def fit_model(model, train: list[Utterance], workers: int = 2, executor=None, sc
         return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
 
 
-def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 2,
+def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 1,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
           alignment: bool = True, executor=None, scheduler: str | None = None,
@@ -113,7 +113,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     same directory, so that ``synth`` runs from a transcript or from audio alone.
 
     ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
-    (:func:`fit_model`; docs/scaling.md); the model does not depend on it.
+    (:func:`fit_model`; docs/scaling.md); the model does not depend on it. ``workers``:
+    processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
     ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
     the band calibration of the Laplace posterior (switching models;
     bayes_talk.synthesis.band_calibration: one extra fit on the rest, saved as
@@ -344,9 +345,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     :data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz, the setting of the
     held-out figures in docs/results.md; None: off). Recorded in ``segments.json``.
     """
-    from bayes_talk.bundle import OutputSet
+    from bayes_talk.bundle import OutputSet, check_output_dir
     from bayes_talk.video import write_video
 
+    check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
     tm = load_trained(model_dir)
     if posterior is None:
         posterior = "map" if tm.kind == "sgplvm" else "laplace"
@@ -355,6 +357,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")
+    _check_speech(wav, recognise=labels is None and text is None and transcript is None)
     derived = None
     if labels is None:
         derived = _derived_labels(model_dir, wav, text, transcript, align_method)
@@ -378,7 +381,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         names["uncertainty"] = "uncertainty.mp4"
     if posterior != "map":
         names.update(diagnostics="diagnostics.json")
-    existing = sorted({n for n in list(names.values()) + outputs.previous() if (out / n).exists()})
+    existing = sorted({n for n in list(names.values()) + outputs.present() if (out / n).exists()})
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
@@ -479,6 +482,25 @@ def _sampler_args(options: dict | None) -> dict:
         raise ValueError(f"unknown sampler options {sorted(unknown)}")
     kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}
     return {**kw, "sampler_kw": opts} if opts else kw
+
+
+def _check_speech(wav, recognise: bool) -> None:
+    """No speech in ``wav`` (:func:`bayes_talk.audio.speech_problem`): an error before the
+    phone recogniser invents phones for it; a warning when labels or a transcript were given
+    (the face then follows them, not the audio)."""
+    import warnings
+
+    from bayes_talk.audio import load_audio, speech_problem
+
+    y, sr = load_audio(wav)
+    problem = speech_problem(y, sr)
+    if problem is None:
+        return
+    if recognise:
+        raise ValueError(f"{wav}: no speech found, the audio is {problem}; the phone recogniser would "
+                         "invent phones for it. Check the file, or give --labels/--text if this is intended")
+    warnings.warn(f"{wav}: no speech found, the audio is {problem}: the face follows the given labels, "
+                  "not the audio", UserWarning, stacklevel=3)
 
 
 def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:

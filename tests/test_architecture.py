@@ -28,7 +28,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # low-level utilities: no knowledge of faces, speech or models; the package root is a
     # façade whose exports are imported lazily (bayes_talk/__init__.py) so it sits here
     ("base", ("bayes_talk", "bayes_talk.files", "bayes_talk.bundle", "bayes_talk.errors", "bayes_talk.progress",
-              "bayes_talk.gp", "bayes_talk.video", "bayes_talk.executor", "bayes_talk.memory")),
+              "bayes_talk.gp", "bayes_talk.video", "bayes_talk.executor", "bayes_talk.memory",
+              "bayes_talk.arviz_compat")),
     # raw data: phone set, utterance container, label files, speech synthesis, face
     # geometry and coarticulation
     ("data", ("bayes_talk.data",)),

@@ -28,14 +28,14 @@ def _files(d: Path) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def big(tmp_path_factory) -> Path:
-    """40 utterances, seed 0 (the acceptance corpus)."""
-    return build_corpus(tmp_path_factory.mktemp("big") / "c", n_utterances=40, seed=0)
+    """40 utterances, seed 0 (the acceptance corpus), built in 2 worker processes."""
+    return build_corpus(tmp_path_factory.mktemp("big") / "c", n_utterances=40, seed=0, n_workers=2)
 
 
 @pytest.fixture(scope="module")
 def big_corpus(big):
     """``big`` loaded once (cold cache: featurised in worker processes)."""
-    return load_corpus(big)
+    return load_corpus(big, n_workers=2)
 
 
 @pytest.fixture(scope="module")

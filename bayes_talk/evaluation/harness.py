@@ -343,7 +343,7 @@ def evaluate(
     cmvn: str = "mean",
     labels: str | Sequence[str] | None = None,
     executor: Any = None,
-    workers: int = 2,
+    workers: int = 1,
     scheduler: str | None = None,
 ) -> dict[str, Any]:
     """The ``bayes-talk evaluate`` job: load corpora, run, write JSON + Markdown + figure.
@@ -359,7 +359,9 @@ def evaluate(
     executor: "local" (default), "processes" (``workers`` processes) or "dask" (a
     ``LocalCluster`` of ``workers`` processes, or the running scheduler at ``scheduler``), or
     an :class:`~bayes_talk.executor.Executor` (left open): what runs the splits, or the
-    per-state models of a single split, and the featurisation (docs/scaling.md).
+    per-state models of a single split, and the featurisation (docs/scaling.md). Without
+    ``executor`` the protocol runs here and ``workers`` > 1 featurises in that many
+    processes (``bayes-talk evaluate``: 2); the default 1 starts no process.
 
     Checks the protocol, the methods and that ``json_path`` is writable *before* loading
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
@@ -382,13 +384,15 @@ def evaluate(
     kind = executor if executor is not None else ("dask" if scheduler else "local")
     with executor_for(kind, workers, scheduler) as ex:
         feat_ex = ex if ex.parallel else None
+        feat_workers = workers if executor is None and not scheduler else None
         t0 = time.perf_counter()
-        train_c = load_corpus(corpus, cmvn=cmvn, executor=feat_ex)
+        train_c = load_corpus(corpus, cmvn=cmvn, executor=feat_ex, n_workers=feat_workers)
         test_c = None
         if test_corpus is not None:
             # score the test frames in the training corpus's AAM space: project them through it
             try:
-                test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn, executor=feat_ex)
+                test_c = load_corpus(test_corpus, aam=train_c.aam_path, cmvn=cmvn, executor=feat_ex,
+                                     n_workers=feat_workers)
             except ValueError as exc:
                 raise ValueError(f"test corpus {test_corpus} cannot be scored against training corpus "
                                  f"{corpus}: {exc}") from exc
@@ -396,6 +400,13 @@ def evaluate(
         small_note = None
         if min_utterances is not None and test_c is None:
             proto, small_note = scale_protocol(proto, len(train_c.sequences), min_utterances)
+        elif test_c is None and len(train_c.sequences) < proto.n_needed:
+            n = len(train_c.sequences)
+            raise ValueError(f"protocol {proto.name}{' --quick' if proto.quick else ''} needs at least "
+                             f"{proto.n_needed} utterances, corpus {corpus} has {n}: build a larger corpus "
+                             f"(corpus build --n-utterances {proto.n_needed}), or pass --min-utterances {n} "
+                             "to run the protocol with its split scaled to this corpus (not the paper's "
+                             "protocol; the report says so)")
 
         def phone_set(c):
             return list(c.manifest.get("phone_set", PHONES))

@@ -124,8 +124,9 @@ def build_corpus(
     are removed -- nothing else is deleted. ``manifest.json`` is written last, so a
     directory without it is an incomplete build.
 
-    ``n_workers`` worker processes (one BLAS thread each; None: 2 from 16 utterances on,
-    else 1 = in this process) each take whole utterances: speech in a fresh espeak-ng
+    ``n_workers`` worker processes (one BLAS thread each; None or 1: in this process, the
+    default of a library call; ``bayes-talk corpus build`` uses 2 from 16 utterances on)
+    each take whole utterances: speech in a fresh espeak-ng
     process, face, frames, files -- so one renders while the other waits for speech. The
     output does not depend on ``n_workers``. ``executor``: "local", "processes" or "dask"
     (or an :class:`~bayes_talk.executor.Executor`, left open), ``scheduler`` a running dask

@@ -26,8 +26,9 @@ AAM_VARIANCE = 0.99
 #: (``AAM.fit(texture_inset=...)``): the outermost ring straddles the face outline and
 #: samples the background, which alone doubled the number of modes (docs/data.md)
 AAM_TEXTURE_INSET = 1.0
-#: default ``n_workers=None``: 2 worker processes from this many utterances on, else
-#: none (a worker's start-up, ~1-3 s of imports, outweighs the gain on small jobs)
+#: the command line's default (no ``--workers``): 2 worker processes from this many
+#: utterances on, else none (a worker's start-up, ~1-3 s of imports, outweighs the gain
+#: on small jobs); library calls default to none (``n_workers=None``)
 _MIN_ITEMS_FOR_WORKERS = 16
 #: bump when the derived features (MFCC settings, label rule, AAM projection) change
 FEATURE_VERSION = 1

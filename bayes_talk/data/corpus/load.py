@@ -171,8 +171,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     written to -- read-only, full -- gets a warning and the features are used uncached).
     For a user corpus with image or video frames an AAM is fitted on prototype frames (random draw from ``seed``) and
     saved as ``<path>/aam.npz`` (also cached; delete it to refit). Errors name the
-    offending file. ``n_workers``: worker processes for featurisation (None: 2 from 16
-    sequences on, else none); the features do not depend on it. ``executor`` / ``scheduler``: as
+    offending file. ``n_workers``: worker processes for featurisation (None: none, the work
+    runs in this process -- safe in a plain script); the features do not depend on it. ``executor`` / ``scheduler``: as
     in :func:`~bayes_talk.data.corpus.build_corpus` (bayes_talk.executor).
 
     ``aam``: the ``aam.npz`` of *another* corpus (or model) to project this corpus's

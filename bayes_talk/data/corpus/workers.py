@@ -22,9 +22,19 @@ from bayes_talk.executor import Executor, executor_for
 from bayes_talk.features.mfcc import FMAX_HZ, frame_count, load_wav, mfcc
 
 
+def suggested_workers(n_tasks: int) -> int:
+    """What the command line uses without ``--workers``: 2 processes from
+    ``_MIN_ITEMS_FOR_WORKERS`` tasks on, else 1 (a worker's start-up, ~1-3 s of imports,
+    outweighs the gain on small jobs). Library calls never choose processes themselves."""
+    return 2 if int(n_tasks) >= _MIN_ITEMS_FOR_WORKERS else 1
+
+
 def _n_workers(n_workers: int | None, n_tasks: int) -> int:
+    """``n_workers`` checked; None: 1 (this process). A library call starts worker processes
+    only when its caller asks for them: spawned workers re-import the caller's main module,
+    which a plain script without the ``if __name__ == "__main__":`` guard cannot survive."""
     if n_workers is None:
-        return 2 if n_tasks >= _MIN_ITEMS_FOR_WORKERS else 1
+        return 1
     if int(n_workers) < 1:
         raise ValueError(f"n_workers: expected >= 1 or None, found {n_workers}")
     return int(n_workers)
