@@ -212,3 +212,51 @@ def test_audio_and_face_share_the_variation(cache):
     assert diff > 0.05 * np.abs(a.audio[seg].astype(float)).mean()
     # silence stays silent in both (nothing but the lips moved)
     assert np.array_equal(a.audio[: int(0.1 * sr)], b.audio[: int(0.1 * sr)])
+
+
+@needs_vtl
+def test_oracle_draws_use_the_corpus_generator(corpus):
+    """A draw with the corpus's own stream reproduces the corpus's face articulators; fresh
+    streams vary the lip opening but keep the closures closed."""
+    import soundfile as sf
+
+    iv = _intervals(corpus, 1)
+    y, sr = sf.read(corpus / "utterances" / "utt0001.wav", dtype="int16")
+    T = len(y) * 25 // sr
+    res = art.synthesize_articulatory(iv, len(y), sr, (0, 1, 3))
+    want = art.face_articulators(res.tract, T, 25.0)
+    same, *fresh = art.articulatory_draws(iv, T, 25.0, [np.random.default_rng([0, 1, 3]),
+                                                       np.random.default_rng([7, 1]), np.random.default_rng([7, 2])])
+    for k in want:
+        assert np.array_equal(same[k], want[k]), k
+    assert np.abs(fresh[0]["aperture"] - fresh[1]["aperture"]).max() > 0.5
+    tc = (np.arange(T) + 0.5) / 25.0
+    for s, e, p in iv:
+        if p in BILABIALS:
+            near = (tc >= s - 0.03) & (tc < e + 0.02)
+            for d in fresh:
+                assert d["aperture"][near].min() < 1.0, (p, s)   # design units; open vowels ~6-8
+
+
+@needs_vtl
+def test_loaded_vtl_corpus_names_its_generator(corpus):
+    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.evaluation.ceiling import corpus_generator
+
+    c = load_corpus(corpus, n_workers=1)
+    assert c.sequences[0].meta["speech"] == "vtl"
+    assert corpus_generator(c.manifest) == "vtl"
+    assert corpus_generator({"kind": "built"}) == "espeak"
+    assert corpus_generator({"kind": "user"}) == "user"
+    # the oracle follows the corpus's generator: its mean is closer to the truth than the
+    # same oracle run with the phone-driven (espeak) face
+    from bayes_talk.evaluation.ceiling import OracleModel
+
+    err = {"vtl": 0.0, "espeak": 0.0}
+    for u in c.sequences:
+        for gen in err:
+            u.meta["speech"] = gen
+            mean, var, bias = OracleModel(n_draws=3).predict(u)
+            assert mean.shape == u.aam.shape and np.all(var > 0)
+            err[gen] += float(np.mean((mean - u.aam) ** 2))
+    assert err["vtl"] < 0.8 * err["espeak"], err

@@ -71,8 +71,10 @@ __all__ = [
     "VARIATION",
     "VTL_PHONES",
     "ArticulatoryResult",
+    "articulatory_draws",
     "cache_dir",
     "face_articulators",
+    "param_ranges",
     "require_vtl",
     "segment_file_text",
     "segment_sequence",
@@ -279,6 +281,35 @@ def face_articulators(tract: np.ndarray, n_frames: int, fps: float) -> dict[str,
             "spread": -m["k_spread"] * (lp - m["lp_mid"])}
 
 
+def _score_tract(seg_text: str) -> tuple[np.ndarray, np.ndarray]:
+    """(tract (N, 19), glottis (N, 11)) of a segment file: gestural score, then motor file."""
+    vtl = require_vtl()
+    with tempfile.TemporaryDirectory(prefix="bt-vtl-") as tmp:
+        seg_f, ges_f, mot_f = (str(Path(tmp) / n) for n in ("u.seg", "u.ges", "u.tract"))
+        Path(seg_f).write_text(seg_text)
+        vtl.phoneme_file_to_gesture_file(seg_f, ges_f)
+        vtl.gesture_file_to_motor_file(ges_f, mot_f)
+        return _read_motor_file(Path(mot_f))
+
+
+def param_ranges() -> np.ndarray:
+    """(19, 2) [min, max] of VocalTractLab's tract parameters."""
+    info = require_vtl().get_param_info("tract")
+    return np.array([[p["min"], p["max"]] for p in info], dtype=np.float64)
+
+
+def articulatory_draws(intervals: list[tuple[float, float, str]], n_frames: int, fps: float,
+                       rngs: list[np.random.Generator], sizes: dict[str, float] | None = None,
+                       where: str = "intervals") -> list[dict[str, np.ndarray]]:
+    """Face articulators (:func:`face_articulators`) of fresh draws of the articulatory
+    variation, one per generator in ``rngs``, for the given phones and durations: the
+    gestural score is computed once and no audio is synthesised (method ``oracle``)."""
+    segs = segment_sequence(intervals, where)
+    base, _ = _score_tract(segment_file_text(segs))
+    ranges = param_ranges()
+    return [face_articulators(vary_tract(base, segs, r, sizes, ranges), n_frames, fps) for r in rngs]
+
+
 @dataclass
 class ArticulatoryResult:
     """audio: (n_samples,) int16 at ``sample_rate``; tract: (N, 19) varied tract at
@@ -334,15 +365,8 @@ def synthesize_articulatory(intervals: list[tuple[float, float, str]], n_samples
                 return ArticulatoryResult(z["audio"].copy(), int(sample_rate), z["tract"].copy(), True)
         except (OSError, ValueError, KeyError):
             pass  # a damaged cache entry is recomputed and rewritten
-    with tempfile.TemporaryDirectory(prefix="bt-vtl-") as tmp:
-        seg_f, ges_f, mot_f = (str(Path(tmp) / n) for n in ("u.seg", "u.ges", "u.tract"))
-        Path(seg_f).write_text(seg_text)
-        vtl.phoneme_file_to_gesture_file(seg_f, ges_f)
-        vtl.gesture_file_to_motor_file(ges_f, mot_f)
-        tract, glottis = _read_motor_file(Path(mot_f))
-    info = vtl.get_param_info("tract")
-    ranges = np.array([[p["min"], p["max"]] for p in info], dtype=np.float64)
-    tract = vary_tract(tract, segs, np.random.default_rng(list(stream)), sizes, ranges)
+    tract, glottis = _score_tract(seg_text)
+    tract = vary_tract(tract, segs, np.random.default_rng(list(stream)), sizes, param_ranges())
     wave = np.asarray(vtl.synth_block(np.ascontiguousarray(tract), np.ascontiguousarray(glottis),
                                       _STATE_SAMPLES), dtype=np.float64)
     if int(sample_rate) != _VTL_RATE:
