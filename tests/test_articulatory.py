@@ -256,7 +256,7 @@ def test_loaded_vtl_corpus_names_its_generator(corpus):
     for u in c.sequences:
         for gen in err:
             u.meta["speech"] = gen
-            mean, var, bias = OracleModel(n_draws=3).predict(u)
+            mean, var, _bias = OracleModel(n_draws=3).predict(u)
             assert mean.shape == u.aam.shape and np.all(var > 0)
             err[gen] += float(np.mean((mean - u.aam) ** 2))
     assert err["vtl"] < 0.8 * err["espeak"], err
