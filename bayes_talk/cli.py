@@ -8,6 +8,7 @@ Sub-commands::
 
     bayes-talk corpus build OUT_DIR [--n-utterances N] [--seed S] [--sentences FILE]
                                     [--voice NAME] [--image-size PX] [--force]
+                                    [--speech {espeak,vtl}]
     bayes-talk corpus track DIR [--prototypes 4] [--search-unannotated] [--allow-lost]
     bayes-talk corpus propose-prototypes DIR [--prototypes 4] [--per-video K] [--out DIR]
     bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,ssgpdm-vlmm-rc,ssgpdm-phone-rc,sgplvm} --out MODEL_DIR
@@ -51,8 +52,9 @@ def _cmd_corpus_build(args: argparse.Namespace) -> int:
         n_workers=workers,
         executor=args.executor,
         scheduler=args.scheduler,
+        speech=args.speech,
     )
-    print(f"corpus written to {args.out_dir}")
+    print(f"corpus written to {args.out_dir} (speech: {args.speech})")
     return 0
 
 
@@ -373,6 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="espeak pitch (0-100) the per-utterance jitter is centred on (default 50)")
     b.add_argument("--workers", type=_positive_int, default=None,
                    help="processes (default: 2 from 16 utterances on, else 1)")
+    b.add_argument("--speech", choices=("espeak", "vtl"), default="espeak",
+                   help="audio generator: espeak-ng, or vtl = VocalTractLab driven by espeak-ng's "
+                        "phones, one vocal tract for the voice and the face (needs "
+                        "pip install 'bayes_talk[articulatory]')")
     _add_executor_args(b, "the utterances (speech, face, frames) and their featurisation")
     b.set_defaults(func=_cmd_corpus_build)
     _add_track_parsers(csub)

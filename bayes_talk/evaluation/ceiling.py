@@ -5,7 +5,9 @@
 variance (so its coverage can be scored). It is the "still face" every method must beat.
 
 ``oracle`` is the best possible prediction for a *built* corpus given the exact phone
-timing. The generator (:func:`bayes_talk.data.face.face_landmarks`) is known, so the
+timing. The generator (:func:`bayes_talk.data.face.face_landmarks`; for a ``--speech vtl``
+corpus with the jaw and lips from a fresh draw of the vocal tract's articulatory variation,
+:func:`bayes_talk.data.articulatory.articulatory_draws`) is known, so the
 minimum-MSE prediction of the mean-removed AAM parameters ``z`` given the phone intervals
 ``I`` is the conditional mean ``mu = E[z | I]``. It is estimated by Monte Carlo: K draws of
 the generator with fresh randomness and the utterance's true intervals
@@ -40,7 +42,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OracleModel", "ZeroModel", "add_gain_fractions", "gain_fraction", "oracle_draws"]
+__all__ = ["OracleModel", "ZeroModel", "add_gain_fractions", "corpus_generator", "gain_fraction",
+           "oracle_draws"]
 
 #: generator draws per utterance of method ``oracle`` (SystemConfig.oracle_draws)
 ORACLE_DRAWS = 32
@@ -81,6 +84,14 @@ def _generator_context(seq) -> dict:
     return meta
 
 
+def corpus_generator(manifest: dict) -> str:
+    """Which generator made a corpus: ``espeak`` / ``vtl`` (built; the manifest's
+    ``speech``, espeak before it existed) or ``user`` (recorded data)."""
+    if manifest.get("kind") != "built":
+        return "user"
+    return str(manifest.get("speech", "espeak"))
+
+
 def _cached_aam(path: str):
     from bayes_talk.data.corpus.workers import _cached_aam as cached
 
@@ -89,12 +100,16 @@ def _cached_aam(path: str):
 
 def oracle_draws(intervals: list, n_frames: int, aam, *, n_draws: int, seed: int | list[int],
                  image_size: int, renderer: dict, fps: float = 25.0,
-                 mean_removal: bool = True) -> np.ndarray:
+                 mean_removal: bool = True, speech: str = "espeak") -> np.ndarray:
     """(K, T, D) AAM parameters of ``n_draws`` generator draws for the given timing.
 
     Draw k uses ``np.random.default_rng([*seed, k])``; each is rendered with
     ``renderer`` (render_frames keyword arguments), projected through ``aam`` and, if
     ``mean_removal``, has its own per-utterance mean removed (as the corpus truth has).
+    ``speech="vtl"`` (an articulatory corpus, :mod:`bayes_talk.data.articulatory`): the
+    face's jaw and lips come from a fresh draw of the vocal tract's articulatory variation
+    (``default_rng([*seed, k, 3])``) given the same phones and durations, the rest of the
+    face from ``default_rng([*seed, k])`` -- the conditional mean then averages over both.
     """
     from bayes_talk.data.face import face_landmarks
     from bayes_talk.data.render import render_frames
@@ -103,10 +118,19 @@ def oracle_draws(intervals: list, n_frames: int, aam, *, n_draws: int, seed: int
         raise ValueError(f"oracle: n_draws must be >= 2 (the bias correction needs a variance), "
                          f"found {n_draws}")
     seed = list(np.atleast_1d(seed).astype(np.int64).tolist())
+    if speech == "vtl":
+        from bayes_talk.data.articulatory import articulatory_draws
+
+        given = articulatory_draws(intervals, int(n_frames), fps,
+                                   [np.random.default_rng([*seed, k, 3]) for k in range(int(n_draws))])
+    elif speech == "espeak":
+        given = [None] * int(n_draws)
+    else:
+        raise ValueError(f"oracle: unknown speech generator {speech!r} (expected 'espeak' or 'vtl')")
     out = []
     for k in range(int(n_draws)):
         lm = face_landmarks(intervals, int(n_frames), fps=fps, image_size=int(image_size),
-                            rng=np.random.default_rng([*seed, k]))
+                            rng=np.random.default_rng([*seed, k]), given=given[k])
         p = np.asarray(aam.project(render_frames(lm, image_size=int(image_size), **renderer), lm), np.float64)
         out.append(p - p.mean(axis=0) if mean_removal else p)
     return np.stack(out)
@@ -131,7 +155,8 @@ class OracleModel:
         key = [int(self.seed), 9, zlib.crc32(str(seq.name).encode("utf-8"))]
         draws = oracle_draws(meta["intervals"], seq.n_frames, aam, n_draws=self.n_draws, seed=key,
                              image_size=int(meta["image_size"]), renderer=dict(meta["renderer"]),
-                             mean_removal=bool(meta.get("mean_removed", True)))
+                             mean_removal=bool(meta.get("mean_removed", True)),
+                             speech=str(meta.get("speech", "espeak")))
         if draws.shape[1:] != np.shape(seq.aam):
             raise ValueError(f"method 'oracle': draws for {seq.name!r} have shape {draws.shape[1:]}, "
                              f"the utterance's features {np.shape(seq.aam)} (AAM {Path(meta['aam_path'])})")

@@ -43,7 +43,7 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation import calibration as CAL
-from bayes_talk.evaluation.ceiling import add_gain_fractions
+from bayes_talk.evaluation.ceiling import add_gain_fractions, corpus_generator
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
 from bayes_talk.evaluation.scoring import _clean, _summary, _utterance_metrics, calibration_inputs
 from bayes_talk.evaluation.splits import Split, _dims, check_test_set, make_splits
@@ -423,6 +423,9 @@ def evaluate(
                 train_phone_set=phone_set(train_c),
                 test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
     result["corpus"] = str(Path(corpus).resolve())
+    result["generator"] = corpus_generator(train_c.manifest)
+    if test_c is not None:
+        result["test_generator"] = corpus_generator(test_c.manifest)
     result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
                                if train_c.aam_path is not None else "the test corpus's precomputed features")

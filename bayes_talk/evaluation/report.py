@@ -94,6 +94,14 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
              "(deena2010 §5); NMSE divides by the ground-truth variance of the test frames; "
              "cov50/cov90 are the fractions of entries inside the central 50/90 % Gaussian "
              "predictive band (ideal 0.5/0.9).\n")
+    gen = result.get("generator")
+    if gen:
+        names = {"espeak": "built-in corpus, espeak-ng speech (face driven by the phones)",
+                 "vtl": "built-in corpus, VocalTractLab speech (one vocal tract drives voice and face)",
+                 "user": "user corpus (recorded data)"}
+        intro += f"Corpus generator: {names.get(gen, gen)}"
+        tg = result.get("test_generator")
+        intro += (f"; test corpus: {names.get(tg, tg)}.\n" if tg else ".\n")
     lp = (result.get("settings") or {}).get("lowpass_hz")
     if lp:
         intro += (f"Every method's predicted mean was low-passed at {lp:g} Hz (zero-phase, "

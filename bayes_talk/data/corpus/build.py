@@ -96,6 +96,29 @@ def _check_out_dir(out_dir: Path, force: bool) -> set[str]:
 
 
 
+#: ``speech`` generators of the built-in corpus and how the manifest describes them.
+SPEECH_GENERATORS: dict[str, str] = {
+    "espeak": "espeak-ng via espeakng-loader (one fresh process per utterance)",
+    "vtl": ("VocalTractLab (vocaltractlab-cython, GPL-3.0) from espeak-ng's phones and "
+            "durations; the same varied vocal tract drives the face's jaw and lips"),
+}
+
+
+def _articulatory_manifest() -> dict:
+    """What a ``--speech vtl`` corpus records about its generator."""
+    from bayes_talk.data.articulatory import (
+        FACE_MAP,
+        GENERATOR_VERSION,
+        LICENCE,
+        VARIATION,
+        require_vtl,
+    )
+
+    return {"generator_version": GENERATOR_VERSION, "vtl_version": str(require_vtl().get_version()),
+            "licence": LICENCE, "variation": dict(VARIATION), "face_map": dict(FACE_MAP),
+            "stream": "numpy default_rng([seed, i, 3])"}
+
+
 def _snapshot(d: Path) -> dict[str, tuple[int, int]]:
     return {str(p.relative_to(d)): (p.stat().st_size, p.stat().st_mtime_ns)
             for p in d.rglob("*") if p.is_file()}
@@ -116,6 +139,7 @@ def build_corpus(
     aam_frames_per_phone: int = AAM_FRAMES_PER_PHONE,
     rate: int | None = None,
     pitch: int | None = None,
+    speech: str = "espeak",
 ) -> Path:
     """Synthesise speech, faces and frames into ``out_dir`` and learn an AAM; return the path.
 
@@ -134,6 +158,11 @@ def build_corpus(
 
     ``rate`` (words/min) and ``pitch`` (0-100): the centre of the per-utterance jitter
     (None: espeak's defaults, 175 and 50) -- e.g. a held-out voice outside the training range.
+
+    ``speech``: "espeak" (espeak-ng's audio) or "vtl" (articulatory: espeak-ng's phones
+    and durations drive VocalTractLab, whose varied tract makes both the audio and the
+    face's jaw and lips; :mod:`bayes_talk.data.articulatory`, needs
+    ``pip install 'bayes_talk[articulatory]'``, GPL-3.0).
     """
     from bayes_talk.data.text_check import check_pronounceable, check_voice
 
@@ -143,6 +172,12 @@ def build_corpus(
     if int(seed) < 0:
         raise ValueError(f"seed: expected an integer >= 0, found {seed}")
     check_voice(voice)
+    if speech not in SPEECH_GENERATORS:
+        raise ValueError(f"speech: expected one of {sorted(SPEECH_GENERATORS)}, found {speech!r}")
+    if speech == "vtl":
+        from bayes_talk.data.articulatory import require_vtl
+
+        require_vtl()
     workers = _n_workers(n_workers, int(n_utterances))
     if int(image_size) < 32:
         raise ValueError(f"image_size: expected >= 32 pixels, found {image_size}")
@@ -152,7 +187,7 @@ def build_corpus(
     created = _CreatedFiles(out_dir)
     try:
         return _build(out_dir, texts, seed, voice, image_size, previous, workers, aam_frames_per_phone,
-                      int(n_utterances), rate, pitch, executor, scheduler)
+                      int(n_utterances), rate, pitch, executor, scheduler, speech)
     except BaseException:
         created.remove()
         raise
@@ -188,7 +223,7 @@ class _CreatedFiles:
 def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: int, previous: set[str],
            workers: int, aam_frames_per_phone: int, n_utterances: int, rate: int | None,
            pitch: int | None, executor: Executor | str | None = None,
-           scheduler: str | None = None) -> Path:
+           scheduler: str | None = None, speech: str = "espeak") -> Path:
     """The body of :func:`build_corpus` after its checks."""
     from bayes_talk.data.speech import DEFAULT_PITCH, DEFAULT_RATE, jittered_requests
     from bayes_talk.features.aam import AAM
@@ -203,6 +238,7 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
                                  rate=DEFAULT_RATE if rate is None else int(rate),
                                  pitch=DEFAULT_PITCH if pitch is None else int(pitch))
     tasks = [{"out_dir": str(out_dir), "index": i, "seed": int(seed), "image_size": int(image_size),
+              "speech": speech,
               "request": {"text": r.text, "voice": r.voice, "rate": int(r.rate),
                           "pitch": int(r.pitch), "lead_silence": r.lead_silence,
                           "trail_silence": r.trail_silence, "fps": r.fps}}
@@ -261,7 +297,9 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
         "seed": int(seed),
         "voice": voice,
         "n_utterances": int(n_utterances),
-        "synthesiser": "espeak-ng via espeakng-loader (one fresh process per utterance)",
+        "speech": speech,
+        "synthesiser": SPEECH_GENERATORS[speech],
+        **({"articulatory": _articulatory_manifest()} if speech == "vtl" else {}),
         "renderer": renderer_settings(int(FORMAT_VERSION)),
         "aam": {"path": "aam.npz", "files": aam_files, "variance": AAM_VARIANCE,
                 "texture_inset": AAM_TEXTURE_INSET,

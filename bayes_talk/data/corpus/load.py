@@ -291,7 +291,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     # how the visual features were made, for method "oracle" (bayes_talk.evaluation.ceiling)
     gen = {"corpus_kind": kind, "aam_path": str(aam_path) if aam is not None else None}
     if kind == "built":
-        gen.update(image_size=int(manifest["image_size"]),
+        gen.update(image_size=int(manifest["image_size"]), speech=manifest.get("speech", "espeak"),
                    renderer=manifest.get("renderer") or renderer_settings(manifest["format_version"]))
     seqs = []
     for it in items:

@@ -56,7 +56,12 @@ _PROGRESS = {"utterance": "building utterances", "features": "featurising"}
 
 
 def _utterance_task(a: dict) -> tuple[dict, dict]:
-    """Synthesise utterance ``a["index"]``, drive and render the face, write its files."""
+    """Synthesise utterance ``a["index"]``, drive and render the face, write its files.
+
+    ``a["speech"]``: "espeak" (espeak-ng's audio; the face from the phones) or "vtl"
+    (espeak-ng's phones and durations, VocalTractLab's audio and the face's jaw, lip
+    opening, rounding and protrusion from the same varied tract; stream ``[seed, i, 3]``).
+    """
     from bayes_talk.data.face import face_landmarks
     from bayes_talk.data.render import render_frames
     from bayes_talk.data.speech import SpeechRequest, write_wav
@@ -69,14 +74,23 @@ def _utterance_task(a: dict) -> tuple[dict, dict]:
     T = frame_count(n_samples, sr, FPS)
     # the file of record is the .lab (100 ns grid): drive the face from the same times
     intervals = [(round(s * 1e7) / 1e7, round(e * 1e7) / 1e7, p) for s, e, p in res.intervals]
+    samples, given = res.samples, None
+    if a.get("speech", "espeak") == "vtl":
+        # espeak gave the phones and durations; one vocal tract now makes the voice and
+        # the face's jaw, lips and rounding (bayes_talk.data.articulatory)
+        from bayes_talk.data.articulatory import face_articulators, synthesize_articulatory
+
+        art = synthesize_articulatory(intervals, n_samples, sr, (seed, i, 3),
+                                      where=f"utterance {i} ({a['request']['text']!r})")
+        samples, given = art.audio, face_articulators(art.tract, T, FPS)
     rng = np.random.default_rng([seed, i, 1])
-    lm = face_landmarks(intervals, T, fps=FPS, image_size=image_size, rng=rng)
+    lm = face_landmarks(intervals, T, fps=FPS, image_size=image_size, rng=rng, given=given)
     frames = render_frames(lm, image_size=image_size, **renderer_settings(FORMAT_VERSION))
     name = f"utt{i:04d}"
     rel = {k: f"utterances/{name}{ext}" for k, ext in
            (("wav", ".wav"), ("lab", ".lab"), ("landmarks", ".landmarks.npz"),
             ("frames", ".frames.npz"))}
-    write_wav(out_dir / rel["wav"], res.samples, sr)
+    write_wav(out_dir / rel["wav"], samples, sr)
     write_lab(out_dir / rel["lab"], intervals)
     save_npz(out_dir / rel["landmarks"], landmarks=np.asarray(lm, dtype=np.float64))
     save_npz(out_dir / rel["frames"], frames=np.asarray(frames, dtype=np.uint8))

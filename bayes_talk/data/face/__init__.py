@@ -100,6 +100,7 @@ def face_landmarks(
     fps: float = 25.0,
     image_size: int = 128,
     rng: np.random.Generator,
+    given: dict[str, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Per-frame face landmarks (n_frames, 57, 2) float64, pixels (x = column, y = row).
 
@@ -113,12 +114,14 @@ def face_landmarks(
     fps : frame rate (25 in the corpus).
     image_size : side of the square frame the landmarks live in (>= 32).
     rng : the only source of randomness (same seed -> identical output).
+    given : articulator tracks that replace the phone-driven ones (see
+        :func:`face_trajectories`).
 
     See :func:`face_trajectories` for the control signals and
     :func:`shape_from_articulators` for the geometry.
     """
     check_image_size(image_size)
-    track = face_trajectories(intervals, n_frames, fps=fps, rng=rng)
+    track = face_trajectories(intervals, n_frames, fps=fps, rng=rng, given=given)
     return shape_from_articulators(
         track.articulators, track.blink, track.pose, track.brow, image_size=image_size
     )

@@ -237,6 +237,7 @@ def face_trajectories(
     *,
     fps: float = 25.0,
     rng: np.random.Generator,
+    given: dict[str, np.ndarray] | None = None,
 ) -> FaceTrack:
     """Articulator, blink, brow and head-pose tracks sampled at the frame centres.
 
@@ -245,6 +246,12 @@ def face_trajectories(
     articulation is evaluated at ``(k + 0.5)/fps + lead_s``. Random draws, in order:
     lead, per-token targets, articulatory noise, brow noise, blinks, pose offset, pose
     motion.
+
+    ``given``: articulator name -> (n_frames,) track in design units, e.g. from a vocal
+    tract (:mod:`bayes_talk.data.articulatory`); such a column replaces the blend and gets
+    no face noise (but is clipped to the physical ranges). The random draws are the same
+    with or without it, so every other component (brows, blinks, pose, the remaining
+    articulators) is identical for the same ``rng``.
     """
     if not isinstance(rng, np.random.Generator):
         # ValueError, not TypeError: the project convention for every bad input.
@@ -283,6 +290,15 @@ def face_trajectories(
     noise = _smooth_noise(rng, n_frames, _NOISE_SD, sigma_frames)
     # Aperture noise fades out as the lips close (full above 1 unit, none at contact).
     noise[:, _A] *= np.clip(art[:, _A], 0.0, 1.0)
+    for name, track in (given or {}).items():
+        if name not in ARTICULATORS:
+            raise ValueError(f"given: unknown articulator {name!r}; expected one of {ARTICULATORS}")
+        track = np.asarray(track, dtype=np.float64)
+        if track.shape != (n_frames,) or not np.all(np.isfinite(track)):
+            raise ValueError(f"given[{name!r}]: expected {n_frames} finite values, found shape {track.shape}")
+        j = ARTICULATORS.index(name)
+        art[:, j] = track
+        noise[:, j] = 0.0
     art = art + noise
     art = np.clip(art, _LOWER, _UPPER)
     brow = _smooth_noise(rng, n_frames, np.array([_BROW_NOISE_SD]), sigma_frames)[:, 0]

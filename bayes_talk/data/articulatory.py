@@ -1,0 +1,384 @@
+"""Articulatory speech with VocalTractLab: one vocal tract drives the voice and the face.
+
+The ``--speech vtl`` generator of the built-in corpus (issue 25; docs/data.md). espeak-ng
+still gives the phone string and its durations; then, per utterance::
+
+    ARPAbet intervals --ARPABET_TO_SAMPA--> VTL segment sequence (German SAMPA, pauses "")
+      --phoneme_file_to_gesture_file--> gestural score
+      --gesture_file_to_motor_file--> tract (N, 19) and glottis (N, 11) at 44100/110 Hz
+      --articulatory variation (one random stream)--> tract'
+      --synth_block--> 44.1 kHz audio --soxr--> corpus rate          (the voice)
+      tract' LD, LP, JA sampled at the frame centres --> face jaw, aperture,
+      spread, protrusion                                             (the face)
+
+VocalTractLab (Birkholz; ``vocaltractlab-cython``, GPL-3.0) is an optional dependency:
+``pip install 'bayes_talk[articulatory]'``. It ignores an unknown phone name silently, so
+every name we send is checked against its phone list (:data:`VTL_PHONES`, the table of
+``Sampa.cpp``) and an ARPAbet phone without a mapping is an error naming it.
+
+Articulatory variation (all from ``rng``, drawn in this order; sizes in
+:data:`VARIATION`). Let ``LD`` (lip distance, cm; <= 0 is lip contact / compression),
+``JA`` (jaw angle, degrees, <= 0, more negative = more open) and ``LP`` (lip protrusion,
+cm) be the tracks of the gestural score, and ``w_k(t)`` the indicator of token ``k``'s
+interval low-passed by a Gaussian of sd :data:`_TOKEN_SMOOTH_S` (so ``sum_k w_k = 1``):
+
+* per utterance, effort ``e = exp(sd_e * z)``: the excursion of lip opening and jaw
+  (hyper-/hypo-articulation);
+* per token ``k``, log-factors ``a_k`` (lip opening), ``j_k`` (jaw) and an offset ``p_k``
+  (protrusion, cm), truncated normals at 2.5 sd;
+* smooth noise ``n_a(t), n_j(t), n_p(t)`` (Gaussian low-pass, sd ``_NOISE_SIGMA_S``);
+
+    LD'(t) = LD(t) * e * exp(sum_k w_k a_k + n_a)          where LD > 0, else LD
+    JA'(t) = JA(t) * e * exp(sum_k w_k j_k + n_j)
+    LP'(t) = LP(t) + sum_k w_k p_k + n_p
+
+clipped to VocalTractLab's parameter ranges. Multiplying only the *positive* lip
+distance keeps lip contact exactly where the gestural score has it (a /p b m/ closure
+stays closed; its compression is untouched) and the track continuous at contact. The
+per-utterance speaking rate is espeak's rate jitter (:func:`bayes_talk.data.speech.
+jittered_requests`), which sets the durations both signals share.
+
+Face mapping (design units of :mod:`bayes_talk.data.face`; constants in
+:data:`FACE_MAP`): ``aperture = k_a * max(LD', 0)``, ``jaw = k_j * (-JA')``,
+``protrusion = k_p * (LP' - LP_rest)``, ``spread = -k_s * (LP' - LP_mid)`` (rounding is
+protrusion in this tract model: lip width is not a VocalTractLab parameter), each sampled
+at the frame centres ``(k + 1/2)/fps`` with no visual lead (the articulation *is* the
+sound). Brows, blinks, pose, upper-lip raise and lower-lip tuck stay face-only.
+
+Determinism: VocalTractLab is byte-identical across runs and processes (FACTS.md); the
+result of an utterance is cached under :func:`cache_dir` by a hash of everything it
+depends on (segment text, random-stream key, :data:`GENERATOR_VERSION`, VTL version).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from bayes_talk.data.phones import PHONES, SILENCE
+
+__all__ = [
+    "ARPABET_TO_SAMPA",
+    "FACE_MAP",
+    "GENERATOR_VERSION",
+    "LICENCE",
+    "VARIATION",
+    "VTL_PHONES",
+    "ArticulatoryResult",
+    "articulatory_draws",
+    "cache_dir",
+    "face_articulators",
+    "param_ranges",
+    "require_vtl",
+    "segment_file_text",
+    "segment_sequence",
+    "synthesize_articulatory",
+    "vary_tract",
+]
+
+#: Bump when anything that changes the output of :func:`synthesize_articulatory` changes.
+GENERATOR_VERSION = 1
+LICENCE = "VocalTractLab (vocaltractlab-cython): GPL-3.0"
+_INSTALL_HINT = ("--speech vtl needs VocalTractLab: pip install 'bayes_talk[articulatory]' "
+                 "(the vocaltractlab-cython package, GPL-3.0)")
+
+#: VocalTractLab's phone names (German SAMPA), the table ``Sampa::PHONEME`` of its
+#: ``Sampa.cpp``; any other name in a segment file is silently ignored by the library.
+VTL_PHONES: frozenset[str] = frozenset((
+    "a:", "e:", "i:", "o:", "u:", "E:", "2:", "y:",
+    "a", "e", "i", "o", "u", "E", "2", "y",
+    "I", "O", "U", "9", "Y", "@", "6",
+    "aI", "aU", "OY",
+    "i:6", "i6", "I6", "y:6", "y6", "Y6", "e:6", "e6", "E6", "E:6",
+    "2:6", "26", "96", "a:6", "a6", "u:6", "u6", "U6", "o:6", "o6", "O6",
+    "?", "p", "b", "t", "d", "k", "g",
+    "f", "v", "T", "D", "s", "z", "S", "Z", "C", "j", "x", "r", "R", "h",
+    "pf", "ts", "tS", "dZ",
+    "m", "n", "N", "l",
+))
+
+#: ARPAbet -> VocalTractLab SAMPA (FACTS.md "Articulatory speech"). English /w/ has no
+#: German counterpart: it is the rounded /u:/ gesture (short); /r/ and /er/ are the
+#: vocalised German r ``6``. ``sil`` is a pause (empty name).
+ARPABET_TO_SAMPA: dict[str, str] = {
+    "aa": "a:", "ae": "E", "ah": "@", "ao": "O", "aw": "aU", "ay": "aI", "eh": "E",
+    "er": "6", "ey": "e:", "ih": "I", "iy": "i:", "ow": "o:", "oy": "OY", "uh": "U",
+    "uw": "u:", "b": "b", "ch": "tS", "d": "d", "dh": "D", "f": "f", "g": "g", "hh": "h",
+    "jh": "dZ", "k": "k", "l": "l", "m": "m", "n": "n", "ng": "N", "p": "p", "r": "6",
+    "s": "s", "sh": "S", "t": "t", "th": "T", "v": "v", "w": "u:", "y": "j", "z": "z",
+    "zh": "Z",
+}
+
+
+def _check_table(table: dict[str, str]) -> None:
+    """Every non-silence phone of :data:`PHONES` maps to a name in :data:`VTL_PHONES`."""
+    missing = [p for p in PHONES if p != SILENCE and p not in table]
+    if missing:
+        raise ValueError(f"ARPABET_TO_SAMPA: no VocalTractLab phone for {missing}")
+    bad = {a: s for a, s in table.items() if s not in VTL_PHONES}
+    if bad:
+        raise ValueError(f"ARPABET_TO_SAMPA: not VocalTractLab phone names: {bad}")
+
+
+_check_table(ARPABET_TO_SAMPA)
+
+#: Sizes of the articulatory variation (see the module docstring). Log-factors are
+#: dimensionless (0.25 = about +-25 % of the excursion), offsets in cm, times in s.
+VARIATION: dict[str, float] = {
+    "effort_sd": 0.12,        # per utterance, log-factor on lip opening and jaw
+    "token_ld_sd": 0.25,      # per token, log-factor on positive lip distance
+    "token_ja_sd": 0.25,      # per token, log-factor on jaw angle
+    "token_lp_sd": 0.15,      # per token, protrusion offset, cm
+    "noise_ld_sd": 0.08,      # smooth noise, log-factor
+    "noise_ja_sd": 0.08,
+    "noise_lp_sd": 0.04,      # cm
+}
+_TRUNCATE = 2.5
+_TOKEN_SMOOTH_S = 0.02
+_NOISE_SIGMA_S = 0.08
+
+#: VocalTractLab tract-parameter columns (order of ``get_param_info("tract")``).
+_TRACT_NAMES = ("HX", "HY", "JX", "JA", "LP", "LD", "VS", "VO", "TCX", "TCY", "TTX", "TTY",
+                "TBX", "TBY", "TRX", "TRY", "TS1", "TS2", "TS3")
+_JA, _LP, _LD = _TRACT_NAMES.index("JA"), _TRACT_NAMES.index("LP"), _TRACT_NAMES.index("LD")
+_VTL_RATE = 44100
+_STATE_SAMPLES = 110
+#: Fixed gain from VocalTractLab's output (about +-1) to int16 (no per-utterance
+#: normalisation: loudness follows the articulation).
+_AUDIO_GAIN = 2.0e5
+
+#: VocalTractLab tract -> face articulators (design units; see the module docstring).
+FACE_MAP: dict[str, float] = {
+    "k_aperture": 9.0,     # units per cm of lip distance (/aa/ ~0.9 cm -> 8 units)
+    "k_jaw": 1.3,          # units per degree of jaw opening (/ao/ ~5 deg -> 6.5 units)
+    "k_protrusion": 1.1,   # units per cm of protrusion beyond LP_rest (/uw/ 0.85 cm -> 0.9)
+    "lp_rest": 0.05,       # cm, LP of unrounded sounds
+    "k_spread": 1.4,       # spread units per cm of protrusion above LP_mid (/uw/ -> -1)
+    "lp_mid": 0.15,        # cm
+}
+
+
+def require_vtl():
+    """The ``vocaltractlab_cython`` module, or RuntimeError saying how to install it."""
+    try:
+        import vocaltractlab_cython as vtl
+    except ImportError as exc:
+        raise RuntimeError(_INSTALL_HINT) from exc
+    return vtl
+
+
+def segment_sequence(intervals: list[tuple[float, float, str]],
+                     where: str = "intervals") -> list[tuple[str, float]]:
+    """``(VTL name, duration_s)`` per interval: ``sil`` -> ``""`` (a pause), else
+    :data:`ARPABET_TO_SAMPA`; ValueError naming an unmapped phone (never dropped)."""
+    out = []
+    for k, (s, e, p) in enumerate(intervals):
+        if p == SILENCE:
+            name = ""
+        elif p in ARPABET_TO_SAMPA:
+            name = ARPABET_TO_SAMPA[p]
+        else:
+            raise ValueError(f"{where}[{k}]: phone {p!r} has no VocalTractLab mapping "
+                             f"(ARPABET_TO_SAMPA maps {sorted(ARPABET_TO_SAMPA)})")
+        if name and name not in VTL_PHONES:
+            raise ValueError(f"{where}[{k}]: {name!r} (from {p!r}) is not a VocalTractLab phone")
+        if not e > s:
+            raise ValueError(f"{where}[{k}]: expected start < end, found ({s}, {e})")
+        out.append((name, float(e) - float(s)))
+    return out
+
+
+def segment_file_text(segments: list[tuple[str, float]]) -> str:
+    """VocalTractLab segment-sequence file: one line per segment; the first segment after
+    a pause starts a syllable and a word (and carries the accent)."""
+    lines = []
+    after_pause = True
+    for name, dur in segments:
+        line = f"name = {name}; duration_s = {dur:.7f};"
+        if name and after_pause:
+            line += " start_of_syllable = 1; start_of_word = 1; word_accent = 1; phrase_accent = 0;"
+        lines.append(line)
+        after_pause = not name
+    return "\n".join(lines) + "\n"
+
+
+def _read_motor_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(tract (N, 19), glottis (N, 11)) from a VocalTractLab motor (tract sequence) file:
+    comment lines, the glottis model's name, the number of states, then per state a line of
+    glottis and a line of tract parameters."""
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    n = int(lines[1])
+    rows = lines[2:2 + 2 * n]
+    if len(rows) != 2 * n:
+        raise RuntimeError(f"{path}: expected {2 * n} state lines, found {len(rows)}")
+    glottis = np.array([[float(v) for v in r.split()] for r in rows[0::2]], dtype=np.float64)
+    tract = np.array([[float(v) for v in r.split()] for r in rows[1::2]], dtype=np.float64)
+    if tract.shape[1] != len(_TRACT_NAMES):
+        raise RuntimeError(f"{path}: expected {len(_TRACT_NAMES)} tract parameters, found {tract.shape[1]}")
+    return tract, glottis
+
+
+def _token_weights(segments: list[tuple[str, float]], t: np.ndarray) -> np.ndarray:
+    """(len(t), K) indicators of the K tokens' intervals low-passed by a Gaussian of sd
+    :data:`_TOKEN_SMOOTH_S`; rows sum to 1."""
+    edges = np.concatenate([[0.0], np.cumsum([d for _, d in segments])])
+    idx = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, len(segments) - 1)
+    ind = np.zeros((len(t), len(segments)))
+    ind[np.arange(len(t)), idx] = 1.0
+    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
+    w = gaussian_filter1d(ind, _TOKEN_SMOOTH_S / dt, axis=0, mode="nearest")
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def _smooth(rng: np.random.Generator, n: int, sd: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian-low-passed white noise (n, len(sd)) with stationary sd ``sd`` (variance of
+    unit white noise through a normalised Gaussian of sd s samples: 1/(2 sqrt(pi) s))."""
+    pad = int(np.ceil(4 * sigma))
+    w = gaussian_filter1d(rng.standard_normal((n + 2 * pad, len(sd))), sigma, axis=0, mode="nearest")
+    return w[pad:pad + n] * np.sqrt(2.0 * np.sqrt(np.pi) * sigma) * sd
+
+
+def vary_tract(tract: np.ndarray, segments: list[tuple[str, float]], rng: np.random.Generator,
+               sizes: dict[str, float] | None = None, ranges: np.ndarray | None = None) -> np.ndarray:
+    """The tract (N, 19) with the articulatory variation of the module docstring applied to
+    LD, JA and LP (a copy); draws from ``rng`` in the documented order. ``ranges`` (19, 2):
+    the parameters' [min, max] (VocalTractLab's ``get_param_info``)."""
+    v = dict(VARIATION if sizes is None else sizes)
+    n, k = tract.shape[0], len(segments)
+    t = (np.arange(n) + 0.5) * _STATE_SAMPLES / _VTL_RATE
+    effort = float(np.exp(v["effort_sd"] * np.clip(rng.standard_normal(), -_TRUNCATE, _TRUNCATE)))
+    tok_sd = np.array([v["token_ld_sd"], v["token_ja_sd"], v["token_lp_sd"]])
+    tok = np.clip(rng.standard_normal((k, 3)), -_TRUNCATE, _TRUNCATE) * tok_sd
+    noise = _smooth(rng, n, np.array([v["noise_ld_sd"], v["noise_ja_sd"], v["noise_lp_sd"]]),
+                    _NOISE_SIGMA_S * _VTL_RATE / _STATE_SAMPLES)
+    per_t = _token_weights(segments, t) @ tok + noise            # (n, 3)
+    out = np.array(tract, dtype=np.float64, copy=True)
+    ld = out[:, _LD]
+    out[:, _LD] = np.where(ld > 0, ld * effort * np.exp(per_t[:, 0]), ld)
+    out[:, _JA] = out[:, _JA] * effort * np.exp(per_t[:, 1])
+    out[:, _LP] = out[:, _LP] + per_t[:, 2]
+    if ranges is not None:
+        out = np.clip(out, ranges[:, 0], ranges[:, 1])
+    return out
+
+
+def face_articulators(tract: np.ndarray, n_frames: int, fps: float) -> dict[str, np.ndarray]:
+    """Face articulators (design units) ``jaw``, ``aperture``, ``protrusion``, ``spread``
+    from the tract's JA, LD, LP sampled at the frame centres (:data:`FACE_MAP`)."""
+    t_state = (np.arange(tract.shape[0]) + 0.5) * _STATE_SAMPLES / _VTL_RATE
+    tf = (np.arange(n_frames) + 0.5) / fps
+    ld, ja, lp = (np.interp(tf, t_state, tract[:, c]) for c in (_LD, _JA, _LP))
+    m = FACE_MAP
+    return {"jaw": m["k_jaw"] * (-ja),
+            "aperture": m["k_aperture"] * np.maximum(ld, 0.0),
+            "protrusion": m["k_protrusion"] * (lp - m["lp_rest"]),
+            "spread": -m["k_spread"] * (lp - m["lp_mid"])}
+
+
+def _score_tract(seg_text: str) -> tuple[np.ndarray, np.ndarray]:
+    """(tract (N, 19), glottis (N, 11)) of a segment file: gestural score, then motor file."""
+    vtl = require_vtl()
+    with tempfile.TemporaryDirectory(prefix="bt-vtl-") as tmp:
+        seg_f, ges_f, mot_f = (str(Path(tmp) / n) for n in ("u.seg", "u.ges", "u.tract"))
+        Path(seg_f).write_text(seg_text)
+        vtl.phoneme_file_to_gesture_file(seg_f, ges_f)
+        vtl.gesture_file_to_motor_file(ges_f, mot_f)
+        return _read_motor_file(Path(mot_f))
+
+
+def param_ranges() -> np.ndarray:
+    """(19, 2) [min, max] of VocalTractLab's tract parameters."""
+    info = require_vtl().get_param_info("tract")
+    return np.array([[p["min"], p["max"]] for p in info], dtype=np.float64)
+
+
+def articulatory_draws(intervals: list[tuple[float, float, str]], n_frames: int, fps: float,
+                       rngs: list[np.random.Generator], sizes: dict[str, float] | None = None,
+                       where: str = "intervals") -> list[dict[str, np.ndarray]]:
+    """Face articulators (:func:`face_articulators`) of fresh draws of the articulatory
+    variation, one per generator in ``rngs``, for the given phones and durations: the
+    gestural score is computed once and no audio is synthesised (method ``oracle``)."""
+    segs = segment_sequence(intervals, where)
+    base, _ = _score_tract(segment_file_text(segs))
+    ranges = param_ranges()
+    return [face_articulators(vary_tract(base, segs, r, sizes, ranges), n_frames, fps) for r in rngs]
+
+
+@dataclass
+class ArticulatoryResult:
+    """audio: (n_samples,) int16 at ``sample_rate``; tract: (N, 19) varied tract at
+    44100/110 Hz; cached: whether it came from the cache."""
+
+    audio: np.ndarray
+    sample_rate: int
+    tract: np.ndarray
+    cached: bool = False
+
+
+def cache_dir() -> Path:
+    """``$BAYES_TALK_CACHE/vtl``, else ``$XDG_CACHE_HOME/bayes_talk/vtl``, else
+    ``~/.cache/bayes_talk/vtl``."""
+    root = os.environ.get("BAYES_TALK_CACHE")
+    if root:
+        return Path(root) / "vtl"
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "bayes_talk" / "vtl"
+
+
+def _cache_key(seg_text: str, stream: tuple[int, ...], sizes: dict[str, float], n_samples: int,
+               sample_rate: int, vtl_version: str) -> str:
+    blob = json.dumps({"v": GENERATOR_VERSION, "seg": seg_text, "stream": list(stream),
+                       "sizes": sizes, "n": n_samples, "sr": sample_rate, "vtl": vtl_version,
+                       "gain": _AUDIO_GAIN}, sort_keys=True)
+    return hashlib.sha256(blob.encode("utf-8")).hexdigest()
+
+
+def synthesize_articulatory(intervals: list[tuple[float, float, str]], n_samples: int,
+                            sample_rate: int, stream: tuple[int, ...], *,
+                            sizes: dict[str, float] | None = None, use_cache: bool = True,
+                            where: str = "intervals") -> ArticulatoryResult:
+    """Audio (``n_samples`` int16 at ``sample_rate``) and the varied tract of one utterance.
+
+    ``intervals`` cover ``[0, n_samples / sample_rate]``; the variation is drawn from
+    ``np.random.default_rng(stream)`` (:func:`vary_tract`). Cached (see :func:`cache_dir`).
+    """
+    import librosa
+
+    from bayes_talk.files import write_npz
+
+    vtl = require_vtl()
+    sizes = dict(VARIATION if sizes is None else sizes)
+    segs = segment_sequence(intervals, where)
+    seg_text = segment_file_text(segs)
+    key = _cache_key(seg_text, tuple(int(s) for s in stream), sizes, int(n_samples),
+                     int(sample_rate), str(vtl.get_version()))
+    path = cache_dir() / f"{key}.npz"
+    if use_cache and path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return ArticulatoryResult(z["audio"].copy(), int(sample_rate), z["tract"].copy(), True)
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache entry is recomputed and rewritten
+    tract, glottis = _score_tract(seg_text)
+    tract = vary_tract(tract, segs, np.random.default_rng(list(stream)), sizes, param_ranges())
+    wave = np.asarray(vtl.synth_block(np.ascontiguousarray(tract), np.ascontiguousarray(glottis),
+                                      _STATE_SAMPLES), dtype=np.float64)
+    if int(sample_rate) != _VTL_RATE:
+        wave = librosa.resample(wave, orig_sr=_VTL_RATE, target_sr=int(sample_rate), res_type="soxr_hq")
+    out = np.zeros(int(n_samples))
+    m = min(len(wave), int(n_samples))
+    out[:m] = wave[:m]
+    audio = np.clip(np.round(out * _AUDIO_GAIN), -32768, 32767).astype(np.int16)
+    if use_cache:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_npz(path, {"audio": audio, "tract": tract})
+        except OSError:
+            pass  # a read-only cache only costs time
+    return ArticulatoryResult(audio, int(sample_rate), tract, False)
