@@ -124,6 +124,7 @@ def sample_synthesis(
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
     log_warnings: bool = True,
+    audio_view: bool = False,
 ) -> SynthesisResult:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
@@ -142,6 +143,11 @@ def sample_synthesis(
         ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
+    audio_view: ``mfcc`` is already the audio view the state models explain
+        (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
+        simulation-based calibration), used as it is. With ``audio_context`` > 0 the view
+        is a projection of spliced MFCCs, and transforming it a second time would condition
+        on different audio.
     """
     if method not in POSTERIOR_METHODS:
         raise ValueError(f"method must be one of {POSTERIOR_METHODS}, got {method!r}")
@@ -162,7 +168,7 @@ def sample_synthesis(
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
-                      emcee_thin, dict(sampler_kw or {}), map_restarts)
+                      emcee_thin, dict(sampler_kw or {}), map_restarts, audio_view)
     res.seconds = time.perf_counter() - t0
     if log_warnings:
         for w in res.warnings:
@@ -171,11 +177,12 @@ def sample_synthesis(
 
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
-            skw, map_restarts: int = 0) -> SynthesisResult:
-    plan = make_plan(model, mfcc, labels, smoothness)
+            skw, map_restarts: int = 0, audio_view: bool = False) -> SynthesisResult:
+    plan = make_plan(model, mfcc, labels, smoothness, audio_view)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
-    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness).latents
+    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
+                       audio_view=audio_view).latents
     mp = maximise_utterance(dens, start, max_iter=map_iter)
     first_log_density = mp.log_density
     modes: list = []
