@@ -78,6 +78,7 @@ from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult
     restart_map,
 )
 from bayes_talk.synthesis.mode_search import mode_jumps, nuts_with_mode_search
+from bayes_talk.synthesis.noncentred import nuts_noncentred
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import (
     INIT_SCALE,
@@ -95,6 +96,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee", "vi")
+#: coordinates NUTS moves in: X = X_MAP + L z (whitened at the mode, with the pilot mode
+#: search) or the standardised dynamics innovations ε (:mod:`bayes_talk.synthesis.noncentred`)
+NUTS_COORDS = ("whitened", "noncentred")
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
 LAPLACE_KHAT_DRAWS = 200
 #: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
@@ -140,7 +144,8 @@ def sample_synthesis(
         approximation, keeping the highest mode (:func:`restart_map`; default
         :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP, Laplace and VI).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
-        ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
+        ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
+        standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -228,8 +233,17 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         if method == "nuts":
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
-            draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
-                                                         chains, seed, map_iter, skw)
+            coords = skw.pop("coords", "whitened")
+            if coords not in NUTS_COORDS:
+                raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
+            if coords == "noncentred":
+                draws, g = nuts_noncentred(dens, mp, modes, z0, L, -(-n_draws // chains), warmup, chains, seed,
+                                           skw)
+                found = []
+            else:
+                draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
+                                                             chains, seed, map_iter, skw)
+            diag["coords"] = coords
             diag.update({"map_log_density": mp.log_density, "map_converged": mp.converged,
                          "map_grad_norm": mp.grad_norm, "map_decrement": mp.decrement,
                          "hessian_modified": mp.hessian_modified,
