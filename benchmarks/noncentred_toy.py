@@ -20,15 +20,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from bayes_talk.estimators.switching import SwitchingSGPDM  # noqa: E402
-from bayes_talk.synthesis.diagnostics import chain_diagnostics  # noqa: E402
-from bayes_talk.synthesis.posterior import sample_synthesis  # noqa: E402
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.synthesis.diagnostics import chain_diagnostics
+from bayes_talk.synthesis.posterior import sample_synthesis
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min")

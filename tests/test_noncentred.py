@@ -40,7 +40,7 @@ def _points(nc, x_map, n=3):
 
 
 def test_the_plan_has_stretches_entries_and_linked_blocks(case):
-    plan, _, nc, _ = case
+    _, _, nc, _ = case
     assert len(nc.levels) >= 2 and len(nc.e_idx) >= 2, "the test plan must have dynamics stretches and entries"
 
 
@@ -77,7 +77,7 @@ def test_gradient_matches_finite_differences(case):
     _, _, nc, x_map = case
     rng = np.random.default_rng(1)
     for e in _points(nc, x_map):
-        f, g = nc(e)
+        _, g = nc(e)
         assert g.shape == e.shape
         for _ in range(8):
             v = rng.standard_normal(e.shape)
@@ -92,8 +92,8 @@ def test_nuts_runs_in_noncentred_coordinates_and_reports_them(toy):
     model, test = toy
     u = test[0]
     labels, mfcc = u.labels[:12], u.mfcc[:12]
-    kw = dict(method="nuts", n_draws=40, warmup=40, chains=2, seed=3, log_warnings=False, map_restarts=0,
-              sampler_kw={"coords": "noncentred"})
+    kw = {"method": "nuts", "n_draws": 40, "warmup": 40, "chains": 2, "seed": 3, "log_warnings": False,
+          "map_restarts": 0, "sampler_kw": {"coords": "noncentred"}}
     r1 = sample_synthesis(model, mfcc, labels, **kw)
     r2 = sample_synthesis(model, mfcc, labels, **kw)
     assert r1.diagnostics["coords"] == "noncentred" and r1.latent_draws.shape == (2, 20, 12, 3)

@@ -23,7 +23,8 @@ def toy():
 def test_one_worker_and_two_workers_give_identical_draws(toy, coords):
     model, u = toy
     labels, mfcc = u.labels[:8], u.mfcc[:8]
-    kw = dict(method="nuts", n_draws=30, warmup=30, chains=3, seed=5, map_restarts=0, log_warnings=False)
+    kw = {"method": "nuts", "n_draws": 30, "warmup": 30, "chains": 3, "seed": 5, "map_restarts": 0,
+          "log_warnings": False}
     skw = {"coords": coords, "pilot": 10}
     one = sample_synthesis(model, mfcc, labels, sampler_kw={**skw, "workers": 1}, **kw)
     two = sample_synthesis(model, mfcc, labels, sampler_kw={**skw, "workers": 2}, **kw)

@@ -12,7 +12,11 @@ from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.predictive_checks import posterior_predictive, predictive_check, prior_predictive
+from bayes_talk.synthesis.predictive_checks import (
+    posterior_predictive,
+    predictive_check,
+    prior_predictive,
+)
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 

@@ -38,7 +38,6 @@ import math
 
 import numba
 import numpy as np
-
 import torch
 
 from bayes_talk.gp.predictive_fused import Runs, _forward, _kernel_rows

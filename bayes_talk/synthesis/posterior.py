@@ -62,6 +62,7 @@ from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
     energy_bfmi,
+    frame_diagnostics,
     psis,
 )
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
@@ -216,7 +217,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Z = rng.standard_normal((max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS))), T * d))
         Xall = x_map[None] + Z @ L.T
         Xs = Xall[None, :n_draws]
-        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1)))  # ln q up to a constant
+        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1), n_draws, sample_stats))
     elif method == "vi":
         g = Whitened(dens, x_map, L)
         n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
@@ -224,7 +225,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Xall = g.to_x(draws.samples[0])
         Xs = Xall[None, :n_draws]
         st = draws.stats
-        diag.update(_psis_diagnostics(dens, Xall, st["log_q"]))
+        diag.update(_psis_diagnostics(dens, Xall, st["log_q"], n_draws, sample_stats))
         diag.update({"vi_steps": st["steps"],
                      "vi_particles": st["particles"], "vi_elbo_start": st["elbo_start"],
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
@@ -265,9 +266,13 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         diag.update(_sampler_diagnostics(draws, Xs))
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
+    zm, zv = visual_predictive(plan, Xs)
+    if method in ("nuts", "emcee"):
+        # what users consume: the AAM parameters' means at the draws, per frame, beside the latents
+        diag.update(frame_diagnostics(zm, "aam_"))
+        diag.update({k: v for k, v in frame_diagnostics(Xs).items() if k.endswith("_per_frame")})
     if method != "map":
         warn += _convergence_warnings(method, diag)
-    zm, zv = visual_predictive(plan, Xs)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
                            warnings=warn, sample_stats=sample_stats)
 
@@ -290,13 +295,18 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 KHAT_CHUNK = 50
 
 
-def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray) -> dict:
+def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray, n_keep: int | None = None,
+                      sample_stats: dict | None = None) -> dict:
     """PSIS k̂ and ESS of an approximation q of p (Laplace, VI) from its draws X (S, T·d) and
     their ln q (constants free): log weights ln p(x_s) − ln q(x_s) (Vehtari et al. 2024); ln p
     in chunks through :meth:`UtteranceDensity.values` (value only, all draws' rows of a GP in
-    one run)."""
+    one run). With ``sample_stats`` (a dict), the first ``n_keep`` draws' ``lp`` and
+    ``log_weight`` (1, n_keep) are put in it (``InferenceData.sample_stats``)."""
     lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
     khat, ess = psis(lp - log_q)
+    if sample_stats is not None and n_keep:   # per kept draw (one chain): ln p and the log weight ln p − ln q
+        sample_stats["lp"] = lp[None, :n_keep]
+        sample_stats["log_weight"] = (lp - log_q)[None, :n_keep]
     return {"khat": khat, "psis_ess": ess, "khat_draws": len(lp)}
 
 

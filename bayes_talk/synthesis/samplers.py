@@ -320,7 +320,8 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     ``n_draws`` evenly thinned steps of the chain after the warm-up (at least ``thin``
     apart). ``n_keep`` (default: all) keeps that many walkers as the reported chains
     (evenly spaced) to bound memory. Walkers default to max(32, 4 n) rounded up to even.
-    ``Draws.stats``: acceptance, ``autocorr_time_max`` / ``_mean``, ``autocorr_steps`` (after
+    ``Draws.sample_stats``: ``lp`` (reported walkers, kept steps). ``Draws.stats``:
+    acceptance, ``autocorr_time_max`` / ``_mean``, ``autocorr_steps`` (after
     warm-up), ``autocorr_ok`` (length ≥ ``autocorr_tol`` · τ_max), ``steps``.
     """
     import emcee
@@ -354,9 +355,11 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     after = sampler.iteration - w_st
     step = max(1, after // n_draws)
     chain = sampler.get_chain()[w_st:][::-1][::step][:n_draws][::-1]  # the last n_draws, `step` apart
+    lp = sampler.get_log_prob()[w_st:][::-1][::step][:n_draws][::-1].T   # the same steps, (W, draws)
     chain = np.transpose(chain, (1, 0, 2))
     if n_keep is not None and n_keep < W:
-        chain = chain[np.linspace(0, W - 1, n_keep).round().astype(int)]
+        keep = np.linspace(0, W - 1, n_keep).round().astype(int)
+        chain, lp = chain[keep], lp[keep]
     acc = sampler.acceptance_fraction
     tau_max = float(np.nanmax(tau))
     return Draws("emcee", np.ascontiguousarray(chain),
@@ -366,7 +369,7 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
                   "autocorr_time_max": tau_max * k, "autocorr_time_mean": float(np.nanmean(tau)) * k,
                   "autocorr_steps": int(after * k), "autocorr_tol": float(autocorr_tol),
                   "autocorr_ok": bool(after >= autocorr_tol * tau_max)},
-                 time.perf_counter() - t0)
+                 time.perf_counter() - t0, {"lp": np.ascontiguousarray(lp)})
 
 
 # ---------------------------------------------------------------------------- Laplace
