@@ -224,7 +224,10 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     Laplace covariance at the mode ``mp``); the mode-jumping displacements between the
     modes found (:func:`~bayes_talk.synthesis.mode_search.mode_jumps`) become fixed
     displacements in ε, ε(X_MAP + δ_k) − ε(X_MAP) (a symmetric, state-independent proposal
-    in ε: the Metropolis move keeps p_ε invariant). No pilot mode search. ``run``: the NUTS
+    in ε: the Metropolis move keeps p_ε invariant). No pilot mode search. ``skw["pg_every"]``
+    = k > 0 adds a particle Gibbs sweep (``skw["pg_particles"]`` particles, default 64;
+    :class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`) after every k-th
+    iteration: particle Gibbs ∘ NUTS ∘ mode jumps. ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
@@ -239,6 +242,13 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     starts = nc.to_eps((x_map + np.atleast_2d(z0) @ L.T).reshape(-1, T, d)).reshape(-1, T * d)
     deltas = mode_jumps(mp, modes).reshape(-1, T * d)
     jumps = np.array([nc.to_eps(x_map + dl).reshape(-1) - e_map for dl in deltas]).reshape(-1, T * d)
+    pg_every = int(skw.pop("pg_every", 0))
+    pg_particles = int(skw.pop("pg_particles", 64))
+    if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
+        from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
+
+        skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, nc.to_x, nc.to_eps, pg_particles)
+        skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(nc.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,
                 chains=chains, seed=seed, jumps=jumps, **skw)

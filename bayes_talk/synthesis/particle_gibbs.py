@@ -177,6 +177,25 @@ def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng
     return out, float(np.mean(np.any(out != x_ref, axis=1)))
 
 
+class ParticleGibbsMove:
+    """One CSMC-AS sweep as a move in a sampler's coordinates u: x = to_x(u), the sweep, u' = to_u(x')
+    (``to_x``/``to_u`` a bijection, e.g. the whitening or the non-centred map). The sweep leaves
+    p(x | Ŷ) invariant, so the move leaves the sampler's target (p pushed through the bijection)
+    invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
+    (particle Gibbs ∘ NUTS)."""
+
+    def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
+                 h: float = 0.05):
+        self.ff = FrameFactors(dens)
+        self.q = MixtureProposal(self.ff, plan, rho, h)
+        self.to_x, self.to_u, self.n = to_x, to_u, int(n_particles)
+
+    def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
+        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng)
+        return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
+
+
 def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws: int, warmup: int, seed: int,
                        n_particles: int = 64, rho: float = 0.5, h: float = 0.05) -> dict:
     """Chains of CSMC-AS sweeps from ``starts`` (chains, T, d): draws (chains, n_draws, T, d)
@@ -202,4 +221,4 @@ def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws
             "seconds": time.perf_counter() - t0}
 
 
-__all__ = ["FrameFactors", "MixtureProposal", "csmc_as", "run_particle_gibbs"]
+__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "run_particle_gibbs"]

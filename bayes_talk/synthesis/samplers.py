@@ -98,7 +98,7 @@ class _RecordingNUTS:
 
     @staticmethod
     def make(potential, counter: list, jumps: np.ndarray | None = None, jump_attempts: int = 0,
-             rng: np.random.Generator | None = None, **kw):
+             rng: np.random.Generator | None = None, extra_move=None, extra_every: int = 1, **kw):
         from pyro.infer.mcmc import NUTS
         from pyro.ops.integrator import potential_grad
 
@@ -127,10 +127,23 @@ class _RecordingNUTS:
                 self.jump_counts[1] += accepted
                 return z, accepted
 
+            def _extra(self, z):
+                """Another posterior-invariant kernel (e.g. a particle Gibbs sweep) on the state."""
+                x = z["x"].detach().numpy()
+                x_new = np.asarray(extra_move(x, rng), dtype=np.float64)
+                if np.array_equal(x_new, x):
+                    return z
+                z = {"x": torch.as_tensor(x_new)}
+                grads, pe = potential_grad(self.potential_fn, z)
+                self._cache(z, pe, grads)
+                return z
+
             def sample(self, params):
                 m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
                 z = super().sample(params)
                 z, accepted = self._jump(z) if n_jump else (z, 0)
+                if extra_move is not None and self._t % extra_every == 0:
+                    z = self._extra(z)
                 if self._t == self._warmup_steps:
                     self.warmup_end = time.perf_counter()
                 if self._t > self._warmup_steps:
@@ -176,7 +189,8 @@ def _nuts_chain(task) -> dict:
         kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
                                      full_mass=False, target_accept_prob=kw["target_accept"],
                                      max_tree_depth=kw["max_tree_depth"], jumps=kw["jumps"],
-                                     jump_attempts=kw["jump_attempts"],
+                                     jump_attempts=kw["jump_attempts"], extra_move=kw.get("extra_move"),
+                                     extra_every=kw.get("extra_every", 1),
                                      rng=np.random.default_rng([seed, c, 0x6A756D70]))
         mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": _as_tensor(start)},
                     num_chains=1, disable_progbar=not progress.enabled())
@@ -192,7 +206,8 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              warmup: int = NUTS_DEFAULTS["warmup"], chains: int = 1, seed: int = 0,
              target_accept: float = NUTS_DEFAULTS["target_accept"],
              max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"], jumps: np.ndarray | None = None,
-             jump_attempts: int = NUTS_DEFAULTS["jump_attempts"], workers: int = 1, executor=None) -> Draws:
+             jump_attempts: int = NUTS_DEFAULTS["jump_attempts"], workers: int = 1, executor=None,
+             extra_move=None, extra_every: int = 1) -> Draws:
     """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
     start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
     step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
@@ -206,6 +221,11 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     chain index) only and run with one thread, so the draws do not depend on the worker
     count or engine (tested). ``log_prob`` must then be picklable (a module-level function
     or an object of one: the synthesis densities are). ``warmup_seconds`` sums the chains'.
+
+    ``extra_move(x, rng) -> x'`` (picklable): a further posterior-invariant kernel applied
+    after the NUTS transition and the jumps of every ``extra_every``-th iteration (the
+    particle Gibbs sweep of :mod:`bayes_talk.synthesis.particle_gibbs`); a composition of
+    invariant kernels is invariant.
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
@@ -230,7 +250,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
         raise ValueError(f"x0 holds {x0.shape[0]} starts for {chains} chains")
     starts = [(x0[c] if x0.ndim == 2 else x0).reshape(-1).clone().numpy() for c in range(chains)]
     kernel_kw = {"target_accept": target_accept, "max_tree_depth": max_tree_depth, "jumps": jumps,
-                 "jump_attempts": jump_attempts}
+                 "jump_attempts": jump_attempts, "extra_move": extra_move, "extra_every": int(extra_every)}
     tasks = [(log_prob, starts[c], n_draws, warmup, seed, c, kernel_kw) for c in range(chains)]
     t0 = time.perf_counter()
     from bayes_talk.executor import executor_for
