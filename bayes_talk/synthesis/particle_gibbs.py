@@ -18,8 +18,9 @@ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*) — so the new path can leave the refere
 Proposal (:class:`MixtureProposal`) at frame t given the ancestor x_{t−1}: with probability
 ρ the frame's prior (the dynamics GP predictive from x_{t−1}, or the entry Gaussian), else
 a Gaussian kernel (bandwidth h) around one of the frame's state model's training latents X_j,
-chosen with probability ∝ its audio likelihood p_π(ŷ_t | X_j) × entry density (block
-starts); the posterior's modes sit at those training latents (docs/uncertainty.md). The
+chosen with probability ∝ its audio likelihood p_π(ŷ_t | X_j) × entry density × (at a block
+start with a smoothness factor) s(x_{t−1}, X_j) given the particle's ancestor (the
+visual predictive at every X_j precomputed, so this is an N × M table per frame); the posterior's modes sit at those training latents (docs/uncertainty.md). The
 importance weight is exp f_t / q_t with q_t the mixture's exact density, so the smoothness
 factor at a block start weighs every proposal.
 """
@@ -95,7 +96,7 @@ class MixtureProposal:
         if not 0 <= rho < 1 or h <= 0:
             raise ValueError(f"proposal needs 0 <= rho < 1 and h > 0, got rho={rho}, h={h}")
         self.ff, self.rho, self.h = ff, float(rho), float(h)
-        self.centres, self.logw = {}, {}
+        self.centres, self.logw, self.smooth_pred = {}, {}, {}
         for b in plan.blocks:
             Xtr = numpy_gp(b.model.predictors_["audio"]).X
             for t in range(b.start, b.stop):
@@ -105,6 +106,24 @@ class MixtureProposal:
                 if t in ff.entry:
                     ll = ll + ff.entry_logpdf(t, Xtr)
                 self.centres[t], self.logw[t] = Xtr, ll - logsumexp(ll)
+                if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
+                    _, gv = ff.smooth[t]
+                    mu, s = ff.tm.vis_gps.mean_var(_runs(gv, len(Xtr)), np.ascontiguousarray(Xtr))
+                    self.smooth_pred[t] = (mu, s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None])
+
+    def _weights(self, t: int, Xprev: np.ndarray | None, N: int) -> np.ndarray:
+        """ln π_j per particle (N, M): audio × entry, × the smoothness factor s(x_{t−1}, X_j)
+        given each particle's ancestor at a block start; normalised per row."""
+        lw = np.broadcast_to(self.logw[t], (N, len(self.logw[t])))
+        if t not in self.smooth_pred or Xprev is None:
+            return lw
+        gp, _ = self.ff.smooth[t]
+        zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
+        mu, var = self.smooth_pred[t]
+        r = zp[:, None, :] - mu[None]
+        ls = -0.5 * (np.log(var)[None] + r * r / var[None]).sum(-1)
+        w = lw + ls
+        return w - logsumexp(w, axis=1, keepdims=True)
 
     def _prior(self, t: int, Xprev: np.ndarray | None, N: int):
         """Mean (N, d) and sd (N, d) of the frame's prior, or None (no prior: kernel only)."""
@@ -122,10 +141,12 @@ class MixtureProposal:
         d = self.ff.d
         kind, mu, sd = self._prior(t, Xprev, N)
         rho = self.rho if kind else 0.0
-        C, lw = self.centres[t], self.logw[t]
+        C = self.centres[t]
+        lw = self._weights(t, Xprev, N)
         if X is None:
             use_prior = rng.random(N) < rho
-            j = rng.choice(len(C), size=N, p=np.exp(lw))
+            cdf = np.cumsum(np.exp(lw), axis=1)
+            j = np.minimum((cdf < rng.random(N)[:, None] * cdf[:, -1:]).sum(1), len(C) - 1)
             X = C[j] + self.h * rng.standard_normal((N, d))
             if use_prior.any():
                 if kind == "dyn":
@@ -135,7 +156,7 @@ class MixtureProposal:
                     L = np.linalg.inv(self.ff.tm.e_chol_inv[e])
                     X[use_prior] = self.ff.tm.e_mean[e] + rng.standard_normal((int(use_prior.sum()), d)) @ L.T
         r = X[:, None, :] - C[None]
-        lk = logsumexp(lw[None] - 0.5 * (r * r).sum(-1) / self.h ** 2, axis=1) - d * (np.log(self.h) + 0.5 * LOG_2PI)
+        lk = logsumexp(lw - 0.5 * (r * r).sum(-1) / self.h ** 2, axis=1) - d * (np.log(self.h) + 0.5 * LOG_2PI)
         if not rho:
             return X, lk
         if kind == "dyn":
