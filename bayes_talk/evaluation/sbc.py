@@ -181,12 +181,14 @@ SynthesisPosterior = Callable[["SwitchingSGPDM", np.ndarray, list, int], tuple[n
 
 def sampler_posterior(method: str, n_draws: int | None = None, **kw) -> SynthesisPosterior:
     """A posterior for :func:`synthesis_sbc`: ``sample_synthesis(method=...)`` with
-    smoothness off; returns (pooled latent draws (M, T·d), diagnostics)."""
+    smoothness off, on the simulated audio as the audio view it is (``audio_view=True``:
+    with ``audio_context`` > 0 it must not be spliced and projected again); returns (pooled
+    latent draws (M, T·d), diagnostics)."""
     from bayes_talk.synthesis.posterior import sample_synthesis
 
     def post(model, audio, labels, seed):
         r = sample_synthesis(model, audio, labels, method=method, n_draws=n_draws, seed=seed, smoothness="off",
-                             log_warnings=False, **kw)
+                             log_warnings=False, audio_view=True, **kw)
         return r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1]), r.diagnostics
 
     return post
@@ -199,7 +201,7 @@ def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
 
     def post(model, audio, labels, seed):
         r = sample_synthesis(model, audio, labels, method="laplace", n_draws=n_draws, seed=seed, smoothness="off",
-                             log_warnings=False)
+                             log_warnings=False, audio_view=True)
         X = r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1])
         x_map = r.map_latents.reshape(-1)
         return x_map + np.sqrt(scale) * (X - x_map), r.diagnostics
@@ -213,7 +215,9 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     """SBC of the synthesis model of ``model`` on the frame labels ``labels`` (T frames; keep T
     small: every simulation runs the sampler once). ``posterior``: a method name for
     :func:`sampler_posterior` (with ``sampler_kw``) or a callable
-    (model, audio, labels, seed) -> (draws (M, T·d), diagnostics). ``n_draws`` (L): draws
+    (model, audio, labels, seed) -> (draws (M, T·d), diagnostics), ``audio`` (T, D_y) being
+    the model's audio *view* (``model.audio_input`` of MFCCs; what the synthesis model
+    simulates), to be passed on with ``audio_view=True``. ``n_draws`` (L): draws
     ranked per simulation, after thinning. ``info`` records the sampler diagnostics
     (worst R-hat, smallest bulk ESS, k̂, divergences over the simulations) and seconds."""
     import time

@@ -105,6 +105,26 @@ def chain_diagnostics(samples: np.ndarray) -> dict:
     }
 
 
+def frame_diagnostics(samples: np.ndarray, prefix: str = "") -> dict:
+    """:func:`chain_diagnostics` of draws (chains, draws, T, D) — latents or AAM parameters per
+    frame — summarised over everything (``{prefix}rhat_max``, ``…ess_bulk_min``,
+    ``…ess_tail_min``, ``…mcse_mean_max``, ``…mcse_sd_max``) and per frame, worst over the
+    frame's D coordinates (``{prefix}rhat_per_frame``, ``…ess_bulk_per_frame``,
+    ``…ess_tail_per_frame``, ``…mcse_mean_per_frame``: lists of T floats, JSON-ready)."""
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 4:
+        raise ValueError(f"samples: expected (chains, draws, T, D), got shape {s.shape}")
+    C, S, T, D = s.shape
+    cd = chain_diagnostics(s.reshape(C, S, T * D))
+    out = {prefix + k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max")}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # all-nan frames (constant draws)
+        for k, fn in (("rhat", np.nanmax), ("ess_bulk", np.nanmin), ("ess_tail", np.nanmin),
+                      ("mcse_mean", np.nanmax)):
+            out[f"{prefix}{k}_per_frame"] = [float(v) for v in fn(cd[k].reshape(T, D), axis=1)]
+    return out
+
+
 def energy_bfmi(energy: np.ndarray) -> np.ndarray:
     """E-BFMI of each chain from the Hamiltonian energy (chains, draws) of NUTS iterations."""
     e = np.asarray(energy, dtype=np.float64)
@@ -138,18 +158,20 @@ def psis_khat(log_weights: np.ndarray) -> float:
 
 def convergence_problems(diag: dict) -> list[str]:
     """The failed checks of a sampler run's diagnostics, in words: R-hat above
-    :data:`RHAT_MAX`, bulk or tail ESS below :data:`ESS_MIN`, any divergent transition,
+    :data:`RHAT_MAX`, bulk or tail ESS below :data:`ESS_MIN` (of the latents, and of the
+    AAM parameters' draws ``aam_rhat_max`` … when present), any divergent transition,
     PSIS k̂ above :data:`KHAT_MAX`, an E-BFMI below :data:`EBFMI_MIN`, an emcee chain
     shorter than the autocorrelation-time rule. Only the keys present are checked
     ([] for the MAP)."""
     out = []
-    r = diag.get("rhat_max")
-    if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
-        out.append(f"R-hat {r:.3g} > {RHAT_MAX}")
-    for key, what in (("ess_bulk_min", "bulk"), ("ess_tail_min", "tail")):
-        e = diag.get(key)
-        if e is not None and (not np.isfinite(e) or e < ESS_MIN):
-            out.append(f"{what} ESS {e:.3g} < {ESS_MIN:g}")
+    for pre, name in (("", ""), ("aam_", "AAM-parameter ")):   # the latents, then what users consume
+        r = diag.get(pre + "rhat_max")
+        if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
+            out.append(f"{name}R-hat {r:.3g} > {RHAT_MAX}")
+        for key, what in (("ess_bulk_min", "bulk"), ("ess_tail_min", "tail")):
+            e = diag.get(pre + key)
+            if e is not None and (not np.isfinite(e) or e < ESS_MIN):
+                out.append(f"{name}{what} ESS {e:.3g} < {ESS_MIN:g}")
     dv = diag.get("divergences")
     if dv:
         out.append(f"{int(dv)} divergent transitions (want 0)")
@@ -177,4 +199,4 @@ def inference_data(posterior: dict, sample_stats: dict | None = None, observed_d
 
 
 __all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
-           "convergence_problems", "energy_bfmi", "inference_data", "psis", "psis_khat"]
+           "convergence_problems", "energy_bfmi", "frame_diagnostics", "inference_data", "psis", "psis_khat"]

@@ -114,8 +114,15 @@ class UtterancePlan:
         return [b.key for b in self.blocks]
 
 
-def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str = "frame") -> UtterancePlan:
-    """Segment ``labels`` with the model's states and assemble the blocks of the density."""
+def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str = "frame",
+              audio_view: bool = False) -> UtterancePlan:
+    """Segment ``labels`` with the model's states and assemble the blocks of the density.
+
+    ``mfcc`` is the utterance's MFCCs (T, D_y), turned into the audio view the state models
+    explain by ``model.audio_input`` (the identity, or the context window of
+    :mod:`bayes_talk.features.audio_context`); with ``audio_view=True`` it is that view
+    already (``plan.audio`` of another plan, audio simulated by
+    :func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`) and is used as it is."""
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
     segments = model.segment(list(labels))
@@ -127,7 +134,8 @@ def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str =
         mu, cov = model.entry_[key]
         blocks.append(Block(seg.start, seg.stop, key, m, np.asarray(mu, np.float64),
                             np.asarray(cov, np.float64), linked, smooth))
-    return UtterancePlan(blocks, model.audio_input(mfcc, labels), np.asarray(model.motion_var_, np.float64),
+    audio = np.asarray(mfcc, dtype=np.float64) if audio_view else model.audio_input(mfcc, labels)
+    return UtterancePlan(blocks, audio, np.asarray(model.motion_var_, np.float64),
                          int(model.config.latent_dim), segments)
 
 

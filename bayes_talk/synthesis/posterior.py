@@ -62,6 +62,7 @@ from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
     energy_bfmi,
+    frame_diagnostics,
     psis,
 )
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
@@ -78,6 +79,7 @@ from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult
     restart_map,
 )
 from bayes_talk.synthesis.mode_search import mode_jumps, nuts_with_mode_search
+from bayes_talk.synthesis.noncentred import nuts_noncentred
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 from bayes_talk.synthesis.samplers import (
     INIT_SCALE,
@@ -95,6 +97,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee", "vi")
+#: coordinates NUTS moves in: X = X_MAP + L z (whitened at the mode, with the pilot mode
+#: search) or the standardised dynamics innovations ε (:mod:`bayes_talk.synthesis.noncentred`)
+NUTS_COORDS = ("whitened", "noncentred")
 #: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
 LAPLACE_KHAT_DRAWS = 200
 #: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
@@ -124,6 +129,7 @@ def sample_synthesis(
     emcee_thin: int = 5,
     sampler_kw: dict | None = None,
     log_warnings: bool = True,
+    audio_view: bool = False,
 ) -> SynthesisResult:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
@@ -139,9 +145,15 @@ def sample_synthesis(
         approximation, keeping the highest mode (:func:`restart_map`; default
         :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP, Laplace and VI).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
-        ``max_tree_depth`` (10); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
+        ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
+        standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
+    audio_view: ``mfcc`` is already the audio view the state models explain
+        (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
+        simulation-based calibration), used as it is. With ``audio_context`` > 0 the view
+        is a projection of spliced MFCCs, and transforming it a second time would condition
+        on different audio.
     """
     if method not in POSTERIOR_METHODS:
         raise ValueError(f"method must be one of {POSTERIOR_METHODS}, got {method!r}")
@@ -162,7 +174,7 @@ def sample_synthesis(
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
-                      emcee_thin, dict(sampler_kw or {}), map_restarts)
+                      emcee_thin, dict(sampler_kw or {}), map_restarts, audio_view)
     res.seconds = time.perf_counter() - t0
     if log_warnings:
         for w in res.warnings:
@@ -171,11 +183,12 @@ def sample_synthesis(
 
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
-            skw, map_restarts: int = 0) -> SynthesisResult:
-    plan = make_plan(model, mfcc, labels, smoothness)
+            skw, map_restarts: int = 0, audio_view: bool = False) -> SynthesisResult:
+    plan = make_plan(model, mfcc, labels, smoothness, audio_view)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
-    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness).latents
+    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
+                       audio_view=audio_view).latents
     mp = maximise_utterance(dens, start, max_iter=map_iter)
     first_log_density = mp.log_density
     modes: list = []
@@ -204,7 +217,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Z = rng.standard_normal((max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS))), T * d))
         Xall = x_map[None] + Z @ L.T
         Xs = Xall[None, :n_draws]
-        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1)))  # ln q up to a constant
+        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1), n_draws, sample_stats))
     elif method == "vi":
         g = Whitened(dens, x_map, L)
         n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
@@ -212,7 +225,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Xall = g.to_x(draws.samples[0])
         Xs = Xall[None, :n_draws]
         st = draws.stats
-        diag.update(_psis_diagnostics(dens, Xall, st["log_q"]))
+        diag.update(_psis_diagnostics(dens, Xall, st["log_q"], n_draws, sample_stats))
         diag.update({"vi_steps": st["steps"],
                      "vi_particles": st["particles"], "vi_elbo_start": st["elbo_start"],
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
@@ -221,8 +234,17 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         if method == "nuts":
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
-            draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
-                                                         chains, seed, map_iter, skw)
+            coords = skw.pop("coords", "whitened")
+            if coords not in NUTS_COORDS:
+                raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
+            if coords == "noncentred":
+                draws, g = nuts_noncentred(dens, mp, modes, z0, L, -(-n_draws // chains), warmup, chains, seed,
+                                           skw)
+                found = []
+            else:
+                draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
+                                                             chains, seed, map_iter, skw)
+            diag["coords"] = coords
             diag.update({"map_log_density": mp.log_density, "map_converged": mp.converged,
                          "map_grad_norm": mp.grad_norm, "map_decrement": mp.decrement,
                          "hessian_modified": mp.hessian_modified,
@@ -244,9 +266,13 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         diag.update(_sampler_diagnostics(draws, Xs))
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
+    zm, zv = visual_predictive(plan, Xs)
+    if method in ("nuts", "emcee"):
+        # what users consume: the AAM parameters' means at the draws, per frame, beside the latents
+        diag.update(frame_diagnostics(zm, "aam_"))
+        diag.update({k: v for k, v in frame_diagnostics(Xs).items() if k.endswith("_per_frame")})
     if method != "map":
         warn += _convergence_warnings(method, diag)
-    zm, zv = visual_predictive(plan, Xs)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
                            warnings=warn, sample_stats=sample_stats)
 
@@ -269,13 +295,18 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 KHAT_CHUNK = 50
 
 
-def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray) -> dict:
+def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray, n_keep: int | None = None,
+                      sample_stats: dict | None = None) -> dict:
     """PSIS k̂ and ESS of an approximation q of p (Laplace, VI) from its draws X (S, T·d) and
     their ln q (constants free): log weights ln p(x_s) − ln q(x_s) (Vehtari et al. 2024); ln p
     in chunks through :meth:`UtteranceDensity.values` (value only, all draws' rows of a GP in
-    one run)."""
+    one run). With ``sample_stats`` (a dict), the first ``n_keep`` draws' ``lp`` and
+    ``log_weight`` (1, n_keep) are put in it (``InferenceData.sample_stats``)."""
     lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
     khat, ess = psis(lp - log_q)
+    if sample_stats is not None and n_keep:   # per kept draw (one chain): ln p and the log weight ln p − ln q
+        sample_stats["lp"] = lp[None, :n_keep]
+        sample_stats["log_weight"] = (lp - log_q)[None, :n_keep]
     return {"khat": khat, "psis_ess": ess, "khat_draws": len(lp)}
 
 

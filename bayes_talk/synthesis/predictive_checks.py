@@ -14,6 +14,15 @@
   (Gelman, Meng & Stern 1996), and the coverage of the central 50 % and 90 %
   predictive intervals of every audio entry. p-values near 0 or 1 and coverage far from
   nominal mean the model does not reproduce that aspect of the data.
+
+The audio the model simulates and replicates is the **audio view** the state models
+explain, ``plan.audio`` = ``model.audio_input(mfcc)``: the MFCCs themselves when the
+model's ``audio_context`` is 0, the PCA-projected context window otherwise
+(:mod:`bayes_talk.features.audio_context`). Compare replications with ``plan.audio``, never
+with the raw MFCCs; and give simulated audio back to the samplers with ``audio_view=True``
+(:func:`~bayes_talk.synthesis.posterior.sample_synthesis`,
+:func:`~bayes_talk.synthesis.joint.make_plan`), so that it is not spliced and projected a
+second time.
 """
 from __future__ import annotations
 
@@ -36,7 +45,8 @@ def _stack_audio(plan: UtterancePlan, out: dict) -> np.ndarray:
 
 
 def prior_predictive(plan: UtterancePlan, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """n simulations (X (n, T, d), audio (n, T, D_y)) from the synthesis model's prior."""
+    """n simulations (X (n, T, d), audio (n, T, D_y)) from the synthesis model's prior; the
+    audio is in the plan's audio view (module docstring)."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     pyro.set_rng_seed(seed)
@@ -46,7 +56,8 @@ def prior_predictive(plan: UtterancePlan, n: int, seed: int = 0) -> tuple[np.nda
 
 
 def posterior_predictive(plan: UtterancePlan, latents: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Audio (S, T, D_y) replicated at latent draws ``latents`` (..., T, d) (chains pooled)."""
+    """Audio (S, T, D_y) replicated at latent draws ``latents`` (..., T, d) (chains pooled), in
+    the plan's audio view: compare with ``plan.audio``."""
     X = np.asarray(latents, dtype=np.float64).reshape(-1, plan.n_frames, plan.latent_dim)
     pyro.set_rng_seed(seed)
     with torch.no_grad():

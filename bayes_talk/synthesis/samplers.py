@@ -6,8 +6,9 @@ and returns a :class:`Draws`: ``samples`` of shape (chains, draws, n) plus sampl
 statistics for :mod:`bayes_talk.synthesis.diagnostics`. Same seed -> same draws.
 
 * :func:`run_nuts` - Pyro NUTS with ``potential_fn = -log_prob``, diagonal mass matrix
-  adapted during warm-up; chains run one after another in this process (chain c seeded
-  ``seed + c``), so there is no multiprocessing and the draws are reproducible. Every
+  adapted during warm-up; one task per chain through the project's executor (this
+  process by default, ``workers`` processes on request; chain c seeded by ``seed`` and c
+  alone), so the draws are reproducible whatever the worker count. Every
   post-warm-up iteration's acceptance statistic, leapfrog steps, tree depth, divergence,
   energy and ln p are recorded (``Draws.sample_stats``). Given displacements between known
   modes, every iteration is followed by mode-jumping Metropolis moves (below).
@@ -97,7 +98,7 @@ class _RecordingNUTS:
 
     @staticmethod
     def make(potential, counter: list, jumps: np.ndarray | None = None, jump_attempts: int = 0,
-             rng: np.random.Generator | None = None, **kw):
+             rng: np.random.Generator | None = None, extra_move=None, extra_every: int = 1, **kw):
         from pyro.infer.mcmc import NUTS
         from pyro.ops.integrator import potential_grad
 
@@ -126,10 +127,23 @@ class _RecordingNUTS:
                 self.jump_counts[1] += accepted
                 return z, accepted
 
+            def _extra(self, z):
+                """Another posterior-invariant kernel (e.g. a particle Gibbs sweep) on the state."""
+                x = z["x"].detach().numpy()
+                x_new = np.asarray(extra_move(x, rng), dtype=np.float64)
+                if np.array_equal(x_new, x):
+                    return z
+                z = {"x": torch.as_tensor(x_new)}
+                grads, pe = potential_grad(self.potential_fn, z)
+                self._cache(z, pe, grads)
+                return z
+
             def sample(self, params):
                 m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
                 z = super().sample(params)
                 z, accepted = self._jump(z) if n_jump else (z, 0)
+                if extra_move is not None and self._t % extra_every == 0:
+                    z = self._extra(z)
                 if self._t == self._warmup_steps:
                     self.warmup_end = time.perf_counter()
                 if self._t > self._warmup_steps:
@@ -154,11 +168,46 @@ class _RecordingNUTS:
         return k
 
 
+def _nuts_chain(task) -> dict:
+    """One NUTS chain (an executor task): (log_prob, start (n,), n_draws, warmup, seed, chain c,
+    kernel keywords) -> its draws, step size, per-draw records, jump counts, gradients and
+    seconds. Seeded by (seed, c) alone: Pyro's generators by ``seed + c``, the jump moves by
+    ``default_rng([seed, c, ·])``."""
+    import pyro
+    from pyro.infer.mcmc import MCMC
+
+    log_prob, start, n_draws, warmup, seed, c, kw = task
+    counter = [0]
+
+    def potential(params):
+        counter[0] += 1
+        return -log_prob(params["x"])
+
+    t_chain = time.perf_counter()
+    with torch_threads(1):
+        pyro.set_rng_seed(seed + c)
+        kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
+                                     full_mass=False, target_accept_prob=kw["target_accept"],
+                                     max_tree_depth=kw["max_tree_depth"], jumps=kw["jumps"],
+                                     jump_attempts=kw["jump_attempts"], extra_move=kw.get("extra_move"),
+                                     extra_every=kw.get("extra_every", 1),
+                                     rng=np.random.default_rng([seed, c, 0x6A756D70]))
+        mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": _as_tensor(start)},
+                    num_chains=1, disable_progbar=not progress.enabled())
+        log.info("NUTS chain %d: %d warm-up + %d draws", c + 1, warmup, n_draws)
+        mcmc.run()
+    return {"samples": mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1),
+            "step_size": float(kernel.step_size), "records": kernel.records, "jump_counts": kernel.jump_counts,
+            "warmup_seconds": (kernel.warmup_end or t_chain) - t_chain, "n_gradients": counter[0],
+            "seconds": time.perf_counter() - t_chain}
+
+
 def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chain"],
              warmup: int = NUTS_DEFAULTS["warmup"], chains: int = 1, seed: int = 0,
              target_accept: float = NUTS_DEFAULTS["target_accept"],
              max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"], jumps: np.ndarray | None = None,
-             jump_attempts: int = NUTS_DEFAULTS["jump_attempts"]) -> Draws:
+             jump_attempts: int = NUTS_DEFAULTS["jump_attempts"], workers: int = 1, executor=None,
+             extra_move=None, extra_every: int = 1) -> Draws:
     """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
     start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
     step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
@@ -166,12 +215,21 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     iteration, ``jump_attempts`` per displacement (:class:`_RecordingNUTS`; chain c's move
     draws seeded by (seed, c)).
 
+    Chains run through the project's executor (:func:`bayes_talk.executor.executor_for`:
+    ``executor`` an :class:`~bayes_talk.executor.Executor` or a kind, else "processes" when
+    ``workers`` > 1, else this process), one task per chain, each seeded by (``seed``, its
+    chain index) only and run with one thread, so the draws do not depend on the worker
+    count or engine (tested). ``log_prob`` must then be picklable (a module-level function
+    or an object of one: the synthesis densities are). ``warmup_seconds`` sums the chains'.
+
+    ``extra_move(x, rng) -> x'`` (picklable): a further posterior-invariant kernel applied
+    after the NUTS transition and the jumps of every ``extra_every``-th iteration (the
+    particle Gibbs sweep of :mod:`bayes_talk.synthesis.particle_gibbs`); a composition of
+    invariant kernels is invariant.
+
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
     per-chain totals (``divergences``, ``step_size``, ``max_tree_depth_hits``)."""
-    import pyro
-    from pyro.infer.mcmc import MCMC
-
     if chains < 1 or n_draws < 1 or warmup < 0:
         raise ValueError(f"NUTS needs chains >= 1, draws >= 1, warmup >= 0; got {chains}, {n_draws}, {warmup}")
     if not 0 < target_accept < 1:
@@ -190,39 +248,29 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             jumps = None
     if x0.ndim == 2 and x0.shape[0] != chains:
         raise ValueError(f"x0 holds {x0.shape[0]} starts for {chains} chains")
-    counter = [0]
-
-    def potential(params):
-        counter[0] += 1
-        return -log_prob(params["x"])
-
-    out, steps, recs, jump_counts, warm_s = [], [], [], [], 0.0
+    starts = [(x0[c] if x0.ndim == 2 else x0).reshape(-1).clone().numpy() for c in range(chains)]
+    kernel_kw = {"target_accept": target_accept, "max_tree_depth": max_tree_depth, "jumps": jumps,
+                 "jump_attempts": jump_attempts, "extra_move": extra_move, "extra_every": int(extra_every)}
+    tasks = [(log_prob, starts[c], n_draws, warmup, seed, c, kernel_kw) for c in range(chains)]
     t0 = time.perf_counter()
-    with torch_threads(1):
-        for c in range(chains):
-            pyro.set_rng_seed(seed + c)
-            start = (x0[c] if x0.ndim == 2 else x0).reshape(-1).clone()
-            kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
-                                         full_mass=False, target_accept_prob=target_accept,
-                                         max_tree_depth=max_tree_depth, jumps=jumps, jump_attempts=jump_attempts,
-                                         rng=np.random.default_rng([seed, c, 0x6A756D70]))
-            mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": start},
-                        num_chains=1, disable_progbar=not progress.enabled())
-            log.info("NUTS chain %d/%d: %d warm-up + %d draws", c + 1, chains, warmup, n_draws)
-            t_chain = time.perf_counter()
-            mcmc.run()
-            warm_s += (kernel.warmup_end or t_chain) - t_chain
-            out.append(mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1))
-            steps.append(float(kernel.step_size))
-            recs.append(kernel.records)
-            jump_counts.append(kernel.jump_counts)
+    from bayes_talk.executor import executor_for
+
+    with executor_for(executor, workers) as ex:
+        res = list(ex.map(_nuts_chain, tasks))
+    out = [r["samples"] for r in res]
+    steps = [r["step_size"] for r in res]
+    recs = [r["records"] for r in res]
+    jump_counts = [r["jump_counts"] for r in res]
+    warm_s = float(sum(r["warmup_seconds"] for r in res))
+    n_grad = int(sum(r["n_gradients"] for r in res))
     ss = {k: np.array([r[k] for r in recs]) for k in recs[0]}
     ss["step_size"] = np.repeat(np.array(steps)[:, None], n_draws, axis=1)
     stats = {"divergences": [int(d.sum()) for d in ss["diverging"]], "step_size": steps,
              "accept_prob": [float(a.mean()) for a in ss["acceptance_rate"]],
              "max_tree_depth": int(max_tree_depth), "target_accept": float(target_accept),
              "max_tree_depth_hits": int(np.sum(ss["tree_depth"] >= max_tree_depth)),
-             "warmup": int(warmup), "n_gradients": int(counter[0]), "warmup_seconds": float(warm_s),
+             "warmup": int(warmup), "n_gradients": n_grad, "warmup_seconds": warm_s,
+             "chain_seconds": [float(r["seconds"]) for r in res],
              "n_jumps": 0 if jumps is None else len(jumps), "jump_attempts": [int(a) for a, _ in jump_counts],
              "jumps_accepted": [int(b) for _, b in jump_counts]}
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
@@ -292,7 +340,8 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     ``n_draws`` evenly thinned steps of the chain after the warm-up (at least ``thin``
     apart). ``n_keep`` (default: all) keeps that many walkers as the reported chains
     (evenly spaced) to bound memory. Walkers default to max(32, 4 n) rounded up to even.
-    ``Draws.stats``: acceptance, ``autocorr_time_max`` / ``_mean``, ``autocorr_steps`` (after
+    ``Draws.sample_stats``: ``lp`` (reported walkers, kept steps). ``Draws.stats``:
+    acceptance, ``autocorr_time_max`` / ``_mean``, ``autocorr_steps`` (after
     warm-up), ``autocorr_ok`` (length ≥ ``autocorr_tol`` · τ_max), ``steps``.
     """
     import emcee
@@ -326,9 +375,11 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
     after = sampler.iteration - w_st
     step = max(1, after // n_draws)
     chain = sampler.get_chain()[w_st:][::-1][::step][:n_draws][::-1]  # the last n_draws, `step` apart
+    lp = sampler.get_log_prob()[w_st:][::-1][::step][:n_draws][::-1].T   # the same steps, (W, draws)
     chain = np.transpose(chain, (1, 0, 2))
     if n_keep is not None and n_keep < W:
-        chain = chain[np.linspace(0, W - 1, n_keep).round().astype(int)]
+        keep = np.linspace(0, W - 1, n_keep).round().astype(int)
+        chain, lp = chain[keep], lp[keep]
     acc = sampler.acceptance_fraction
     tau_max = float(np.nanmax(tau))
     return Draws("emcee", np.ascontiguousarray(chain),
@@ -338,7 +389,7 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
                   "autocorr_time_max": tau_max * k, "autocorr_time_mean": float(np.nanmean(tau)) * k,
                   "autocorr_steps": int(after * k), "autocorr_tol": float(autocorr_tol),
                   "autocorr_ok": bool(after >= autocorr_tol * tau_max)},
-                 time.perf_counter() - t0)
+                 time.perf_counter() - t0, {"lp": np.ascontiguousarray(lp)})
 
 
 # ---------------------------------------------------------------------------- Laplace

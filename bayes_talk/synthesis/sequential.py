@@ -83,11 +83,14 @@ def synthesize(
     smoothness: str | bool = DEFAULT_SMOOTHNESS,
     lowpass_hz: float | None = None,
     max_iter: int = SEGMENT_MAX_ITER,
+    audio_view: bool = False,
 ) -> SynthesisResult:
     """Run Algorithm 1 (``"optimise"``) or 2 (``"predict"``) on one utterance.
 
     smoothness: "frame" or "off" (True = "frame", False = "off"); see the
-    module docstring.
+    module docstring. audio_view: ``mfcc`` is already the audio view the state models
+    explain (``model.audio_input(mfcc)``, e.g. audio simulated by the synthesis model's
+    prior predictive), so it is used as it is instead of being transformed again.
     """
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
@@ -96,12 +99,13 @@ def synthesize(
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
     mfcc = _check_inputs(model, mfcc, labels)
     with torch_threads(1):
-        return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter)
+        return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter, audio_view)
 
 
-def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter) -> SynthesisResult:
+def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter,
+                audio_view: bool = False) -> SynthesisResult:
     segments = model.segment(list(labels))
-    audio = model.audio_input(mfcc, labels)   # what the state models' audio GPs explain
+    audio = mfcc if audio_view else model.audio_input(mfcc, labels)   # what the state models' audio GPs explain
     T, Dz = mfcc.shape[0], model.dims_[1]
     d = model.config.latent_dim
     mean, var, X = np.zeros((T, Dz)), np.zeros((T, Dz)), np.zeros((T, d))

@@ -1,0 +1,245 @@
+"""Particle Gibbs over the frames of an utterance (issue 24, items 2-3).
+
+The synthesis density (DESIGN.md §6) is a Markov state-space model: it factorises exactly
+over frames,
+
+    ln p(X | Ŷ) = Σ_t f_t(x_{t−1}, x_t),
+    f_t = ln p_π(ŷ_t | x_t) + [t entry] ln N(x_t; μ_π, Σ_π) + [t dynamics] ln p_π(x_t | x_{t−1})
+          + [t smooth] ln s(x_{t−1}, x_t)                                                    (1)
+
+(:class:`FrameFactors`; a test holds Σ_t f_t equal to
+:class:`~bayes_talk.synthesis.joint_density.UtteranceDensity` to round-off). Conditional SMC
+with ancestor sampling (Andrieu, Doucet & Holenstein 2010; Lindsten, Jordan & Schön 2014,
+"Particle Gibbs with ancestor sampling", Alg. 2) is then a Markov kernel that leaves
+p(X | Ŷ) invariant: N − 1 particles are proposed frame by frame, the reference path is
+kept as the N-th, and its ancestor at each frame is redrawn with probability ∝
+W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*) — so the new path can leave the reference anywhere.
+
+Proposal (:class:`MixtureProposal`) at frame t given the ancestor x_{t−1}: with probability
+ρ the frame's prior (the dynamics GP predictive from x_{t−1}, or the entry Gaussian), else
+a Gaussian kernel (bandwidth h) around one of the frame's state model's training latents X_j,
+chosen with probability ∝ its audio likelihood p_π(ŷ_t | X_j) × entry density × (at a block
+start with a smoothness factor) s(x_{t−1}, X_j) given the particle's ancestor (the
+visual predictive at every X_j precomputed, so this is an N × M table per frame); the posterior's modes sit at those training latents (docs/uncertainty.md). The
+importance weight is exp f_t / q_t with q_t the mixture's exact density, so the smoothness
+factor at a block start weighs every proposal.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.special import logsumexp
+
+from bayes_talk.gp.predictive_fused import Runs
+from bayes_talk.synthesis.joint_density import UtteranceDensity
+from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
+
+
+def _runs(g: int, n: int) -> Runs:
+    return Runs(np.array([g]), np.array([0]), np.array([n]))
+
+
+class FrameFactors:
+    """The per-frame factors f_t of (1), evaluated for many (x_{t−1}, x_t) pairs of one frame."""
+
+    def __init__(self, dens: UtteranceDensity):
+        self.dens, self.T, self.d = dens, dens.T, dens.d
+        tm = dens.terms
+        self.tm = tm
+        self.audio_gp = dict(zip(tm.a_idx.tolist(), tm.a_runs.row_gp(1).tolist(), strict=True))
+        self.dyn_gp = dict(zip(tm.d_dst.tolist(), tm.d_runs.row_gp(1).tolist(), strict=True))
+        self.entry = {int(t): i for i, t in enumerate(tm.e_idx)}
+        s_prev = tm.s_prev_runs.row_gp(1)
+        s_vis = np.empty(len(tm.s_idx), dtype=np.int64)
+        s_vis[tm.s_order] = tm.s_vis_runs.row_gp(1)
+        self.smooth = {int(t): (int(p), int(v)) for t, p, v in zip(tm.s_idx, s_prev, s_vis, strict=True)}
+
+    def log_f(self, t: int, Xprev: np.ndarray | None, X: np.ndarray) -> np.ndarray:
+        """f_t(x_{t−1}^i, x_t^i) for N pairs (Xprev (N, d) or None at t = 0, X (N, d)) → (N,)."""
+        tm, N = self.tm, len(X)
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        ll, _, _ = tm.audio_gps.loglik(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0), X)
+        out = ll.copy()
+        if t in self.entry:
+            out += self.entry_logpdf(t, X)
+        if t in self.dyn_gp:
+            ll, _, _ = tm.dyn_gps.loglik(_runs(self.dyn_gp[t], N), X, np.ascontiguousarray(Xprev))
+            out += ll
+        if t in self.smooth:
+            gp, gv = self.smooth[t]
+            zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
+            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp, X, tm.motion_var)
+            out += ll
+        return out
+
+    def _a_row(self, t: int) -> int:
+        return int(np.flatnonzero(self.tm.a_idx == t)[0])
+
+    def entry_logpdf(self, t: int, X: np.ndarray) -> np.ndarray:
+        """ln N(x; μ_π, Σ_π) of frame t's entry distribution for rows X (N, d)."""
+        tm, e = self.tm, self.entry[t]
+        u = (X - tm.e_mean[e]) @ tm.e_chol_inv[e].T
+        const = -np.log(np.abs(np.diag(tm.e_chol_inv[e]))).sum() + 0.5 * self.d * LOG_2PI
+        return -0.5 * (u * u).sum(1) - const
+
+    def total(self, X: np.ndarray) -> float:
+        """Σ_t f_t along the path X (T, d): ln p(X | Ŷ) up to round-off."""
+        X = np.asarray(X, dtype=np.float64).reshape(self.T, self.d)
+        return float(sum(self.log_f(t, X[t - 1:t] if t else None, X[t:t + 1])[0] for t in range(self.T)))
+
+
+class MixtureProposal:
+    """q_t(x | x_{t−1}) of the module docstring: ρ · the frame's prior + (1 − ρ) · Σ_j π_j N(x; X_j, h² I)."""
+
+    def __init__(self, ff: FrameFactors, plan, rho: float = 0.5, h: float = 0.05):
+        if not 0 <= rho < 1 or h <= 0:
+            raise ValueError(f"proposal needs 0 <= rho < 1 and h > 0, got rho={rho}, h={h}")
+        self.ff, self.rho, self.h = ff, float(rho), float(h)
+        self.centres, self.logw, self.smooth_pred = {}, {}, {}
+        for b in plan.blocks:
+            Xtr = numpy_gp(b.model.predictors_["audio"]).X
+            for t in range(b.start, b.stop):
+                ll, _, _ = ff.tm.audio_gps.loglik(_runs(ff.audio_gp[t], len(Xtr)),
+                                                  np.repeat(ff.tm.a_Y[[ff._a_row(t)]], len(Xtr), 0),
+                                                  np.ascontiguousarray(Xtr))
+                if t in ff.entry:
+                    ll = ll + ff.entry_logpdf(t, Xtr)
+                self.centres[t], self.logw[t] = Xtr, ll - logsumexp(ll)
+                if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
+                    _, gv = ff.smooth[t]
+                    mu, s = ff.tm.vis_gps.mean_var(_runs(gv, len(Xtr)), np.ascontiguousarray(Xtr))
+                    self.smooth_pred[t] = (mu, s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None])
+
+    def _weights(self, t: int, Xprev: np.ndarray | None, N: int) -> np.ndarray:
+        """ln π_j per particle (N, M): audio × entry, × the smoothness factor s(x_{t−1}, X_j)
+        given each particle's ancestor at a block start; normalised per row."""
+        lw = np.broadcast_to(self.logw[t], (N, len(self.logw[t])))
+        if t not in self.smooth_pred or Xprev is None:
+            return lw
+        gp, _ = self.ff.smooth[t]
+        zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
+        mu, var = self.smooth_pred[t]
+        r = zp[:, None, :] - mu[None]
+        ls = -0.5 * (np.log(var)[None] + r * r / var[None]).sum(-1)
+        w = lw + ls
+        return w - logsumexp(w, axis=1, keepdims=True)
+
+    def _prior(self, t: int, Xprev: np.ndarray | None, N: int):
+        """Mean (N, d) and sd (N, d) of the frame's prior, or None (no prior: kernel only)."""
+        ff = self.ff
+        if t in ff.dyn_gp:
+            mu, s = ff.tm.dyn_gps.mean_var(_runs(ff.dyn_gp[t], N), np.ascontiguousarray(Xprev))
+            return "dyn", mu, np.sqrt(s[:, None] / ff.tm.dyn_gps.w2[ff.dyn_gp[t]][None])
+        if t in ff.entry:
+            return "entry", None, None
+        return None, None, None
+
+    def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
+                    X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """N draws of q_t given ancestors Xprev (N, d) (or the given X) and their ln q_t (N,)."""
+        d = self.ff.d
+        kind, mu, sd = self._prior(t, Xprev, N)
+        rho = self.rho if kind else 0.0
+        C = self.centres[t]
+        lw = self._weights(t, Xprev, N)
+        if X is None:
+            use_prior = rng.random(N) < rho
+            cdf = np.cumsum(np.exp(lw), axis=1)
+            j = np.minimum((cdf < rng.random(N)[:, None] * cdf[:, -1:]).sum(1), len(C) - 1)
+            X = C[j] + self.h * rng.standard_normal((N, d))
+            if use_prior.any():
+                if kind == "dyn":
+                    X[use_prior] = mu[use_prior] + sd[use_prior] * rng.standard_normal((int(use_prior.sum()), d))
+                else:
+                    e = self.ff.entry[t]
+                    L = np.linalg.inv(self.ff.tm.e_chol_inv[e])
+                    X[use_prior] = self.ff.tm.e_mean[e] + rng.standard_normal((int(use_prior.sum()), d)) @ L.T
+        r = X[:, None, :] - C[None]
+        lk = logsumexp(lw - 0.5 * (r * r).sum(-1) / self.h ** 2, axis=1) - d * (np.log(self.h) + 0.5 * LOG_2PI)
+        if not rho:
+            return X, lk
+        if kind == "dyn":
+            z = (X - mu) / sd
+            lp = -0.5 * (z * z).sum(1) - np.log(sd).sum(1) - 0.5 * d * LOG_2PI
+        else:
+            lp = self.ff.entry_logpdf(t, X)
+        return X, np.logaddexp(np.log(rho) + lp, np.log1p(-rho) + lk)
+
+
+def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng: np.random.Generator):
+    """One conditional SMC sweep with ancestor sampling (module docstring): a new path (T, d)
+    given the reference path ``x_ref``, and the fraction of frames whose value changed."""
+    T, d = ff.T, ff.d
+    P = np.empty((T, N, d))
+    A = np.zeros((T, N), dtype=np.int64)
+    X, lq = q.sample_logq(0, None, N, rng)
+    X[-1] = x_ref[0]
+    lq[-1] = q.sample_logq(0, None, 1, rng, X[-1:])[1][0]
+    P[0] = X
+    logw = ff.log_f(0, None, X) - lq
+    for t in range(1, T):
+        W = np.exp(logw - logsumexp(logw))
+        a = rng.choice(N, size=N, p=W)
+        # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
+        la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
+        a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
+        Xprev = P[t - 1][a]
+        X, lq = q.sample_logq(t, Xprev, N, rng)
+        X[-1] = x_ref[t]
+        lq[-1] = q.sample_logq(t, Xprev[-1:], 1, rng, X[-1:])[1][0]
+        P[t], A[t] = X, a
+        logw = ff.log_f(t, Xprev, X) - lq
+    k = rng.choice(N, p=np.exp(logw - logsumexp(logw)))
+    out = np.empty((T, d))
+    for t in range(T - 1, -1, -1):
+        out[t] = P[t, k]
+        k = A[t, k]
+    return out, float(np.mean(np.any(out != x_ref, axis=1)))
+
+
+class ParticleGibbsMove:
+    """One CSMC-AS sweep as a move in a sampler's coordinates u: x = to_x(u), the sweep, u' = to_u(x')
+    (``to_x``/``to_u`` a bijection, e.g. the whitening or the non-centred map). The sweep leaves
+    p(x | Ŷ) invariant, so the move leaves the sampler's target (p pushed through the bijection)
+    invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
+    (particle Gibbs ∘ NUTS)."""
+
+    def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
+                 h: float = 0.05):
+        self.ff = FrameFactors(dens)
+        self.q = MixtureProposal(self.ff, plan, rho, h)
+        self.to_x, self.to_u, self.n = to_x, to_u, int(n_particles)
+
+    def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
+        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng)
+        return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
+
+
+def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws: int, warmup: int, seed: int,
+                       n_particles: int = 64, rho: float = 0.5, h: float = 0.05) -> dict:
+    """Chains of CSMC-AS sweeps from ``starts`` (chains, T, d): draws (chains, n_draws, T, d)
+    after ``warmup`` sweeps, the per-frame update rate, ln p of each draw, seconds."""
+    ff = FrameFactors(dens)
+    q = MixtureProposal(ff, plan, rho, h)
+    C = len(starts)
+    draws = np.empty((C, n_draws, ff.T, ff.d))
+    lp = np.empty((C, n_draws))
+    moved = np.zeros((C, ff.T))
+    t0 = time.perf_counter()
+    for c in range(C):
+        rng = np.random.default_rng([seed, c, 0x7067])
+        x = np.asarray(starts[c], dtype=np.float64).reshape(ff.T, ff.d)
+        for it in range(warmup + n_draws):
+            x_new, _ = csmc_as(ff, q, x, n_particles, rng)
+            moved[c] += np.any(x_new != x, axis=1)
+            x = x_new
+            if it >= warmup:
+                draws[c, it - warmup] = x
+                lp[c, it - warmup] = dens(x)[0]
+    return {"samples": draws, "lp": lp, "frame_update_rate": moved / (warmup + n_draws),
+            "seconds": time.perf_counter() - t0}
+
+
+__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "run_particle_gibbs"]

@@ -1,0 +1,116 @@
+"""NUTS in whitened vs non-centred coordinates on the toy utterance of tests/ (issue 24).
+
+Model: ``SwitchingSGPDM(states="vlmm")`` with the test configuration on
+``tests/toydata.py make_utterances(24, seed=0)``; utterance: the first ``--frames`` (78)
+frames of ``make_utterances(1, seed=1, mean_len=80)[0]``; smoothness on ("frame").
+For each coordinate system (``--coords``), ``sample_synthesis(method="nuts")`` with the
+library defaults unless overridden (``--chains``, ``--warmup``, ``--draws`` pooled), and
+the diagnostics of the latents and of the AAM-parameter means μ_Z(x) at every draw
+(rank R-hat, bulk/tail ESS: ``chain_diagnostics``). JSON, written after each run:
+
+    PYTHONPATH=. python benchmarks/noncentred_toy.py [--coords whitened,noncentred] \
+        [--out benchmarks/results/noncentred_toy78.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "tests"))
+
+from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.synthesis.diagnostics import chain_diagnostics
+from bayes_talk.synthesis.posterior import sample_synthesis
+
+SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
+KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min")
+
+
+def main() -> None:
+    from toydata import make_utterances
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--coords", default="whitened,noncentred")
+    ap.add_argument("--frames", type=int, default=78)
+    ap.add_argument("--chains", type=int, default=None)
+    ap.add_argument("--warmup", type=int, default=None)
+    ap.add_argument("--draws", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=None, help="chains in this many processes (default: in-process)")
+    ap.add_argument("--pg-particles", type=int, default=64, help="particles of the particle Gibbs sweeps (coords pg)")
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "noncentred_toy78.json")
+    args = ap.parse_args()
+    model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
+    u = make_utterances(1, seed=1, mean_len=80)[0]
+    T = min(args.frames, u.n_frames)
+    mfcc, labels = u.mfcc[:T], u.labels[:T]
+    res = {"command": "benchmarks/noncentred_toy.py " + " ".join(sys.argv[1:]), "frames": T,
+           "utterance": "tests/toydata.py make_utterances(1, seed=1, mean_len=80)[0], first frames",
+           "cpus": os.cpu_count(), "runs": {}}
+    kw = {k: v for k, v in (("chains", args.chains), ("warmup", args.warmup), ("n_draws", args.draws)) if v is not None}
+    for coords in args.coords.split(","):
+        if coords == "pg":
+            res["runs"]["pg"] = particle_gibbs(model, mfcc, labels, args)
+            print("pg", json.dumps(res["runs"]["pg"]), flush=True)
+            _write(res, args.out)
+            continue
+        t0 = time.perf_counter()
+        skw = {"coords": coords}
+        if args.workers:
+            skw["workers"] = args.workers
+        r = sample_synthesis(model, mfcc, labels, method="nuts", seed=args.seed, sampler_kw=skw, log_warnings=False,
+                             **kw)
+        wall = time.perf_counter() - t0
+        lat = chain_diagnostics(r.latent_draws.reshape(r.latent_draws.shape[0], r.latent_draws.shape[1], -1))
+        aam = chain_diagnostics(r.draw_mean.reshape(r.draw_mean.shape[0], r.draw_mean.shape[1], -1))
+        d = r.diagnostics
+        res["runs"][coords] = {
+            "wall_seconds": wall, "latents": {k: float(lat[k]) for k in KEYS},
+            "aam_mean": {k: float(aam[k]) for k in KEYS},
+            **{k: d.get(k) for k in ("divergences", "ebfmi_min", "step_size", "n_steps_mean", "tree_depth_mean",
+                                     "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
+                                     "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws")}}
+        print(coords, json.dumps(res["runs"][coords]), flush=True)
+        _write(res, args.out)
+
+
+def _write(res: dict, out: Path) -> None:
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(res, indent=1, default=float))
+    tmp.replace(out)
+
+
+def particle_gibbs(model, mfcc, labels, args) -> dict:
+    """Particle Gibbs (CSMC with ancestor sampling) chains from Laplace draws at the MAP
+    (``--pg-particles``, ``--chains``, ``--warmup`` and ``--draws`` per chain as sweeps)."""
+    from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
+    from bayes_talk.synthesis.particle_gibbs import run_particle_gibbs
+    from bayes_talk.synthesis.posterior import visual_predictive
+
+    chains = args.chains or 4
+    t0 = time.perf_counter()
+    lap = sample_synthesis(model, mfcc, labels, method="laplace", n_draws=max(8, chains), seed=args.seed,
+                           log_warnings=False)
+    plan = make_plan(model, mfcc, labels)
+    out = run_particle_gibbs(UtteranceDensity(plan), plan, lap.latent_draws[0, :chains], n_draws=args.draws or 200,
+                             warmup=args.warmup or 100, seed=args.seed, n_particles=args.pg_particles)
+    S = out["samples"]
+    zm, _ = visual_predictive(plan, S)
+    lat = chain_diagnostics(S.reshape(S.shape[0], S.shape[1], -1))
+    aam = chain_diagnostics(zm.reshape(zm.shape[0], zm.shape[1], -1))
+    rate = out["frame_update_rate"]
+    return {"wall_seconds": time.perf_counter() - t0, "sampler_seconds": out["seconds"],
+            "latents": {k: float(lat[k]) for k in KEYS}, "aam_mean": {k: float(aam[k]) for k in KEYS},
+            "n_particles": args.pg_particles, "sweeps_per_chain": int(S.shape[1]), "n_chains": int(S.shape[0]),
+            "frame_update_rate_min": float(rate.min()), "frame_update_rate_mean": float(rate.mean()),
+            "frame_update_rate_per_frame": rate.mean(0).tolist(), "lp_mean_per_chain": out["lp"].mean(1).tolist()}
+
+
+if __name__ == "__main__":
+    main()
