@@ -149,7 +149,8 @@ def from_dict(posterior: dict, *, posterior_predictive: dict | None = None, samp
               "sample_stats": sample_stats, "observed_data": observed_data}
     groups = {k: v for k, v in groups.items() if v is not None}
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # one draw, more chains than draws: expected
+        # one draw (a point method), or emcee's walkers: "More chains than draws" is expected
+        warnings.filterwarnings("ignore", message="More chains", category=UserWarning)
         if ARVIZ_1:
             return az.from_dict(groups, coords=coords, dims=dims)
         return az.from_dict(**groups, coords=coords, dims=dims)

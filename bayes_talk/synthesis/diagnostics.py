@@ -1,7 +1,8 @@
 """Sampler diagnostics through ArviZ (DESIGN.md §6) - the only synthesis module that imports arviz.
 
-ArviZ is pinned below 0.24 (ArviZ 1.x needs Python >= 3.12); every call to it that synthesis
-makes is here (``bayes_talk.evaluation.diagnostics`` re-exports this module for older callers).
+Every ArviZ call goes through :mod:`bayes_talk.arviz_compat` (ArviZ 0.2x on Python 3.11,
+1.x on >= 3.12; DESIGN.md §6); ``bayes_talk.evaluation.diagnostics`` re-exports this module
+for older callers.
 
 * :func:`chain_diagnostics` - draws (chains, draws, n): rank-normalised split R-hat
   (``arviz.rhat(method="rank")``, Vehtari et al. 2021), bulk and tail ESS
@@ -24,13 +25,10 @@ With a single chain (Laplace draws) the chain is split in two halves before Arvi
 from __future__ import annotations
 
 import warnings
-from contextlib import contextmanager
 
 import numpy as np
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore", FutureWarning)  # arviz 0.2x announces its 1.0 refactor
-    import arviz as az
+from bayes_talk import arviz_compat as azc
 
 DIAGNOSTIC_KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max", "n_chains",
                    "n_draws", "rhat", "ess_bulk", "ess_tail", "mcse_mean", "mcse_sd")
@@ -47,24 +45,6 @@ THRESHOLDS = {"rhat_max": RHAT_MAX, "ess_min": ESS_MIN, "divergences": 0, "khat_
               "ebfmi_min": EBFMI_MIN}
 
 
-@contextmanager
-def _numba_off():
-    was = bool(az.Numba.numba_flag)
-    if was:
-        az.Numba.disable_numba()
-    try:
-        yield
-    finally:
-        if was:
-            az.Numba.enable_numba()
-
-
-def _idata(samples: np.ndarray):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "more chains than draws": emcee walkers
-        return az.from_dict(posterior={"x": samples})
-
-
 def chain_diagnostics(samples: np.ndarray) -> dict:
     """Rank R-hat, bulk/tail ESS and MCSE of (chains, draws, n) samples via ArviZ."""
     s = np.asarray(samples, dtype=np.float64)
@@ -76,19 +56,11 @@ def chain_diagnostics(samples: np.ndarray) -> dict:
     if C == 1:  # ArviZ gives nan R-hat for one chain: split it explicitly (what split R-hat does)
         h = S // 2
         s = np.stack([s[0, :h], s[0, h:2 * h]])
-    idata = _idata(s)
-
-    def per_coord(fn, **kw) -> np.ndarray:
-        return np.asarray(fn(idata, var_names=["x"], **kw)["x"].values, dtype=float).reshape(n)
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        rhat = per_coord(az.rhat, method="rank")
-        bulk = per_coord(az.ess, method="bulk")
-        tail = per_coord(az.ess, method="tail")
-        mcse_mean = per_coord(az.mcse, method="mean")
-        with _numba_off():  # arviz 0.23's numba path of mcse(method="sd") fails on numpy >= 2.3
-            mcse_sd = per_coord(az.mcse, method="sd")
+    rhat = np.asarray(azc.rhat(s), float).reshape(n)
+    bulk = np.asarray(azc.ess(s, "bulk"), float).reshape(n)
+    tail = np.asarray(azc.ess(s, "tail"), float).reshape(n)
+    mcse_mean = np.asarray(azc.mcse(s, "mean"), float).reshape(n)
+    mcse_sd = np.asarray(azc.mcse(s, "sd"), float).reshape(n)
     return {
         "rhat_max": float(np.nanmax(rhat)),
         "ess_bulk_min": float(np.nanmin(bulk)),
@@ -130,7 +102,7 @@ def energy_bfmi(energy: np.ndarray) -> np.ndarray:
     e = np.asarray(energy, dtype=np.float64)
     if e.ndim != 2 or e.shape[1] < 2:
         raise ValueError(f"energy: expected (chains, draws >= 2), got shape {e.shape}")
-    return np.asarray(az.bfmi(e), dtype=float).reshape(e.shape[0])
+    return azc.bfmi(e)
 
 
 def psis(log_weights: np.ndarray) -> tuple[float, float]:
@@ -143,12 +115,10 @@ def psis(log_weights: np.ndarray) -> tuple[float, float]:
         raise ValueError(f"need at least 10 importance weights for PSIS, got {lw.size}")
     if not np.all(np.isfinite(lw)):
         return float("inf"), 0.0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # ArviZ warns when k̂ > 0.7: the caller reports it
-        lw_s, k = az.psislw(lw)
-    w = np.exp(np.asarray(lw_s, dtype=np.float64) - np.max(lw_s))
+    lw_s, k = azc.psislw(lw)  # ArviZ's warning for k̂ > 0.7 is silenced: the caller reports it
+    w = np.exp(lw_s - np.max(lw_s))
     w /= w.sum()
-    return float(np.asarray(k).reshape(())), float(1.0 / np.sum(w * w))
+    return k, float(1.0 / np.sum(w * w))
 
 
 def psis_khat(log_weights: np.ndarray) -> float:
@@ -188,14 +158,14 @@ def convergence_problems(diag: dict) -> list[str]:
 
 
 def inference_data(posterior: dict, sample_stats: dict | None = None, observed_data: dict | None = None,
-                   dims: dict | None = None, coords: dict | None = None, **groups):
-    """``arviz.from_dict``: arrays (chains, draws, ...) of ``posterior`` and ``sample_stats``
-    (ArviZ names: ``lp``, ``acceptance_rate``, ``step_size``, ``tree_depth``, ``n_steps``,
-    ``diverging``, ``energy``), ``observed_data`` without chain/draw dimensions."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        return az.from_dict(posterior=posterior, sample_stats=sample_stats, observed_data=observed_data,
-                            dims=dims, coords=coords, **groups)
+                   dims: dict | None = None, coords: dict | None = None,
+                   posterior_predictive: dict | None = None):
+    """``arviz.from_dict`` (:func:`bayes_talk.arviz_compat.from_dict`): arrays (chains,
+    draws, ...) of ``posterior`` and ``sample_stats`` (ArviZ names: ``lp``,
+    ``acceptance_rate``, ``step_size``, ``tree_depth``, ``n_steps``, ``diverging``,
+    ``energy``), ``observed_data`` without chain/draw dimensions."""
+    return azc.from_dict(posterior, posterior_predictive=posterior_predictive, sample_stats=sample_stats,
+                         observed_data=observed_data, coords=coords, dims=dims)
 
 
 __all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",

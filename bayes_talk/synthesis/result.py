@@ -316,7 +316,7 @@ class SynthesisResult:
         diagnostics, warnings and segmentation are attributes of the posterior group
         (JSON strings where not scalars), so they survive ``to_netcdf``.
         """
-        import arviz as az
+        from bayes_talk.arviz_compat import from_dict
 
         T, D = self.n_frames, self.n_dims
         coords: dict[str, Any] = {"frame": np.arange(T), "aam_param": np.arange(D)}
@@ -333,11 +333,9 @@ class SynthesisResult:
         if self.sample_stats:
             kw["sample_stats"] = {k: np.asarray(v) for k, v in self.sample_stats.items()}
         per = max(1, -(-int(n_predictive) // self.n_draws))
-        with warnings.catch_warnings():  # a point method has one draw: ArviZ's shape warning is expected
-            warnings.filterwarnings("ignore", message="More chains", category=UserWarning)
-            idata = az.from_dict(posterior=posterior,
-                                 posterior_predictive={"aam": self.predictive_draws(per)},
-                                 coords=coords, dims=dims, **kw)
+        # (a point method has one draw: the adapter silences ArviZ's "More chains" warning only)
+        idata = from_dict(posterior, posterior_predictive={"aam": self.predictive_draws(per)},
+                          coords=coords, dims=dims, **kw)
         idata.posterior.attrs.update(self._attrs())
         return idata
 
