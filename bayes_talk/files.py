@@ -154,3 +154,24 @@ def write_figure(path: str | os.PathLike, fig, dpi: int = 100) -> Path:
         return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), suffix=".png")
     finally:
         plt.close(fig)
+
+
+def check_writable_json(path: str | Path) -> Path:
+    """Fail fast (ValueError) unless a file can be created at ``path`` (and beside it)."""
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        raise ValueError(f"--json path must end in .json, got {str(p)!r}")
+    if p.is_dir():
+        raise ValueError(f"cannot write {p}: it is a directory")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"cannot write {p}: directory {parent} does not exist")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"cannot write {p}: file is not writable")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=parent)
+    except OSError as exc:
+        raise ValueError(f"cannot write {p}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(tmp)
+    return p

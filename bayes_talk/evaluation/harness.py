@@ -31,8 +31,6 @@ below the control's (:func:`~bayes_talk.evaluation.calibration.control_verdict`)
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -56,32 +54,12 @@ from bayes_talk.evaluation.systems import (
     predict,
     resolve_methods,
 )
+from bayes_talk.files import check_writable_json
 
-__all__ = ["Trajectory", "check_writable", "evaluate", "run_protocol"]
+__all__ = ["Trajectory", "evaluate", "run_protocol"]
 
 log = logging.getLogger(__name__)
 
-
-
-def check_writable(path: str | Path) -> Path:
-    """Fail fast (ValueError) unless a file can be created at ``path`` (and beside it)."""
-    p = Path(path)
-    if p.suffix.lower() != ".json":
-        raise ValueError(f"--json path must end in .json, got {str(p)!r}")
-    if p.is_dir():
-        raise ValueError(f"cannot write {p}: it is a directory")
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir():
-        raise ValueError(f"cannot write {p}: directory {parent} does not exist")
-    if p.exists() and not os.access(p, os.W_OK):
-        raise ValueError(f"cannot write {p}: file is not writable")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=parent)
-    except OSError as exc:
-        raise ValueError(f"cannot write {p}: {exc.strerror or exc}") from None
-    os.close(fd)
-    os.unlink(tmp)
-    return p
 
 
 # ---------------------------------------------------------------------------- the harness
@@ -378,7 +356,7 @@ def evaluate(
     from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
 
     sources = parse_label_sources(labels)
-    out = check_writable(json_path)
+    out = check_writable_json(json_path)
     from bayes_talk.executor import executor_for
 
     kind = executor if executor is not None else ("dask" if scheduler else "local")
