@@ -34,11 +34,12 @@ from __future__ import annotations
 
 import ctypes
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.linalg import lapack
+
+from bayes_talk.gp.threads import torch_cpu_library
 
 _c_int = ctypes.c_int
 _c_double = ctypes.c_double
@@ -49,17 +50,9 @@ _ROUTINES = ("dpotrf_", "dpotri_", "dpotrs_")
 
 def _torch_lapack() -> ctypes.CDLL | None:
     """torch's CPU library when it exports the Fortran LAPACK/BLAS routines used here."""
-    lib_dir = Path(torch.__file__).resolve().parent / "lib"
-    for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
-        path = lib_dir / name
-        if not path.exists():
-            continue
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError:
-            return None
-        if all(hasattr(lib, r) for r in _ROUTINES):
-            return lib
+    lib = torch_cpu_library()
+    if lib is not None and all(hasattr(lib, r) for r in _ROUTINES):
+        return lib
     return None
 
 

@@ -28,26 +28,32 @@ import torch
 log = logging.getLogger(__name__)
 
 
-def fix_mkl_thread_count() -> bool:
-    """Stop MKL from lowering its thread count under load (``mkl_set_dynamic(0)`` in the MKL
-    that torch's CPU library is linked with). Returns whether the call was made (False where
-    this torch build has no MKL, e.g. on ARM or macOS, where nothing adapts to load)."""
+def torch_cpu_library() -> ctypes.CDLL | None:
+    """torch's CPU library (``libtorch_cpu``), loaded with :mod:`ctypes`, or None where it
+    cannot be found or loaded: the MKL (and LAPACK) that torch is linked with lives there."""
     lib_dir = Path(torch.__file__).resolve().parent / "lib"
     for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
         path = lib_dir / name
         if not path.exists():
             continue
         try:
-            lib = ctypes.CDLL(str(path))
+            return ctypes.CDLL(str(path))
         except OSError:
-            return False
-        set_dynamic = getattr(lib, "MKL_Set_Dynamic", None)
-        if set_dynamic is None:
-            return False
-        set_dynamic(0)
-        log.debug("MKL dynamic threading switched off (%s)", path.name)
-        return True
-    return False
+            return None
+    return None
+
+
+def fix_mkl_thread_count() -> bool:
+    """Stop MKL from lowering its thread count under load (``mkl_set_dynamic(0)`` in the MKL
+    that torch's CPU library is linked with). Returns whether the call was made (False where
+    this torch build has no MKL, e.g. on ARM or macOS, where nothing adapts to load)."""
+    lib = torch_cpu_library()
+    set_dynamic = getattr(lib, "MKL_Set_Dynamic", None) if lib is not None else None
+    if set_dynamic is None:
+        return False
+    set_dynamic(0)
+    log.debug("MKL dynamic threading switched off")
+    return True
 
 
 MKL_THREADS_FIXED = fix_mkl_thread_count()
