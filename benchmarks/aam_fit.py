@@ -36,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _default_corpus() -> Path:
-    v2 = Path("/work/data/v2")
-    return v2 / "heldout40" if (v2 / "READY").exists() else Path("/work/data/v1/heldout40")
+    v2 = Path("data/v2")
+    return v2 / "heldout40" if (v2 / "READY").exists() else Path("data/v1/heldout40")
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:

@@ -13,8 +13,8 @@ The alignment models come from ``--model-dir`` (a trained model directory, or an
 directory with alignment.json/.npz) or are fitted on ``--train-corpus`` (timed, saved to
 ``--save-model`` if given). Writes benchmarks/results/align.json.
 
-    .venv/bin/python benchmarks/align.py --train-corpus /work/data/v1/train250 \\
-        --test-corpus /work/data/v1/heldout40 /tmp/wt13/heldout40_f3
+    .venv/bin/python benchmarks/align.py --train-corpus data/v1/train250 \\
+        --test-corpus data/v1/heldout40 /tmp/wt13/heldout40_f3
 """
 from __future__ import annotations
 

@@ -16,8 +16,8 @@ Writes ``benchmarks/results/context_windows.json`` (or ``--out``): per row the m
 the windows, the fit wall and CPU time (one BLAS thread), and the load average at start
 and end.
 
-    .venv/bin/python benchmarks/context_windows.py --corpus /work/data/v1/train250 \\
-        --test-corpus /work/data/v1/heldout40
+    .venv/bin/python benchmarks/context_windows.py --corpus data/v1/train250 \\
+        --test-corpus data/v1/heldout40
 """
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
   by more than 10⁻³). A unimodal posterior brings every restart back to the same mode.
 
     PYTHONPATH=. python benchmarks/joint_map.py --model MODEL_DIR \\
-        --test-corpus /work/data/v2/heldout40 --aam /work/data/v2/train250/aam.npz \\
+        --test-corpus data/v2/heldout40 --aam data/v2/train250/aam.npz \\
         [--n-test 8] [--utterances utt0001,utt0003] [--restarts 6] [--khat-draws 200] \\
         [--out benchmarks/results/joint_map.json]
 """

@@ -40,7 +40,7 @@ draws (and ESS per second), ``reliable`` only where k̂ ≤ 0.7. ``--nuts-chains
 ``budget``). Writes ``benchmarks/results/posterior_efficiency.json``:
 
     PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
-        --test-corpus /work/data/v2/heldout40 --aam /work/data/v2/train250/aam.npz \
+        --test-corpus data/v2/heldout40 --aam data/v2/train250/aam.npz \
         --utterance utt0001 [--frames 75] [--methods nuts,emcee] [--emcee-max-steps N]
 """
 from __future__ import annotations

@@ -25,7 +25,7 @@ the frames are the corpus's own) or, without them, from
 :func:`~bayes_talk.data.face.random_phone_intervals` (no speech synthesis needed).
 
     .venv/bin/python benchmarks/render_aliasing.py \
-        --train-corpus /work/data/v1/train250 --heldout-corpus /work/data/v1/heldout40
+        --train-corpus data/v1/train250 --heldout-corpus data/v1/heldout40
     .venv/bin/python benchmarks/render_aliasing.py --quick      # random timings, small
 
 Writes benchmarks/results/render_aliasing.json (``--out``).

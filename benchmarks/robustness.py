@@ -14,7 +14,7 @@ before issue 12 (no cepstral normalisation, mel bands up to sr/2, no resampling:
 trained with ``cmvn="off", fmax=None`` and the audio read at its own rate; stereo is
 downmixed by the new rule in both, so that row does not show the old channel average).
 
-    python benchmarks/robustness.py --train /work/data/v1/train250 --test /work/data/v1/heldout40 \
+    python benchmarks/robustness.py --train data/v1/train250 --test data/v1/heldout40 \
         --frontends new,before --json benchmarks/results/robustness.json
 """
 from __future__ import annotations
@@ -92,8 +92,8 @@ def measure(model_dir: Path, test: Path, n_test: int | None, frontend: str, work
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--train", default="/work/data/v1/train250", help="training corpus")
-    ap.add_argument("--test", default="/work/data/v1/heldout40", help="held-out corpus")
+    ap.add_argument("--train", default="data/v1/train250", help="training corpus")
+    ap.add_argument("--test", default="data/v1/heldout40", help="held-out corpus")
     ap.add_argument("--model", default="ssgpdm-phone", help="model kind")
     ap.add_argument("--n-test", type=int, default=None, help="first N held-out utterances (default all)")
     ap.add_argument("--frontends", default="new",

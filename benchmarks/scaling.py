@@ -20,7 +20,7 @@ Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with se
 
 Every section records the load average at its start and end (the machine is shared).
 
-    python benchmarks/scaling.py [--quick] [--corpus /work/data/v2/train250] [--n-train 100]
+    python benchmarks/scaling.py [--quick] [--corpus data/v2/train250] [--n-train 100]
         [--sections executors,peak_rss,sparse] [--protocols deena2009,deena2010,englebienne2008]
         [--executor local|processes|dask] [--repeats K] [--out PATH] [--tag TAG]
 """
@@ -41,7 +41,7 @@ import numpy as np
 from bayes_talk.files import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_CORPUS = "/work/data/v2/train250"
+DEFAULT_CORPUS = "data/v2/train250"
 
 
 def _load() -> list[float]:

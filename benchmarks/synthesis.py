@@ -21,7 +21,7 @@ compiled GP loops are JIT-compiled on their first call in a fresh environment.
 
     .venv/bin/python benchmarks/synthesis.py                       # toy data (tests/toydata.py)
     .venv/bin/python benchmarks/synthesis.py --corpus DIR --n-train 60 --n-test 4
-    .venv/bin/python benchmarks/synthesis.py --model MODEL_DIR --test-corpus /work/data/v2/heldout40 --n-test 8
+    .venv/bin/python benchmarks/synthesis.py --model MODEL_DIR --test-corpus data/v2/heldout40 --n-test 8
 
 ``--model``: a model directory written by ``bayes-talk train`` (a switching SGPDM) is
 loaded instead of training one; Voice Puppetry is trained on the first ``--n-train``

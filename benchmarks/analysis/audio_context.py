@@ -23,8 +23,8 @@ from bayes_talk.evaluation.protocols import get_protocol, run_protocol
 
 k = int(sys.argv[1]); out = sys.argv[2]
 methods = sys.argv[3].split(",") if len(sys.argv) > 3 else ["ssgpdm-vlmm-posterior"]
-tr = load_corpus("/work/data/v2/train250", cmvn="mean")
-te = load_corpus("/work/data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
+tr = load_corpus("data/v2/train250", cmvn="mean")
+te = load_corpus("data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
 
 def stack(m):
     T = len(m); idx = np.clip(np.arange(T)[:, None] + np.arange(-k, k + 1)[None, :], 0, T - 1)

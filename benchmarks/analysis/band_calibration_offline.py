@@ -5,8 +5,8 @@
     # then, in seconds: fit the calibration on the held-out training utterances, score the test set
     PYTHONPATH=. .venv/bin/python benchmarks/analysis/band_calibration_offline.py score /tmp/wt10cal/raw [OUT.json]
 
-``dump`` does what ``evaluate --protocol deena2010 --corpus /work/data/v2/train250
---test-corpus /work/data/v2/heldout40 --methods ssgpdm-vlmm-posterior`` does for this
+``dump`` does what ``evaluate --protocol deena2010 --corpus data/v2/train250
+--test-corpus data/v2/heldout40 --methods ssgpdm-vlmm-posterior`` does for this
 method, with the same functions and seeds: the calibration's model on 80 % of the training
 utterances (:func:`bayes_talk.synthesis.band_calibration.split_for_calibration`) and the
 Laplace posterior of each held-out training utterance (``fit/``), then the model on all of
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-TRAIN, TEST = "/work/data/v2/train250", "/work/data/v2/heldout40"
+TRAIN, TEST = "data/v2/train250", "data/v2/heldout40"
 
 
 def _save(path: Path, res, truth: np.ndarray, seconds: float) -> None:

@@ -7,7 +7,7 @@ utterances; the SGPDM is trained on out-of-fold residuals (5-fold, grouped by ut
 residuals have the size they will have on new audio); synthesis = ridge(test) + SGPDM(test).
 
 Usage: python benchmarks/analysis/context_residual_protocol.py OUT.json [methods]
-(reads /work/data/v2/train250 and /work/data/v2/heldout40; 55 min wall at load 7-9; results in
+(reads data/v2/train250 and data/v2/heldout40; 55 min wall at load 7-9; results in
 docs/results.md, "Experiment: the switching SGPDM on the residual of a label-context mean").
 """
 import dataclasses
@@ -28,8 +28,8 @@ out = sys.argv[1]
 methods = sys.argv[2].split(",") if len(sys.argv) > 2 else ["ssgpdm-vlmm-posterior", "ssgpdm-vlmm-optimise"]
 if __name__ == "__main__":
     t0 = time.time()
-    tr = load_corpus("/work/data/v2/train250", cmvn="mean")
-    te = load_corpus("/work/data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
+    tr = load_corpus("data/v2/train250", cmvn="mean")
+    te = load_corpus("data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
     train, test = list(tr.sequences), list(te.sequences)
     ridge = ContextRidge().fit(train)
     L, M = ridge.windows_

@@ -1,7 +1,7 @@
 """The held-out figures of the default model (docs/results.md, "Right-context states with
 the mean shrinkage: the new default"): deena2010 settings, 4 Hz post-filter, band
 calibration on 20 % of the training utterances (stages 0-2), trained on
-/work/data/v2/train250, scored on /work/data/v2/heldout40 (our own sentences) in the
+data/v2/train250, scored on data/v2/heldout40 (our own sentences) in the
 training AAM; writes OUT_PREFIX.json (the evaluate result) and OUT_PREFIX.npz (every
 prediction with its truth).
 
@@ -35,8 +35,8 @@ if K is not None:
     use_audio_context(K)
 out = sys.argv[1]; methods = sys.argv[2].split(",")
 t0 = time.time()
-tr = load_corpus("/work/data/v2/train250", cmvn="mean")
-te = load_corpus("/work/data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
+tr = load_corpus("data/v2/train250", cmvn="mean")
+te = load_corpus("data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
 proto = get_protocol("deena2010", lowpass_hz=4.0)
 res, _ = run_protocol(proto, list(tr.sequences), methods, test_sequences=list(te.sequences))
 res["experiment"] = {"audio_context": K, "seconds": time.time() - t0}

@@ -9,7 +9,7 @@ ACC and NMSE (variance of the pooled test frames) of each against the truth in t
 AAM. No band calibration (it is the same map for both). Writes OUT (JSON).
 
 Usage: python benchmarks/analysis/posterior_modes.py MODEL_DIR TRAIN_CORPUS TEST_CORPUS OUT [N]
-e.g. ... /tmp/m250 /work/data/v2/train250 /work/data/v2/heldout40 benchmarks/results/posterior_modes.json
+e.g. ... /tmp/m250 data/v2/train250 data/v2/heldout40 benchmarks/results/posterior_modes.json
 (33 min wall for 40 utterances at load 4-5)."""
 import json
 import sys

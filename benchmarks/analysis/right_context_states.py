@@ -6,7 +6,7 @@ element) to the phone's own model (p,), trained on every run of p. Synthesis is 
 next phone is known. deena2010 settings, 4 Hz post-filter, no band calibration (time).
 
 Usage: python benchmarks/analysis/right_context_states.py OUT.json [AUDIO_CONTEXT]
-(reads /work/data/v2/train250 and /work/data/v2/heldout40; 24 min wall at load 3-6; the states
+(reads data/v2/train250 and data/v2/heldout40; 24 min wall at load 3-6; the states
 replace the phone states of the ``ssgpdm-phone`` family for this process only; results in
 docs/results.md, "Experiment: right-context (anticipatory) switching states").
 """
@@ -47,8 +47,8 @@ if __name__ == "__main__":
     out = sys.argv[1]
     methods = ["ssgpdm-phone-posterior", "ssgpdm-phone-optimise"]
     t0 = time.time()
-    tr = load_corpus("/work/data/v2/train250", cmvn="mean")
-    te = load_corpus("/work/data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
+    tr = load_corpus("data/v2/train250", cmvn="mean")
+    te = load_corpus("data/v2/heldout40", aam=tr.aam_path, cmvn="mean")
     proto = get_protocol("deena2010", lowpass_hz=4.0, band_calibration=None)
     res, _ = run_protocol(proto, list(tr.sequences), methods, test_sequences=list(te.sequences))
     res["experiment"] = {"states": "right-context phone pairs", "audio_context": K, "seconds": time.time() - t0}

@@ -37,7 +37,7 @@ def _peak_mb() -> float:
 
 def main() -> None:
     max_iter, repeats = int(sys.argv[1]), int(sys.argv[2])
-    corpus = sys.argv[3] if len(sys.argv) > 3 else "/work/data/v2/train250"
+    corpus = sys.argv[3] if len(sys.argv) > 3 else "data/v2/train250"
     seqs = load_corpus(corpus).sequences
     cfg = SystemConfig(latent_dim=8, sgplvm_max_iter=max_iter, sgplvm_synth_max_iter=20)
     t0 = time.time()

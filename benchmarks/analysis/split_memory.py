@@ -27,7 +27,7 @@ def _rss_mb() -> float:
 
 def main() -> None:
     max_iter, synth_iter, n_test = (int(a) for a in sys.argv[1:4])
-    corpus_dir = sys.argv[4] if len(sys.argv) > 4 else "/work/data/v2/train250"
+    corpus_dir = sys.argv[4] if len(sys.argv) > 4 else "data/v2/train250"
     phase, peaks = ["start"], {}
 
     def sample() -> None:
