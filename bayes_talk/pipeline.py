@@ -31,7 +31,8 @@ from bayes_talk.files import check_format, write_json, write_npy, write_npz
 
 log = logging.getLogger(__name__)
 
-MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "sgplvm")
+MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean",
+               "sgplvm")
 #: the model ``train`` fits unless told otherwise: right-context phone states with an audio
 #: context of ±2 frames (estimators.registry.FAMILY_DEFAULTS), the best switching model on our
 #: held-out sentences (docs/results.md); "ssgpdm-vlmm" is deena2010's

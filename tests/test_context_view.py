@@ -68,3 +68,49 @@ def test_switching_model_explains_the_context_view_and_saves_it(data, tmp_path):
     back = SwitchingSGPDM.load(tmp_path / "m")
     np.testing.assert_array_equal(back.audio_input(s.mfcc, s.labels), m.audio_input(s.mfcc, s.labels))
     np.testing.assert_allclose(back.synthesize(s.mfcc, s.labels).mean, r.mean, atol=1e-10)
+
+
+def test_context_mean_makes_the_view_the_visual_mean_function(data, tmp_path):
+    """With ``context_mean`` the state models explain the residual face z − c (the view c
+    out-of-fold), every synthesis path adds c_t back to each component, the result names
+    c_t as its mean function, the band calibration's mean stage shrinks towards c_t, and
+    the setting survives save/load."""
+    from bayes_talk.synthesis.band_calibration import _shrunk, mean_shrinkage
+    from bayes_talk.synthesis.posterior import sample_synthesis
+
+    train, test = data
+    with pytest.raises(ValueError, match="context_view > 0"):
+        SwitchingSGPDM(states="phone", context_mean=True, **SMALL)
+    with pytest.raises(ValueError, match="True or False"):
+        SwitchingSGPDM(states="phone", context_view=3, context_mean="yes", **SMALL)
+    m = SwitchingSGPDM(states="phone", right_context=True, context_view=3, context_mean=True, **SMALL).fit(train)
+    plain = SwitchingSGPDM(states="phone", right_context=True, context_view=3, **SMALL).fit(train)
+    # the state models were trained on residuals: their visual means (per state) are small
+    # beside the per-state face means the plain model's states learned
+    spread = {name: np.mean([np.abs(sm.means_["visual"]).mean() for sm in mm.models_.values()])
+              for name, mm in (("resid", m), ("plain", plain))}
+    assert spread["resid"] < 0.5 * spread["plain"], spread
+    s = test[0]
+    c = m.visual_offset(m.audio_input(s.mfcc, s.labels))
+    np.testing.assert_array_equal(c, m.context_.transform(s.mfcc, s.labels))
+    seq = m.synthesize(s.mfcc, s.labels)
+    np.testing.assert_array_equal(seq.mean_function, c)
+    X = seq.latent_draws[0, 0]
+    resid = np.zeros_like(c)
+    for g in m.segment(s.labels):
+        _, sm = m.model_for(g.state)
+        resid[g.start:g.stop] = sm.predict_view("visual", X[g.start:g.stop])[0]
+    np.testing.assert_allclose(seq.mean, c + resid, atol=1e-10)
+    post = sample_synthesis(m, s.mfcc, s.labels, method="laplace", n_draws=8, seed=0)
+    np.testing.assert_array_equal(post.mean_function, c)
+    # stage 0 shrinks μ − c: a = 0 leaves the mean function, a = 1 the prediction
+    np.testing.assert_allclose(_shrunk(post, np.zeros(c.shape[1])).mean, c, atol=1e-12)
+    np.testing.assert_allclose(_shrunk(post, np.ones(c.shape[1])).mean, post.mean, atol=1e-12)
+    # a truth equal to c_t + 0.5 (μ − c_t) gives a_d = 0.5 exactly
+    half = c + 0.5 * (post.mean - c)
+    np.testing.assert_allclose(mean_shrinkage([post], [half]), 0.5, atol=1e-12)
+    m.save(tmp_path / "m")
+    back = SwitchingSGPDM.load(tmp_path / "m")
+    assert back.config.context_mean is True
+    np.testing.assert_allclose(back.synthesize(s.mfcc, s.labels).mean, seq.mean, atol=1e-10)
+    assert plain.synthesize(s.mfcc, s.labels).mean_function is None

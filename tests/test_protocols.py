@@ -52,7 +52,7 @@ def test_method_registry_complete_and_families_shared():
         "ssgpdm-vlmm-optimise", "ssgpdm-vlmm-predict", "ssgpdm-phone-optimise", "ssgpdm-phone-predict",
         "ssgpdm-vlmm-posterior", "ssgpdm-phone-posterior",
         "ssgpdm-vlmm-rc-posterior", "ssgpdm-phone-rc-posterior", "ssgpdm-vlmm-rc-optimise",
-        "ssgpdm-phone-rc-optimise", "ssgpdm-phone-ctx-posterior",
+        "ssgpdm-phone-rc-optimise", "ssgpdm-phone-ctx-posterior", "ssgpdm-phone-ctx-mean-posterior",
         "sgplvm-a", "sgplvm-b", "voice-puppetry", "slds", "dpds", "hmm-mean",
         "context-ridge", "context-mlp", "zero", "oracle", "sparse-sgpdm"}
     fam = S.group_by_family(["sgplvm-a", "hmm-mean", "sgplvm-b", "ssgpdm-vlmm-predict", "ssgpdm-vlmm-optimise"])
@@ -241,7 +241,7 @@ def gp_run(utts):
 def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     res, traj, calls = gp_run
     assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "sparse-sgpdm", "ssgpdm-phone",
-                             "ssgpdm-phone-ctx", "ssgpdm-phone-rc", "ssgpdm-vlmm",
+                             "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean", "ssgpdm-phone-rc", "ssgpdm-vlmm",
                              "ssgpdm-vlmm-rc"]  # shared training
     m = res["methods"]
     assert set(m) == {k for k, v in S.METHODS.items() if v.has_variance and k not in CEILING}

@@ -21,6 +21,7 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-vlmm-rc": (SwitchingSGPDM, {"states": "vlmm", "right_context": True}),
     "ssgpdm-phone-rc": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "ssgpdm-phone-ctx": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
+    "ssgpdm-phone-ctx-mean": (SwitchingSGPDM, {"states": "phone", "right_context": True, "context_mean": True}),
     "sgplvm": (SGPLVM, {}),
     **{name: (cls, {}) for name, cls in _BASELINES.items()},
 }
@@ -34,6 +35,9 @@ FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     # the default's states and audio, with the phonetic-context view of labels ±8 frames
     # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
     "ssgpdm-phone-ctx": {"audio_context": 2, "context_view": 8},
+    # the same view as the explicit mean function of the visual mapping: the state models
+    # explain the residual face (SwitchingConfig.context_mean; docs/switching.md)
+    "ssgpdm-phone-ctx-mean": {"audio_context": 2, "context_view": 8},
 }
 
 

@@ -205,6 +205,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("ssgpdm-phone-ctx-posterior", "ssgpdm-phone-ctx",
            "SSGPDM-phoneme + right context + audio ±2 + phonetic-context view ±8, posterior (ours)",
            True, {"posterior": "laplace"}),
+    Method("ssgpdm-phone-ctx-mean-posterior", "ssgpdm-phone-ctx-mean",
+           "SSGPDM-phoneme + right context + audio ±2, phonetic-context view ±8 as the visual mean "
+           "function, posterior (ours)", True, {"posterior": "laplace"}),
     Method("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation", True,
            {"algorithm": "optimise"}),
     Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, seq. optimisation",
@@ -312,7 +315,7 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         "dpds": {"max_iter": cfg.dpds_max_iter},
         "context-mlp": {"seed": cfg.seed},
     }
-    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx"):
+    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean"):
         params[fam] = params["ssgpdm-vlmm"]
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")

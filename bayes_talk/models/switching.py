@@ -134,6 +134,12 @@ class SwitchingConfig:
         the audio view of frame t is joined by a supervised reduction of the phone labels
         t−L..t+L and the MFCCs t−4..t+4 to D_z columns, which the latent space must explain
         too; 0 (the default) is deena2010's audio-only view.
+    context_mean: with ``context_view`` > 0, the view is also the *explicit mean function*
+        of every state's visual mapping (DESIGN.md §6; Rasmussen & Williams 2006 §2.7,
+        "explicit basis functions"): z_t = c_t + f_π(x_t) + ε, so the state SGPDMs model the
+        residual face z_t − c_t (c_t out-of-fold on the training frames, as the view) and
+        synthesis adds c_t back to every predictive component. The smoothness factor and
+        its motion variance then act on the residual. False (the default) models z_t itself.
     """
 
     states: str = "vlmm"
@@ -149,6 +155,7 @@ class SwitchingConfig:
     audio_context: int = 0
     right_context: bool = False
     context_view: int = 0
+    context_mean: bool = False
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -191,7 +198,7 @@ class SwitchingModel:
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
                  fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
                  audio_context: int = _DEFAULTS.audio_context, right_context: bool = _DEFAULTS.right_context,
-                 context_view: int = _DEFAULTS.context_view):
+                 context_view: int = _DEFAULTS.context_view, context_mean: bool = _DEFAULTS.context_mean):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         if not isinstance(right_context, (bool, np.bool_)):
@@ -203,7 +210,13 @@ class SwitchingModel:
         self.audio_context = audio_context
         self.right_context = bool(right_context)
         self.audio_ = AudioContext(audio_context)
+        if not isinstance(context_mean, (bool, np.bool_)):
+            raise ValueError(f"context_mean must be True or False, got {context_mean!r}")  # noqa: TRY004 - package convention: bad input is a ValueError
+        if context_mean and not context_view:
+            raise ValueError("context_mean=True needs the phonetic-context view (context_view > 0), "
+                             f"found context_view={context_view!r}")
         self.context_view = context_view
+        self.context_mean = bool(context_mean)
         self.context_ = ContextView(context_view)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
@@ -232,6 +245,19 @@ class SwitchingModel:
             return a
         return np.hstack([a, self.context_.transform(mfcc, labels)])
 
+    def visual_offset(self, audio_view: np.ndarray) -> np.ndarray:
+        """The explicit mean function c_t of the visual mapping (``context_mean``; (T, D_z))
+        read off an audio view made by :meth:`audio_input` (its last D_z columns are the
+        context view), or zeros (T, D_z) without it."""
+        audio_view = np.asarray(audio_view, dtype=np.float64)
+        n = self.dims_[1]
+        if not self.context_mean:
+            return np.zeros((audio_view.shape[0], n))
+        if audio_view.ndim != 2 or audio_view.shape[1] < n:
+            raise ValueError(f"audio view: expected (T, >= {n}) columns ending in the context view, "
+                             f"found shape {audio_view.shape}")
+        return audio_view[:, -n:].copy()
+
     # ------------------------------------------------------------------ training
     def _state_cfg(self) -> dict:
         return asdict(SGPDMConfig(latent_dim=self.config.latent_dim, dynamics=True, learn_dynamics=False,
@@ -258,6 +284,8 @@ class SwitchingModel:
         self.context_ = ContextView(cfg.context_view)
         context_in = self.context_.fit(train)   # out-of-fold on the training frames
         audio_in = [np.hstack([self.audio_.transform(s.mfcc), c]) for s, c in zip(train, context_in)]
+        # the face the state models explain: z_t, or the residual z_t − c_t (context_mean)
+        face = [s.aam - c if cfg.context_mean else s.aam for s, c in zip(train, context_in)]
         if cfg.states == "vlmm":
             eps = cfg.epsilon if cfg.epsilon is not None else 2e-4 * 19000.0 / n_frames
             mc = cfg.min_count if cfg.min_count is not None else max(10, round(40 * n_frames / 15000))
@@ -279,14 +307,14 @@ class SwitchingModel:
             if n < max(cfg.min_frames_per_state, cfg.latent_dim + 1):
                 continue
             audio = np.vstack([audio_in[i][a:b] for i, a, b in chosen])
-            visual = np.vstack([train[i].aam[a:b] for i, a, b in chosen])
+            visual = np.vstack([face[i][a:b] for i, a, b in chosen])
             jobs.append((audio, visual, [b - a for _, a, b in chosen], self._state_cfg()))
             keys.append(state)
         # global fallback: random whole utterance chunks up to fallback_frames
         chunks = [(i, a, min(a + 25, s.n_frames)) for i, s in enumerate(train) for a in range(0, s.n_frames, 25)]
         chosen = self._cap(chunks, rng, cfg.fallback_frames)
         jobs.append((np.vstack([audio_in[i][a:b] for i, a, b in chosen]),
-                     np.vstack([train[i].aam[a:b] for i, a, b in chosen]),
+                     np.vstack([face[i][a:b] for i, a, b in chosen]),
                      [b - a for _, a, b in chosen], self._state_cfg()))
         keys.append(FALLBACK)
         log.info("training %d state models (%d states seen)", len(jobs), len(subs))
@@ -297,7 +325,7 @@ class SwitchingModel:
         self.n_training_frames_ = n_frames
         self.phone_counts_ = dict(sorted(Counter(lab for s in train for lab in s.labels).items()))
         # per-dimension mean square frame-to-frame motion of the visual features
-        self.motion_var_ = np.mean(np.vstack([np.diff(s.aam, axis=0) for s in train if s.n_frames > 1]) ** 2, 0)
+        self.motion_var_ = np.mean(np.vstack([np.diff(f, axis=0) for f in face if len(f) > 1]) ** 2, 0)
         return self
 
     def _cap(self, subs: list, rng: np.random.Generator, cap: int | None = None) -> list:

@@ -16,7 +16,8 @@ for older callers.
   Vehtari et al. 2024): for draws x_s of an approximation q (Laplace, VI) of p, the log
   weights ln p(x_s) − ln q(x_s); k̂ ≤ 0.7 means importance sampling from q, and so q
   itself for expectations of moderate functions, is reliable; above 0.7 it is not.
-* :func:`convergence_problems` - the failed checks against :data:`THRESHOLDS`, in words.
+* :func:`convergence_problems` - the failed checks against :data:`THRESHOLDS`, in words;
+  :func:`sampler_warning` - those checks as the one warning a synthesis result carries.
 * :func:`inference_data` - ``arviz.from_dict`` for the synthesis result type.
 
 With a single chain (Laplace draws) the chain is split in two halves before ArviZ sees it
@@ -126,6 +127,20 @@ def psis_khat(log_weights: np.ndarray) -> float:
     return psis(log_weights)[0]
 
 
+def sampler_warning(method: str, fails: list[str], advice: str = "") -> list[str]:
+    """The one warning of a synthesis whose ``method`` failed the checks ``fails`` ([] when
+    none failed); :func:`is_sampler_warning` recognises it."""
+    if not fails:
+        return []
+    return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands"
+            + (f"; {advice}" if advice else "")]
+
+
+def is_sampler_warning(method: str, warning: str) -> bool:
+    """Whether ``warning`` is the :func:`sampler_warning` of ``method``."""
+    return warning.startswith(f"{method} did not converge: ")
+
+
 def convergence_problems(diag: dict) -> list[str]:
     """The failed checks of a sampler run's diagnostics, in words: R-hat above
     :data:`RHAT_MAX`, bulk or tail ESS below :data:`ESS_MIN` (of the latents, and of the
@@ -169,4 +184,5 @@ def inference_data(posterior: dict, sample_stats: dict | None = None, observed_d
 
 
 __all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
-           "convergence_problems", "energy_bfmi", "frame_diagnostics", "inference_data", "psis", "psis_khat"]
+           "convergence_problems", "energy_bfmi", "frame_diagnostics", "inference_data", "is_sampler_warning", "psis",
+           "psis_khat", "sampler_warning"]

@@ -95,13 +95,16 @@ class Block:
 @dataclass
 class UtterancePlan:
     """Everything the synthesis density needs besides X: the blocks, the audio, the
-    motion variance s²_Δ of the smoothness factor, and the latent dimension."""
+    motion variance s²_Δ of the smoothness factor, the latent dimension, and the explicit
+    mean function c_t of the visual mapping (``SwitchingConfig.context_mean``; None: zero),
+    which the visual predictive adds to every component."""
 
     blocks: list[Block]
     audio: np.ndarray  # (T, D_y)
     motion_var: np.ndarray  # (D_z,)
     latent_dim: int
     segments: list[Segment]
+    visual_offset: np.ndarray | None = None  # (T, D_z)
 
     @property
     def n_frames(self) -> int:
@@ -135,8 +138,9 @@ def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str =
         blocks.append(Block(seg.start, seg.stop, key, m, np.asarray(mu, np.float64),
                             np.asarray(cov, np.float64), linked, smooth))
     audio = np.asarray(mfcc, dtype=np.float64) if audio_view else model.audio_input(mfcc, labels)
+    offset = model.visual_offset(audio) if model.config.context_mean else None
     return UtterancePlan(blocks, audio, np.asarray(model.motion_var_, np.float64),
-                         int(model.config.latent_dim), segments)
+                         int(model.config.latent_dim), segments, offset)
 
 
 # ------------------------------------------------------------------------------ Pyro program

@@ -64,6 +64,7 @@ from bayes_talk.synthesis.diagnostics import (
     energy_bfmi,
     frame_diagnostics,
     psis,
+    sampler_warning,
 )
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult: re-exported
@@ -274,12 +275,12 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     if method != "map":
         warn += _convergence_warnings(method, diag)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
-                           warnings=warn, sample_stats=sample_stats)
+                           warnings=warn, sample_stats=sample_stats, mean_function=plan.visual_offset)
 
 
 def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """μ_Z and σ²_Z/w² (C, S, T, D_z) at latent draws Xs (C, S, T, d), frame by frame under
-    the frame's state model."""
+    the frame's state model, plus the plan's explicit mean function c_t where it has one."""
     C, S, T, d = Xs.shape
     Dz = plan.blocks[0].model.predictors_["visual"].out_dim
     zm, zv = np.zeros((C, S, T, Dz)), np.zeros((C, S, T, Dz))
@@ -288,6 +289,8 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         mu, var = b.model.predict_view("visual", Xs[:, :, a:e].reshape(-1, d))
         zm[:, :, a:e] = mu.reshape(C, S, e - a, Dz)
         zv[:, :, a:e] = var.reshape(C, S, e - a, Dz)
+    if plan.visual_offset is not None:
+        zm += plan.visual_offset
     return zm, zv
 
 
@@ -366,7 +369,7 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
               "emcee": "run it longer (max_steps) or use --posterior nuts",
               "vi": "the Gaussian q fitted within one mode is a poor importance proposal here (the "
                     "posterior is multimodal and non-Gaussian); more steps will not change that"}.get(method, "")
-    return [f"{method} did not converge: " + "; ".join(fails) + " — do not trust its bands; " + advice]
+    return sampler_warning(method, fails, advice)
 
 
 __all__ = [

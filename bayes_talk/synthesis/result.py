@@ -77,6 +77,9 @@ class SynthesisResult:
     warnings: the failed convergence checks, in words.
     sample_stats: per-draw sampler statistics, each (C, S) (ArviZ names: ``diverging``,
         ``tree_depth``, ``step_size``, ``energy``, ``acceptance_rate``, ``lp``), or empty.
+    mean_function: (T, D) the explicit mean function c_t already included in every μ^k
+        (``SwitchingConfig.context_mean``: μ^k = c_t + μ_Z(x^k)), or None (zero). The band
+        calibration's mean stage shrinks μ^k − c_t, not μ^k.
 
     The positional order of the first eleven fields is that of the former
     ``PosteriorSynthesis`` (still importable under that name).
@@ -94,6 +97,7 @@ class SynthesisResult:
     seconds: float = 0.0
     warnings: list[str] = field(default_factory=list)
     sample_stats: dict[str, np.ndarray] = field(default_factory=dict)
+    mean_function: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.draw_mean = np.asarray(self.draw_mean, dtype=np.float64)
@@ -113,6 +117,11 @@ class SynthesisResult:
             if self.latent_draws.ndim != 4 or self.latent_draws.shape[:3] != (C, S, T):
                 raise ValueError(f"latent_draws: expected shape ({C}, {S}, {T}, d), found "
                                  f"{self.latent_draws.shape}")
+        if self.mean_function is not None:
+            self.mean_function = np.asarray(self.mean_function, dtype=np.float64)
+            if self.mean_function.shape != self.draw_mean.shape[2:]:
+                raise ValueError(f"mean_function: expected shape {self.draw_mean.shape[2:]}, found "
+                                 f"{self.mean_function.shape}")
         for k, v in self.sample_stats.items():
             if np.shape(v) != (C, S):
                 raise ValueError(f"sample_stats[{k!r}]: expected shape ({C}, {S}), found {np.shape(v)}")
@@ -121,10 +130,12 @@ class SynthesisResult:
     @classmethod
     def gaussian(cls, mean: np.ndarray, var: np.ndarray, latents: np.ndarray | None = None, *,
                  method: str, segments: list | None = None, model_states: list | None = None,
-                 diagnostics: dict | None = None, seed: int = 0, seconds: float = 0.0) -> SynthesisResult:
+                 diagnostics: dict | None = None, seed: int = 0, seconds: float = 0.0,
+                 mean_function: np.ndarray | None = None) -> SynthesisResult:
         """A point method's result: one Gaussian N(mean, var) per entry (K = 1 in (1)).
 
-        mean, var: (T, D); latents: (T, d) the latent path, or None."""
+        mean, var: (T, D); latents: (T, d) the latent path, or None; mean_function: the
+        class docstring's."""
         mean, var = np.asarray(mean, dtype=np.float64), np.asarray(var, dtype=np.float64)
         if mean.ndim != 2:
             raise ValueError(f"mean: expected shape (T, D), found {mean.shape}")
@@ -136,7 +147,7 @@ class SynthesisResult:
             lat = lat[None, None]
         return cls(method, lat, mean[None, None], np.broadcast_to(var, mean.shape)[None, None], None,
                    list(segments or []), list(model_states or []), dict(diagnostics or {}), int(seed),
-                   float(seconds))
+                   float(seconds), mean_function=mean_function)
 
     # ------------------------------------------------------------------ shapes
     @property

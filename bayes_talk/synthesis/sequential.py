@@ -124,9 +124,13 @@ def _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter
             Xs = _roll_dynamics(m, Xs[0], b - a)
         X[a:b] = Xs
         mean[a:b], var[a:b] = m.predict_view("visual", Xs)
+    offset = model.visual_offset(audio) if model.config.context_mean else None
+    if offset is not None:   # the explicit mean function c_t (SwitchingConfig.context_mean)
+        mean = mean + offset
     if lowpass_hz is not None:
         mean = lowpass(mean, lowpass_hz)
-    return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used)
+    return SynthesisResult.gaussian(mean, var, X, method=algorithm, segments=segments, model_states=used,
+                                    mean_function=offset)
 
 
 def maximise_state_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, smoothness: str,

@@ -1,0 +1,102 @@
+"""Does a default ``synth`` warn on normal utterances, and is its mean stable? (issue 27).
+
+Two acceptance items of issue 27 on held-out utterances, through ``pipeline.synth`` exactly
+as ``bayes-talk synth`` runs it (the model's default posterior, its band calibration, its
+post-filter; no video):
+
+* **warnings**: the convergence warnings each synthesis records (``diagnostics.json``
+  ``problems``); acceptance: none on 10 held-out utterances;
+* **stability**: white noise at −60 dBFS (RMS 10⁻³ of full scale, seeded) added to each
+  WAV, the utterance synthesised again with the same labels; the change of the written
+  trajectory (``trajectory.npy``, the calibrated predictive mean) at every frame in units
+  of the parameter's standard deviation over the held-out corpus's AAM frames;
+  acceptance: max over frames and parameters < 0.5.
+
+    python benchmarks/synth_stability.py --model-dir MODEL --test data/dev40 --n-test 10 \\
+        --json benchmarks/results/synth_stability.json
+
+``MODEL`` is a ``bayes-talk train`` output (with its band calibration).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from bayes_talk.data.corpus import load_corpus
+from bayes_talk.files import write_json
+from bayes_talk.pipeline import synth
+
+#: level of the added white noise, dB relative to full scale (RMS)
+NOISE_DBFS = -60.0
+
+
+def _run(model_dir: Path, wav: Path, lab: Path, out: Path) -> tuple[np.ndarray, dict]:
+    synth(model_dir, wav, lab, out, video=False)
+    diag = json.loads((out / "diagnostics.json").read_text()) if (out / "diagnostics.json").exists() else {}
+    return np.load(out / "trajectory.npy"), diag
+
+
+def measure(model_dir: Path, test: Path, n_test: int, seed: int, work: Path) -> dict:
+    """The per-utterance warnings and noise shifts (module docstring)."""
+    corpus = load_corpus(test)
+    sd = np.vstack([u.aam for u in corpus]).std(0)
+    wavs = sorted((test / "utterances").glob("*.wav"))[:n_test]
+    rng = np.random.default_rng(seed)
+    rows = []
+    for wav in wavs:
+        lab = wav.with_suffix(".lab")
+        y, sr = sf.read(str(wav), dtype="float64")
+        t0 = time.perf_counter()
+        ref, diag = _run(model_dir, wav, lab, work / f"{wav.stem}_orig")
+        noisy = work / f"{wav.stem}_noise.wav"
+        noise = rng.standard_normal(y.shape) * 10 ** (NOISE_DBFS / 20)
+        sf.write(str(noisy), (y + noise).astype(np.float32), sr, subtype="FLOAT")
+        out, diag_n = _run(model_dir, noisy, lab, work / f"{wav.stem}_noise")
+        shift = np.abs(out - ref) / sd
+        frame = int(np.argmax(shift.max(1)))
+        inner = diag.get("diagnostics", {})
+        rows.append({"utterance": wav.stem, "frames": int(len(ref)), "warnings": diag.get("problems", []),
+                     "warnings_with_noise": diag_n.get("problems", []),
+                     "khat": inner.get("khat"), "map_converged": inner.get("map_converged"),
+                     "max_shift_sd": float(shift.max()), "frame_of_max_shift": frame,
+                     "frames_over_0.5sd": int(np.sum(shift.max(1) >= 0.5)),
+                     "seconds": time.perf_counter() - t0})
+        print(f"{wav.stem}: warnings {len(rows[-1]['warnings'])}, max shift {shift.max():.3f} sd "
+              f"(frame {frame})", flush=True)
+    return {"n_utterances": len(rows), "noise_dbfs": NOISE_DBFS,
+            "utterances_with_warnings": sum(bool(r["warnings"]) for r in rows),
+            "max_shift_sd": max(r["max_shift_sd"] for r in rows),
+            "all_shifts_below_0.5sd": all(r["max_shift_sd"] < 0.5 for r in rows),
+            "per_utterance": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--model-dir", required=True, help="a bayes-talk train output")
+    ap.add_argument("--test", required=True, help="held-out corpus directory")
+    ap.add_argument("--n-test", type=int, default=10, help="first N held-out utterances")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the added noise")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/synth_stability.json"))
+    a = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bt_stability_") as tmp:
+        r = measure(Path(a.model_dir), Path(a.test), a.n_test, a.seed, Path(tmp))
+    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name, seed=a.seed,
+             command="python benchmarks/synth_stability.py " + " ".join(argv if argv is not None else sys.argv[1:]))
+    write_json(a.json, r)
+    print(json.dumps({k: v for k, v in r.items() if k != "per_utterance"}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
