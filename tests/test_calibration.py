@@ -196,3 +196,26 @@ def test_split_for_calibration_is_seeded_and_disjoint():
         split_for_calibration(2, 0.2)
     with pytest.raises(ValueError, match="fraction"):
         split_for_calibration(10, 1.5)
+
+
+def test_per_state_coverage_pools_each_state_models_frames():
+    """Frames synthesised by a state whose bands are too narrow show up in that state's 90 %
+    coverage and not in the other's; the fraction in range counts states with enough entries."""
+    from bayes_talk.evaluation.calibration import MIN_STATE_ENTRIES
+    from bayes_talk.models.vlmm import Segment
+
+    rng = np.random.default_rng(0)
+    T, D = 200, 3
+    truth = rng.standard_normal((T, D))
+    truth[100:] *= 3.0   # the second state's frames are 3σ wide: its ±1.645σ bands cover ≈ 0.41
+    res = SynthesisResult.gaussian(np.zeros((T, D)), np.ones((T, D)), method="test",
+                                   segments=[Segment(("a",), 0, 100), Segment(("b", "c"), 100, 200)],
+                                   model_states=[("a",), ("c",)])
+    summ = summarise_calibration([score_utterance(res, truth), score_utterance(res, truth)])
+    st = summ["per_state_90"]["states"]
+    assert set(st) == {"a", "c"} and st["a"]["entries"] == 2 * 100 * D
+    assert abs(st["a"]["coverage_90"] - 0.9) < 0.05 and st["c"]["coverage_90"] < 0.55
+    assert 2 * 100 * D >= MIN_STATE_ENTRIES and summ["per_state_90"]["states_in_range_90"] == 0.5
+    plain = summarise_calibration([score_utterance(_gauss(np.zeros((T, D)), np.ones((T, D))), truth)])
+    assert "per_state_90" not in plain
+    assert "states in [0.80, 0.97]" in markdown_calibration({"m": {"calibration": summ}})

@@ -37,7 +37,7 @@ cluster-robust (ratio-estimator) standard errors with the utterance as the unit,
 so the strong correlation of neighbouring frames within an utterance is not mistaken for
 independent evidence. Coverage is reported pooled over all parameters and per parameter,
 with the fraction of parameters whose 90 % coverage lies in [0.80, 0.97] (the issue's
-acceptance range). :func:`plot_calibration` draws the PIT histogram and the coverage
+acceptance range), and per switching state (the state model that synthesised each frame). :func:`plot_calibration` draws the PIT histogram and the coverage
 (reliability) diagram of one or more summaries; :func:`markdown_calibration` tabulates
 them for the ``evaluate`` report.
 """
@@ -58,6 +58,7 @@ __all__ = [
     "CALIBRATION_KEYS",
     "CRPS_SAMPLES",
     "LEVELS",
+    "MIN_STATE_ENTRIES",
     "PARAM_RANGE_90",
     "PIT_BINS",
     "UtteranceCalibration",
@@ -78,6 +79,9 @@ PIT_BINS = 20
 CRPS_SAMPLES = 1000
 #: the issue's acceptance range for the per-parameter 90 % coverage
 PARAM_RANGE_90 = (0.80, 0.97)
+#: a switching state's 90 % coverage counts towards ``states_in_range_90`` from this many
+#: scored entries (frames × parameters) on
+MIN_STATE_ENTRIES = 180
 #: the predictives scored per method: as reported, before the band calibration, and the
 #: constant-band control (:func:`bayes_talk.evaluation.scoring.calibration_inputs`)
 CALIBRATION_KEYS: tuple[str, ...] = ("calibration", "calibration_raw", "calibration_control")
@@ -112,7 +116,9 @@ class UtteranceCalibration:
     """Calibration sums of one utterance (T frames, D parameters, L levels).
 
     inside: (L, D) frames inside each level's band; width: (L, D) summed band widths;
-    pit_counts: (PIT_BINS, D) PIT histogram counts; nlpd, crps: (D,) summed over frames.
+    pit_counts: (PIT_BINS, D) PIT histogram counts; nlpd, crps: (D,) summed over frames;
+    state_inside_90: {state model: [entries inside the 90 % band, entries]} over the frames
+    each switching state's model synthesised (empty for a prediction without states).
     """
 
     n_frames: int
@@ -122,6 +128,7 @@ class UtteranceCalibration:
     pit_counts: np.ndarray
     nlpd: np.ndarray
     crps: np.ndarray
+    state_inside_90: dict[str, list[float]] | None = None
 
 
 def score_utterance(result: SynthesisResult, truth: np.ndarray, levels: Sequence[float] = LEVELS,
@@ -138,10 +145,17 @@ def score_utterance(result: SynthesisResult, truth: np.ndarray, levels: Sequence
         raise ValueError("truth: contains NaN or inf")
     levels = tuple(float(q) for q in levels)
     inside, width = [], []
+    states: dict[str, list[float]] = {}
     for q in levels:
         lo, hi = result.interval(q)
-        inside.append(np.sum((z >= lo) & (z <= hi), axis=0))
+        hit = (z >= lo) & (z <= hi)
+        inside.append(np.sum(hit, axis=0))
         width.append(np.sum(hi - lo, axis=0))
+        if q == 0.9 and len(result.segments) == len(result.model_states):
+            for seg, key in zip(result.segments, result.model_states):
+                acc = states.setdefault(" ".join(key), [0.0, 0.0])
+                acc[0] += float(hit[seg.start:seg.stop].sum())
+                acc[1] += float(hit[seg.start:seg.stop].size)
     pit = np.clip(result.cdf(z), 0.0, 1.0)
     bins = np.minimum((pit * PIT_BINS).astype(int), PIT_BINS - 1)
     pit_counts = np.stack([np.bincount(bins[:, d], minlength=PIT_BINS) for d in range(z.shape[1])], axis=1)
@@ -153,7 +167,7 @@ def score_utterance(result: SynthesisResult, truth: np.ndarray, levels: Sequence
         crps = crps_sample_entries(z, result.sample(int(crps_samples), seed=seed), fair=True)
     return UtteranceCalibration(int(z.shape[0]), levels, np.asarray(inside, np.float64),
                                 np.asarray(width, np.float64), pit_counts.astype(np.int64),
-                                nlpd, np.sum(crps, axis=0))
+                                nlpd, np.sum(crps, axis=0), states)
 
 
 def ratio_se(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -176,7 +190,9 @@ def summarise_calibration(scores: Sequence[UtteranceCalibration],
     coverage lies in ``param_range``; ``width``: {level: mean band width}; ``pit``:
     {"edges", "counts" (pooled), "ks"} (KS distance of the pooled PIT histogram from
     uniform); ``nlpd`` / ``crps``: per-entry means with standard errors; ``n_utterances``,
-    ``n_entries``.
+    ``n_entries``; for switching predictions ``per_state_90``: each state model's pooled 90 %
+    coverage and entries, and the fraction of states with at least ``MIN_STATE_ENTRIES``
+    entries whose coverage lies in ``param_range``.
     """
     if not scores:
         raise ValueError("summarise_calibration: no utterances")
@@ -209,6 +225,17 @@ def summarise_calibration(scores: Sequence[UtteranceCalibration],
     for key in ("nlpd", "crps"):
         mean, se = ratio_se(np.array([getattr(s, key).sum() for s in scores]), T * D)
         out[key] = {"mean": mean, "se": se}
+    per_state: dict[str, list[float]] = {}
+    for sc in scores:
+        for k, (a, b) in (sc.state_inside_90 or {}).items():
+            acc = per_state.setdefault(k, [0.0, 0.0])
+            acc[0], acc[1] = acc[0] + a, acc[1] + b
+    if per_state:
+        cov_s = {k: {"coverage_90": a / b, "entries": int(b)} for k, (a, b) in sorted(per_state.items()) if b}
+        big = [c["coverage_90"] for c in cov_s.values() if c["entries"] >= MIN_STATE_ENTRIES]
+        out["per_state_90"] = {"states": cov_s, "min_entries": MIN_STATE_ENTRIES, "n_states_scored": len(big),
+                               "states_in_range_90": float(np.mean([param_range[0] <= c <= param_range[1]
+                                                                    for c in big])) if big else None}
     return out
 
 
@@ -241,12 +268,15 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
     if not rows:
         return ""
     head = ["method"] + [f"cov{round(100 * q)}" for q in levels] + [
-        "90 % per param. min–max", "params in [0.80, 0.97]", "NLPD (mixture)", "CRPS", "PIT KS"]
+        "90 % per param. min–max", "params in [0.80, 0.97]", "states in [0.80, 0.97]", "NLPD (mixture)", "CRPS",
+        "PIT KS"]
     intro = ("Coverage of the exact central bands of each method's predictive (mixture quantiles for "
              "the posterior methods), pooled over utterances and AAM parameters, ± the cluster-robust "
              "standard error over utterances; NLPD is the mixture's own log density per entry, CRPS "
              "per entry; PIT KS is the largest gap between the pooled PIT histogram's CDF and the "
-             "uniform one. Rows marked (raw) are the same predictive before the band calibration "
+             "uniform one; 'states in [0.80, 0.97]' is the fraction of switching states (with at least "
+             f"{MIN_STATE_ENTRIES} scored entries) whose own 90 % coverage lies in that range. Rows marked "
+             "(raw) are the same predictive before the band calibration "
              "fitted on held-out training utterances (docs/uncertainty.md); rows marked (constant-band "
              "control) have the calibrated mean with one constant band per AAM parameter, calibrated "
              "the same way: a method whose NLPD and CRPS do not beat it says no more about its "
@@ -258,8 +288,10 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
         c90 = cov.get("0.9")
         rng = "–" if c90 is None else f"{c90['param_min']:.2f}–{c90['param_max']:.2f}"
         frac = c.get("params_in_range_90")
+        st = (c.get("per_state_90") or {}).get("states_in_range_90")
         cells = [name] + [_cell(cov.get(f"{q:g}")) for q in levels] + [
-            rng, "–" if frac is None else f"{frac:.2f}", f"{c['nlpd']['mean']:.4g}", f"{c['crps']['mean']:.4g}",
+            rng, "–" if frac is None else f"{frac:.2f}", "–" if st is None else f"{st:.2f}",
+            f"{c['nlpd']['mean']:.4g}", f"{c['crps']['mean']:.4g}",
             f"{c['pit']['ks']:.3f}"]
         lines.append("| " + " | ".join(cells) + " |")
     if verdicts:
