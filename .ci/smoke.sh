@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
-# The Python 3.13 end of CI (issue 28): a fresh venv, `pip install .` with the pins of
-# constraints.txt, then the smoke path from outside the repository with the installed
-# package -- a tiny corpus, train, synth, evaluate --quick.
+# The other-Python ends of CI (issue 28): a fresh venv of the given Python version,
+# `pip install .` with the pins of constraints.txt, then the smoke path from outside the
+# repository with the installed package -- a tiny corpus, train, synth, evaluate --quick.
 #
-#   .ci/smoke313.sh                    # python3.13 from PATH (or PYTHON313=/path/to/python)
-#   SMOKE_DIR=/tmp/s .ci/smoke313.sh   # keep the venv and outputs there (default: a temp dir, removed)
-#   SMOKE_PIP_ARGS='--extra-index-url https://download.pytorch.org/whl/cpu' .ci/smoke313.sh
+#   .ci/smoke.sh 3.13                  # python3.13 from PATH (or SMOKE_PYTHON=/path/to/python)
+#   .ci/smoke.sh 3.12                  # likewise python3.12
+#   SMOKE_DIR=/tmp/s .ci/smoke.sh 3.12 # keep the venv and outputs there (default: a temp dir, removed)
+#   SMOKE_PIP_ARGS='--extra-index-url https://download.pytorch.org/whl/cpu' .ci/smoke.sh 3.13
+#
+# Under pyenv, `PYENV_VERSION=3.12.1` picks the interpreter behind the python3.12 shim.
 #
 # Not run by .ci/run unless BAYES_TALK_SMOKE313=1: PyPI's Linux torch wheel is the CUDA
 # build, so the install fetches ~3 GB (torch 527 MB, nvidia-* and triton) and makes a 5.6 GB
@@ -13,7 +16,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 REPO=$PWD
-PY=${PYTHON313:-python3.13}
+VERSION=${1:?usage: .ci/smoke.sh PYTHON_VERSION (e.g. 3.12 or 3.13)}
+PY=${SMOKE_PYTHON:-python$VERSION}
+"$PY" -c "import sys; v = '.'.join(map(str, sys.version_info[:2])); assert v == '$VERSION', f'$PY is Python {v}, not $VERSION'"
 if [[ -n "${SMOKE_DIR:-}" ]]; then
     WORK=$SMOKE_DIR; mkdir -p "$WORK"
 else
@@ -21,7 +26,7 @@ else
 fi
 N=${SMOKE_UTTERANCES:-16}
 t0=$SECONDS
-step() { echo "[smoke313 $((SECONDS - t0)) s] $*"; }
+step() { echo "[smoke$VERSION $((SECONDS - t0)) s] $*"; }
 
 if [[ ! -x "$WORK/venv/bin/bayes-talk" ]]; then
     step "venv with $("$PY" --version) in $WORK/venv; pip install . -c constraints.txt"
