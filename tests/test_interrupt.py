@@ -50,6 +50,12 @@ def _wait_for_workers(proc: subprocess.Popen, n: int, limit_s: float = 900) -> l
     raise AssertionError("no worker processes appeared")
 
 
+#: first line of each child: Ctrl-C raises KeyboardInterrupt, as in a terminal (a shell that
+#: started pytest in the background hands SIGINT down ignored, and Python then installs no
+#: handler for it)
+AS_IN_A_TERMINAL = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+
+
 def _interrupt(proc: subprocess.Popen) -> None:
     """Ctrl-C as a terminal sends it: SIGINT to the foreground process group."""
     os.killpg(proc.pid, signal.SIGINT)
@@ -58,7 +64,7 @@ def _interrupt(proc: subprocess.Popen) -> None:
 @pytest.mark.slow
 def test_ctrl_c_stops_a_pool_whose_workers_run_tasks_that_would_take_an_hour(tmp_path):
     script = tmp_path / "pool.py"
-    script.write_text("import time\n"
+    script.write_text(AS_IN_A_TERMINAL + "import time\n"
                       "from bayes_talk.executor import ProcessExecutor\n"
                       "if __name__ == '__main__':\n"
                       "    try:\n"
@@ -98,7 +104,8 @@ def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
     train(corpus, "ssgpdm-vlmm", model, alignment=False, latent_dim=2, max_iter=15, min_count=4,
           max_frames_per_state=60, fallback_frames=80)                     # the old model (and the feature cache)
     before = _digest(model)
-    proc = subprocess.Popen([sys.executable, "-m", "bayes_talk.cli", "train", str(corpus), "--out", str(model),
+    cli = AS_IN_A_TERMINAL + "import sys; from bayes_talk.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", cli, "train", str(corpus), "--out", str(model),
                              "--force", "--workers", "2", "--no-calibrate-bands", "--no-alignment"],
                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
