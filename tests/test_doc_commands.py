@@ -590,6 +590,7 @@ def toy_names():
 RUN_PY = [b for b in PY if PYTHON_BLOCKS[b.key].run]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("block", RUN_PY, ids=str)
 def test_python_block_runs(block, docs_work, request, monkeypatch, tmp_path):
     import matplotlib
