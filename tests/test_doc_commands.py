@@ -33,6 +33,7 @@ import io
 import re
 import shlex
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,8 +67,10 @@ def doc_blocks() -> list[Block]:
     out = []
     for p in DOCS:
         text = p.read_text(encoding="utf-8")
-        for m in re.finditer(r"^```([\w+-]*)[ \t]*\n(.*?)^```", text, re.MULTILINE | re.DOTALL):
-            out.append(Block(str(p.relative_to(ROOT)), text[:m.start()].count("\n") + 1, m.group(1), m.group(2)))
+        # fences may be indented (a block inside a list item): the same indentation closes it
+        for m in re.finditer(r"^([ \t]*)```([\w+-]*)[ \t]*\n(.*?)^\1```", text, re.MULTILINE | re.DOTALL):
+            out.append(Block(str(p.relative_to(ROOT)), text[:m.start()].count("\n") + 1, m.group(2),
+                             textwrap.dedent(m.group(3))))
     return out
 
 
@@ -93,6 +96,7 @@ OTHER_PROGRAMS = {
 SCRATCH_SCRIPTS = {
     "/tmp/bt_analysis/analyse.py": "a scratch script of the session-3 ordering analysis "
                                    "(docs/switching.md, docs/results.md say so)",
+    "/tmp/bt_analysis/extra.py": "the same session's latent-dimension runs (docs/results.md, item 4)",
 }
 
 #: method names that commands of docs/results.md used and the code no longer has: the record
@@ -313,7 +317,7 @@ def inline_cli_spans() -> list[tuple[str, str]]:
     fenced blocks)."""
     out = []
     for p in DOCS:
-        text = re.sub(r"^```.*?^```", "", p.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
+        text = re.sub(r"^([ \t]*)```.*?^\1```", "", p.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
         for m in re.finditer(r"`((?:\.venv/bin/)?bayes-talk [^`]+)`", text):
             out.append((str(p.relative_to(ROOT)), m.group(1)))
     return out
