@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import fnmatch
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -106,11 +107,17 @@ def test_built_wheel_holds_every_package_file_in_git(tmp_path):
     listed = subprocess.run(["git", "ls-files", "bayes_talk"], cwd=ROOT, capture_output=True, text=True, check=False)
     if listed.returncode != 0:
         pytest.skip(f"not a git checkout: {listed.stderr.strip()}")
+    # built from a copy of the tracked files: setuptools' in-tree build/ keeps files of earlier
+    # builds, and an untracked file of the working tree is not part of the package
+    src = tmp_path / "src"
+    for rel in ["pyproject.toml", "README.md", *listed.stdout.split()]:
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / rel, src / rel)
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--quiet",
-                           "--disable-pip-version-check", "-w", str(tmp_path), str(ROOT)],
+                           "--disable-pip-version-check", "-w", str(tmp_path / "dist"), str(src)],
                           capture_output=True, text=True, check=False, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    (wheel,) = tmp_path.glob("bayes_talk-*.whl")
+    (wheel,) = (tmp_path / "dist").glob("bayes_talk-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert sorted(n for n in names if n.startswith("bayes_talk/")) == sorted(listed.stdout.split())
     entry = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
