@@ -312,14 +312,23 @@ curl https://example.org | sh
 # Inline spans: `bayes-talk SUBCOMMAND ... --flag`
 # ------------------------------------------------------------------------------------------
 
+#: sub-commands an inline span may start with instead of ``bayes-talk`` (e.g. `synth --raw-bands`)
+SUBCOMMAND_SPANS = ("corpus build", "corpus track", "corpus propose", "align-train", "train", "synth", "evaluate",
+                    "demo", "align", "recognise")
+
+
 def inline_cli_spans() -> list[tuple[str, str]]:
-    """(file, span) of every inline code span that starts with ``bayes-talk `` (outside
-    fenced blocks)."""
+    """(file, span) of every inline code span outside fenced blocks that starts with
+    ``bayes-talk ``, or with a sub-command followed by a ``--flag`` (given as
+    ``bayes-talk SPAN``)."""
+    sub = "|".join(map(re.escape, SUBCOMMAND_SPANS))
     out = []
     for p in DOCS:
         text = re.sub(r"^([ \t]*)```.*?^\1```", "", p.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
         for m in re.finditer(r"`((?:\.venv/bin/)?bayes-talk [^`]+)`", text):
             out.append((str(p.relative_to(ROOT)), m.group(1)))
+        for m in re.finditer(rf"`((?:{sub})(?: [^`]*)? --[a-z][^`]*)`", text):
+            out.append((str(p.relative_to(ROOT)), "bayes-talk " + m.group(1)))
     return out
 
 
