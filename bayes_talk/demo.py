@@ -17,7 +17,8 @@
    draws here to keep the demo short, 32 in ``evaluate``; its AMSE/NMSE are bias-corrected
    for the finite number of draws), and every method's fraction of the achievable gain
    ``(zero - method) / (zero - oracle)`` on AMSE and on NMSE;
-5. write ``OUT/side_by_side.mp4``: ground truth | synthesis (posterior mean), with the speech;
+5. write ``OUT/side_by_side.mp4``: ground truth | synthesis (posterior mean), with the speech,
+   each side captioned (``DEMO_VIDEO_LABELS``);
 6. show the uncertainty of that utterance's posterior (bayes_talk.uncertainty_outputs):
    ``OUT/bands.png`` (the first AAM parameters: mean, 50 %/90 % bands, ground truth),
    ``OUT/uncertainty.mp4`` (mean face | per-pixel standard deviation of rendered draws) and
@@ -37,6 +38,8 @@ DEMO_UTTERANCES = 60
 DEMO_HELD_OUT = 6
 LOWPASS_HZ = 4.0
 DEMO_ORACLE_DRAWS = 8
+#: the captions above the two sides of side_by_side.mp4
+DEMO_VIDEO_LABELS = ("ground truth", "synthesis (mean)")
 #: the default model of ``train`` (bayes_talk.pipeline.DEFAULT_MODEL): right-context phone states
 DEMO_MODEL = DEFAULT_MODEL
 
@@ -131,7 +134,8 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     offset = _aam_offset(type("C", (), {"sequences": train})())
     gt_frames = corpus.aam.render(s.aam + s.meta.get("aam_mean", offset))
     syn_frames = corpus.aam.render(r.mean + offset)
-    video = write_video(out / "side_by_side.mp4", side_by_side(gt_frames, syn_frames), corpus.fps,
+    video = write_video(out / "side_by_side.mp4",
+                        side_by_side(gt_frames, syn_frames, labels=DEMO_VIDEO_LABELS), corpus.fps,
                         audio_path=s.audio_path, overwrite=True)
     shown = _show_uncertainty(out, r, s, corpus, offset)
     summary = {"corpus": str(cdir), "n_train": len(train), "n_test": len(test), "train_seconds": train_s,

@@ -202,10 +202,27 @@ class ProcessExecutor(Executor):
                 "executor=\"processes\") must run its work under `if __name__ == \"__main__\":`; "
                 "or leave workers at 1 (this process). It also happens when a worker runs out of "
                 "memory.") from exc
+        except KeyboardInterrupt:
+            self.terminate()   # the workers ignore SIGINT: without this, close() waits for their tasks
+            raise
         except BaseException:
             for f in futures:
                 f.cancel()
             raise
+
+    def terminate(self) -> None:
+        """Stop now (Ctrl-C): queued tasks are cancelled and the worker processes, which
+        ignore SIGINT and would otherwise finish their running tasks first, are terminated.
+        Their results are lost; nothing of theirs is written by this module."""
+        # ProcessPoolExecutor has no public way to stop running tasks before Python 3.14
+        # (terminate_workers); its worker processes are in _processes on 3.11-3.13
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout=10)
 
     def close(self) -> None:
         """Shut the process pool down."""

@@ -488,12 +488,16 @@ def _sampler_args(options: dict | None) -> dict:
 def _check_speech(wav, recognise: bool) -> None:
     """No speech in ``wav`` (:func:`bayes_talk.audio.speech_problem`): an error before the
     phone recogniser invents phones for it; a warning when labels or a transcript were given
-    (the face then follows them, not the audio)."""
+    (the face then follows them, not the audio). The file's own warnings (clipping, an MP3
+    without its gapless header) are left to the load that makes the features, so that each
+    is said once."""
     import warnings
 
     from bayes_talk.audio import load_audio, speech_problem
 
-    y, sr = load_audio(wav)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        y, sr = load_audio(wav)
     problem = speech_problem(y, sr)
     if problem is None:
         return

@@ -1,7 +1,7 @@
 """bayes_talk.arviz_compat: the same answers from ArviZ 0.2x (Python 3.11) and 1.x (>= 3.12).
 
 Each check compares with a value computed here from its definition, so the test runs
-unchanged under either version (CI runs it on 3.11; `.ci/smoke313.sh` on 3.13).
+unchanged under either version (CI runs it on 3.11; `.ci/smoke.sh 3.13` on 3.13).
 """
 from __future__ import annotations
 

@@ -1,0 +1,124 @@
+"""Ctrl-C (issue 28): ``train`` stops with the interrupted status and leaves the old model as
+it was; a process pool does not wait for its workers' running tasks (they ignore SIGINT, the
+parent handles it) but terminates them.
+
+No timing is asserted: the executor test's tasks would run for an hour, so a pool that waits
+for them never exits (the ``timeout`` only keeps a broken build from hanging the suite).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+
+
+def _spawn_workers(pid: int) -> list:
+    """The pool's worker processes (spawned interpreters) under ``pid``."""
+    import psutil
+
+    try:
+        kids = psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+    out = []
+    for k in kids:
+        try:
+            if "multiprocessing" in " ".join(k.cmdline()) and "resource_tracker" not in " ".join(k.cmdline()):
+                out.append(k)
+        except psutil.Error:
+            pass
+    return out
+
+
+def _wait_for_workers(proc: subprocess.Popen, n: int, limit_s: float = 900) -> list:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < limit_s:
+        assert proc.poll() is None, f"the command ended before its workers started: {proc.communicate()}"
+        workers = _spawn_workers(proc.pid)
+        if len(workers) >= n:
+            return workers
+        time.sleep(0.2)
+    raise AssertionError("no worker processes appeared")
+
+
+#: first line of each child: Ctrl-C raises KeyboardInterrupt, as in a terminal (a shell that
+#: started pytest in the background hands SIGINT down ignored, and Python then installs no
+#: handler for it)
+AS_IN_A_TERMINAL = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+
+
+def _interrupt(proc: subprocess.Popen) -> None:
+    """Ctrl-C as a terminal sends it: SIGINT to the foreground process group."""
+    os.killpg(proc.pid, signal.SIGINT)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_pool_whose_workers_run_tasks_that_would_take_an_hour(tmp_path):
+    script = tmp_path / "pool.py"
+    script.write_text(AS_IN_A_TERMINAL + "import time\n"
+                      "from bayes_talk.executor import ProcessExecutor\n"
+                      "if __name__ == '__main__':\n"
+                      "    try:\n"
+                      "        with ProcessExecutor(2) as ex:\n"
+                      "            ex.map(time.sleep, [3600, 3600, 3600])\n"
+                      "    except KeyboardInterrupt:\n"
+                      "        print('interrupted', flush=True)\n"
+                      "        raise SystemExit(130)\n", encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        workers = _wait_for_workers(proc, 2)
+        time.sleep(1.0)                         # the tasks are in time.sleep now
+        _interrupt(proc)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err[-2000:]
+    assert out.strip() == "interrupted"
+    assert "Traceback" not in err, err[-2000:]
+    assert not [w for w in workers if w.is_running() and w.status() != "zombie"]
+
+
+def _digest(directory: Path) -> dict[str, str]:
+    return {str(p.relative_to(directory)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
+    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.pipeline import train
+
+    corpus = build_corpus(tmp_path / "corpus", n_utterances=8, seed=0, image_size=64)
+    model = tmp_path / "model"
+    train(corpus, "ssgpdm-vlmm", model, alignment=False, latent_dim=2, max_iter=15, min_count=4,
+          max_frames_per_state=60, fallback_frames=80)                     # the old model (and the feature cache)
+    before = _digest(model)
+    cli = AS_IN_A_TERMINAL + "import sys; from bayes_talk.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", cli, "train", str(corpus), "--out", str(model),
+                             "--force", "--workers", "2", "--no-calibrate-bands", "--no-alignment"],
+                            cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        _wait_for_workers(proc, 2)             # the per-state models are being fitted in the pool
+        time.sleep(1.0)
+        _interrupt(proc)
+        out, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, (out[-1000:], err[-2000:])
+    assert "bayes-talk: error: interrupted" in err
+    assert "Traceback" not in err, err[-2000:]
+    assert "model written" not in out
+    assert _digest(model) == before
