@@ -141,3 +141,19 @@ def test_the_default_family_sets_its_audio_context_and_the_paper_families_do_not
         assert make_estimator(paper).audio_context == 0
     with pytest.raises(ValueError, match="fixed by the family name"):
         make_estimator(DEFAULT_MODEL, right_context=False)
+
+
+def test_a_family_default_wins_in_evaluate_unless_the_protocol_changes_the_setting():
+    """``evaluate`` builds families with the protocol's switching settings; a setting that a
+    family sets itself (registry.FAMILY_DEFAULTS) is kept unless the protocol moved it off
+    the library default."""
+    from bayes_talk.estimators.registry import FAMILY_DEFAULTS
+    from bayes_talk.evaluation.systems import SystemConfig, _build
+    from bayes_talk.models.switching import SwitchingConfig
+
+    own = FAMILY_DEFAULTS["ssgpdm-phone-ctx-mean"]["min_frames_per_state"]
+    assert own != SwitchingConfig().min_frames_per_state
+    assert _build("ssgpdm-phone-ctx-mean", SystemConfig()).config.min_frames_per_state == own
+    assert _build("ssgpdm-phone-ctx-mean", SystemConfig(ssgpdm_min_frames_per_state=30)).config.min_frames_per_state == 30
+    assert _build("ssgpdm-phone-rc", SystemConfig()).config.min_frames_per_state == SwitchingConfig().min_frames_per_state
+    assert _build("ssgpdm-phone-ctx-mean", SystemConfig()).config.context_mean is True

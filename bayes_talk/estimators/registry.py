@@ -36,8 +36,11 @@ FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
     "ssgpdm-phone-ctx": {"audio_context": 2, "context_view": 8},
     # the same view as the explicit mean function of the visual mapping: the state models
-    # explain the residual face (SwitchingConfig.context_mean; docs/switching.md)
-    "ssgpdm-phone-ctx-mean": {"audio_context": 2, "context_view": 8},
+    # explain the residual face (SwitchingConfig.context_mean; docs/switching.md); states with
+    # fewer than 60 frames back off to their suffix (their visual noise, fitted on 12-25
+    # frames, was the smallest of all states and their bands the most over-confident:
+    # docs/results.md "Session 9")
+    "ssgpdm-phone-ctx-mean": {"audio_context": 2, "context_view": 8, "min_frames_per_state": 60},
 }
 
 

@@ -301,7 +301,7 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         return CorpusSparseSGPDM(latent_dim=cfg.latent_dim, n_inducing=cfg.sparse_inducing,
                                  max_iter=cfg.sparse_max_iter, seed=cfg.seed,
                                  synth_max_iter=cfg.sparse_synth_max_iter)
-    from bayes_talk.estimators.registry import make_estimator
+    from bayes_talk.estimators.registry import FAMILY_DEFAULTS, make_estimator
 
     params: dict[str, dict[str, Any]] = {
         "ssgpdm-vlmm": {"latent_dim": cfg.latent_dim, "max_frames_per_state": cfg.ssgpdm_max_frames_per_state,
@@ -316,7 +316,11 @@ def _build(family: str, cfg: SystemConfig) -> Any:
         "context-mlp": {"seed": cfg.seed},
     }
     for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean"):
-        params[fam] = params["ssgpdm-vlmm"]
+        # a family's own default (registry.FAMILY_DEFAULTS) wins over a setting the protocol
+        # leaves at the library default
+        own = FAMILY_DEFAULTS.get(fam, {})
+        params[fam] = {k: v for k, v in params["ssgpdm-vlmm"].items()
+                       if k not in own or v != getattr(_SWITCHING, k)}
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
     return make_estimator(family, **params.get(family, {}))
