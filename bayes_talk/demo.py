@@ -40,7 +40,8 @@ LOWPASS_HZ = 4.0
 DEMO_ORACLE_DRAWS = 8
 #: the captions above the two sides of side_by_side.mp4
 DEMO_VIDEO_LABELS = ("ground truth", "synthesis (mean)")
-#: the default model of ``train`` (bayes_talk.pipeline.DEFAULT_MODEL): right-context phone states
+#: the default model of ``train`` (bayes_talk.pipeline.DEFAULT_MODEL): right-context phone states,
+#: the phonetic-context view as the visual mean function
 DEMO_MODEL = DEFAULT_MODEL
 
 

@@ -34,9 +34,10 @@ log = logging.getLogger(__name__)
 MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean",
                "sgplvm")
 #: the model ``train`` fits unless told otherwise: right-context phone states with an audio
-#: context of ±2 frames (estimators.registry.FAMILY_DEFAULTS), the best switching model on our
-#: held-out sentences (docs/results.md); "ssgpdm-vlmm" is deena2010's
-DEFAULT_MODEL = "ssgpdm-phone-rc"
+#: context of ±2 frames whose visual GPs have the phonetic-context view as their mean function
+#: (estimators.registry.FAMILY_DEFAULTS; docs/switching.md), the best model on our development
+#: sentences (docs/results.md "Session 9"); "ssgpdm-vlmm" is deena2010's
+DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
 #: fraction of the training utterances ``train`` holds out for the band calibration by default
 DEFAULT_CALIBRATION = 0.2
 _DEFAULT = object()

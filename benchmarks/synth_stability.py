@@ -9,7 +9,8 @@ post-filter; no video):
 * **stability**: white noise at −60 dBFS (RMS 10⁻³ of full scale, seeded) added to each
   WAV, the utterance synthesised again with the same labels; the change of the written
   trajectory (``trajectory.npy``, the calibrated predictive mean) at every frame in units
-  of the parameter's standard deviation over the held-out corpus's AAM frames;
+  of the parameter's standard deviation over the held-out corpus's frames (projected on
+  the model's AAM);
   acceptance: max over frames and parameters < 0.5.
 
     python benchmarks/synth_stability.py --model-dir MODEL --test data/dev40 --n-test 10 \\
@@ -48,7 +49,8 @@ def _run(model_dir: Path, wav: Path, lab: Path, out: Path) -> tuple[np.ndarray, 
 
 def measure(model_dir: Path, test: Path, n_test: int, seed: int, work: Path) -> dict:
     """The per-utterance warnings and noise shifts (module docstring)."""
-    corpus = load_corpus(test)
+    # the held-out faces projected on the model's AAM (the space trajectory.npy is in)
+    corpus = load_corpus(test, aam=model_dir / "aam.npz")
     sd = np.vstack([u.aam for u in corpus]).std(0)
     wavs = sorted((test / "utterances").glob("*.wav"))[:n_test]
     rng = np.random.default_rng(seed)

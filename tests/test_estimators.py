@@ -134,7 +134,7 @@ def test_the_default_family_sets_its_audio_context_and_the_paper_families_do_not
     deena2010's families keep the paper's per-frame audio."""
     from bayes_talk.pipeline import DEFAULT_MODEL
 
-    assert DEFAULT_MODEL == "ssgpdm-phone-rc"
+    assert DEFAULT_MODEL == "ssgpdm-phone-ctx-mean"
     assert make_estimator(DEFAULT_MODEL).audio_context == 2
     assert make_estimator(DEFAULT_MODEL, audio_context=0).audio_context == 0
     for paper in ("ssgpdm-vlmm", "ssgpdm-phone"):

@@ -326,5 +326,5 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
     assert cli.main(["train", "c", "--out", "o", "--model", "sgplvm"]) == 0
     assert calls == [(pl.DEFAULT_MODEL, pl.DEFAULT_CALIBRATION), (pl.DEFAULT_MODEL, None), ("ssgpdm-vlmm", 0.3),
                      ("sgplvm", None)]
-    assert pl.DEFAULT_MODEL == "ssgpdm-phone-rc"
+    assert pl.DEFAULT_MODEL == "ssgpdm-phone-ctx-mean"
     assert cli.main(["train", "c", "--out", "o", "--calibrate-bands", "--no-calibrate-bands"]) == 2

@@ -26,7 +26,8 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     **{name: (cls, {}) for name, cls in _BASELINES.items()},
 }
 #: family name -> constructor arguments the family sets unless given (overridable, unlike the
-#: fixed ones): the default model (``ssgpdm-phone-rc``, bayes_talk.pipeline.DEFAULT_MODEL) sees
+#: fixed ones): the former default model (``ssgpdm-phone-rc``; now bayes_talk.pipeline.DEFAULT_MODEL is
+#: ``ssgpdm-phone-ctx-mean``, which keeps the same audio) sees
 #: an audio context window of ±2 frames (SwitchingConfig.audio_context), which with its
 #: band calibration predicted better on every metric on our held-out sentences and put its
 #: 90 % band in range (docs/results.md "Audio context in the default model, session 6")

@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     tm = load_trained(a.model_dir)
     cal: BandCalibration = tm.calibration
-    corpus = list(load_corpus(a.test))[: a.n_test]
+    corpus = list(load_corpus(a.test, aam=Path(a.model_dir) / "aam.npz", cmvn=tm.audio.cmvn))[: a.n_test]
     raws, truths = [], []
     for u in corpus:
         raws.append(sample_synthesis(tm.model, u.mfcc, u.labels, method="laplace", n_draws=64, seed=0,
@@ -45,6 +45,18 @@ def main(argv=None) -> int:
         truths.append(u.aam)
         print(f"{u.name}: k̂ {raws[-1].diagnostics.get('khat'):.2f}", flush=True)
     out: dict = {}
+    # the shipped calibration's stages one at a time (fitted on the training hold-out)
+    from bayes_talk.synthesis.band_calibration import _constant_band, _shrunk
+    n_all = sum(z.size for z in truths)
+    stage = {
+        "stages_0_1_2 (shipped)": lambda r: cal.apply(r),
+        "stages_0_1 (no level map)": lambda r: replace(cal, level_raw=None).apply(r),
+        "control_gaussian (no stages 1-2)": lambda r: _constant_band(_shrunk(r, cal.mean_scale), cal.control_var),
+        "control (shipped)": lambda r: cal.control_result(r),
+    }
+    out["nlpd_by_stage"] = {k: float(sum(-f(r).logpdf(z).sum() for r, z in zip(raws, truths)) / n_all)
+                            for k, f in stage.items()}
+    print(json.dumps(out["nlpd_by_stage"], indent=1), flush=True)
     by_state: dict[str, list] = defaultdict(lambda: [0.0, 0.0, 0.0])
     per_param = {"calibrated": [], "control": [], "raw": []}
     for r, z in zip(raws, truths):
