@@ -134,6 +134,18 @@ def sgpdm_model(
         pyro.factor("hyperprior", -sum(torch.log(hyper[k]) for k in learned))
 
 
+def _half_normal_log_prob(w: torch.Tensor) -> torch.Tensor:
+    """``dist.HalfNormal(κ).to_event(1).log_prob(w)`` with κ² = W_PRIOR_VARIANCE, written out
+    operation for operation as torch computes it (Normal(0, κ).log_prob + ln 2, −inf below 0,
+    summed over the last axis), so the bits are the same, without building the distribution
+    objects at every evaluation (a third of the direct objective's time at N = 25)."""
+    scale = torch.full_like(w, math.sqrt(W_PRIOR_VARIANCE))
+    loc = torch.zeros_like(scale)
+    lp = -((w - loc) ** 2) / (2 * scale**2) - scale.log() - math.log(math.sqrt(2 * math.pi))
+    lp = torch.where(w >= 0, lp + math.log(2), -math.inf)
+    return lp.reshape(w.shape[:-1] + (-1,)).sum(-1)
+
+
 def sgpdm_log_joint(
     views: Mapping[str, torch.Tensor],
     X: torch.Tensor,
@@ -164,7 +176,7 @@ def sgpdm_log_joint(
     for v, Y in views.items():
         w = hyper[f"w/{v}"]
         if cfg.learn_w:
-            total = total + dist.HalfNormal(torch.full_like(w, math.sqrt(W_PRIOR_VARIANCE))).to_event(1).log_prob(w)
+            total = total + _half_normal_log_prob(w)
         total = total + observation_loglik(Y, X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
                                            None, f"{v} kernel matrix")
     if learned:
