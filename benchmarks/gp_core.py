@@ -12,7 +12,7 @@ Everything below is measured in one run, on the same machine load:
                   and ``m.objective_function_gradients()`` (transformed to x-space).
                   x alternates between two nearby vectors so no cache can answer.
     * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` through the Pyro trace
-                  (``sgpdm.LOG_JOINT = "pyro"``: X prior, observation term, 1/θ hyperprior).
+                  (``sgpdm_program.LOG_JOINT = "pyro"``: X prior, observation term, 1/θ hyperprior).
     * ours_direct: the same, by the model's default path since issue 29 (the same site
                   log-densities summed without the trace, equal bit for bit:
                   ``sgpdm_program.sgpdm_log_joint``).
@@ -85,8 +85,8 @@ def quiet_fit(model, views):
 # ---------------------------------------------------------------------------- setups
 @contextlib.contextmanager
 def log_joint_path(path: str):
-    """SGPDM.log_joint by ``path`` ("direct" or "pyro", bayes_talk.models.sgpdm.LOG_JOINT) in the block."""
-    import bayes_talk.models.sgpdm as sgpdm_mod
+    """SGPDM.log_joint by ``path`` ("direct" or "pyro", bayes_talk.models.sgpdm_program.LOG_JOINT) in the block."""
+    import bayes_talk.models.sgpdm_program as sgpdm_mod
 
     prev, sgpdm_mod.LOG_JOINT = sgpdm_mod.LOG_JOINT, path
     try:

@@ -54,7 +54,7 @@ def run_train(src: Path, corpus: str, out: Path, extra: list[str], env_extra: di
     cmd = [sys.executable, "-m", "bayes_talk.cli", "-q", "train", corpus, "--out", str(out), *extra]
     load0 = os.getloadavg()
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, cwd=str(src), capture_output=True, text=True)
+    proc = subprocess.run(cmd, env=env, cwd=str(src), capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
     if proc.returncode != 0:
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> dict:
         "corpus": os.path.relpath(corpus, ROOT), "command": "bayes-talk train CORPUS --out DIR " + " ".join(extra),
         "baseline": args.baseline if not args.baseline_src else os.path.relpath(args.baseline_src, ROOT),
         "new_commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                                     text=True).stdout.strip(),
+                                     text=True, check=False).stdout.strip(),
         "runs": runs, "median_wall_s": med,
         "ratio_new_over_previous": round(med["new"] / med["previous"], 3),
         "speedup": round(med["previous"] / med["new"], 3),

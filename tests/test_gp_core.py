@@ -424,12 +424,12 @@ def test_fused_threads_providers_and_repeated_backward_agree():
         lapack.set_provider("netlib")
 
 
-@pytest.mark.parametrize("kw", [dict(learn_dynamics=True, balanced=True), dict(dynamics=False, learn_w=False),
-                                dict(dyn_linear=0.1)])
+@pytest.mark.parametrize("kw", [{"learn_dynamics": True, "balanced": True}, {"dynamics": False, "learn_w": False},
+                                {"dyn_linear": 0.1}])
 def test_direct_log_joint_equals_the_pyro_trace_bit_for_bit(kw, monkeypatch):
     """Issue 29: the log joint is summed without running the Pyro program; value and
     gradient must be the trace's, bit for bit (same terms, same order)."""
-    import bayes_talk.models.sgpdm as sgpdm_mod
+    import bayes_talk.models.sgpdm_program as sgpdm_mod
 
     audio, video = _toy(30)
     m = SGPDM(latent_dim=2, max_iter=5, **kw).fit({"audio": audio, "visual": video}, seq_lengths=[12, 18])
@@ -452,7 +452,7 @@ def test_direct_log_joint_equals_the_pyro_trace_bit_for_bit(kw, monkeypatch):
 
 def test_fit_through_the_direct_log_joint_equals_the_pyro_fit(monkeypatch):
     """The whole L-BFGS fit gives the same hyperparameters and latents by both paths."""
-    import bayes_talk.models.sgpdm as sgpdm_mod
+    import bayes_talk.models.sgpdm_program as sgpdm_mod
 
     audio, video = _toy(40)
     fits = {}

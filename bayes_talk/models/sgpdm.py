@@ -52,17 +52,11 @@ from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
 from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
-from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_log_joint, sgpdm_model
+from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
+from bayes_talk.models.sgpdm_program import log_joint as program_log_joint
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
 
 log = logging.getLogger(__name__)
-
-#: how :meth:`SGPDM.log_joint` evaluates the objective: "direct" (the default; the site
-#: log-densities summed without running the Pyro program, equal to the trace's bit for bit:
-#: :func:`~bayes_talk.models.sgpdm_program.sgpdm_log_joint`) or "pyro" (``trace().log_prob_sum()``,
-#: the path before issue 29, kept as the reference). Environment: BAYES_TALK_LOG_JOINT.
-LOG_JOINT_PATHS = ("direct", "pyro")
-LOG_JOINT = os.environ.get("BAYES_TALK_LOG_JOINT", "direct")
 
 _DEFAULTS = SGPDMConfig()
 
@@ -188,15 +182,10 @@ class SGPDM:
         return [k for k in self._log if not k.startswith("w/")]
 
     def log_joint(self) -> torch.Tensor:
-        """Log joint of the Pyro trace at the current parameters (= the MAP objective),
-        by the path :data:`LOG_JOINT` names (both give the same bits)."""
-        if LOG_JOINT == "pyro":
-            return self.trace().log_prob_sum()
-        if LOG_JOINT != "direct":
-            raise ValueError(f"BAYES_TALK_LOG_JOINT / sgpdm.LOG_JOINT: expected one of {LOG_JOINT_PATHS}, "
-                             f"found {LOG_JOINT!r}")
-        return sgpdm_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
-                               self._learned_thetas())
+        """Log joint of the Pyro trace at the current parameters (= the MAP objective), by the
+        path ``sgpdm_program.LOG_JOINT`` names (:func:`~bayes_talk.models.sgpdm_program.log_joint`)."""
+        return program_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
+                                 self._learned_thetas())
 
     def trace(self) -> pyro.poutine.Trace:
         """The executed Pyro trace; ``trace().nodes[site]['log_prob_sum']`` per term."""

@@ -5,6 +5,7 @@ initialisation of the latents and the record of a fit."""
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -17,7 +18,15 @@ from pyro import poutine
 from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_loglik, observation_loglik
 
-__all__ = ["FitHistory", "SGPDMConfig", "median_sq_dist", "pca_scores", "sgpdm_log_joint", "sgpdm_model"]
+__all__ = ["LOG_JOINT", "LOG_JOINT_PATHS", "FitHistory", "SGPDMConfig", "log_joint", "median_sq_dist", "pca_scores",
+           "sgpdm_log_joint", "sgpdm_model"]
+
+#: how :func:`log_joint` (and so ``SGPDM.log_joint``, the MAP objective) is evaluated:
+#: "direct" (the default: :func:`sgpdm_log_joint`, the site log-densities summed without
+#: running the Pyro program) or "pyro" (the trace's ``log_prob_sum()``, the path before
+#: issue 29, kept as the reference). Both give the same bits. Environment: BAYES_TALK_LOG_JOINT.
+LOG_JOINT_PATHS = ("direct", "pyro")
+LOG_JOINT = os.environ.get("BAYES_TALK_LOG_JOINT", "direct")
 
 
 @dataclass
@@ -182,6 +191,19 @@ def sgpdm_log_joint(
     if learned:
         total = total + -sum(torch.log(hyper[k]) for k in learned)
     return total
+
+
+def log_joint(views: Mapping[str, torch.Tensor], X: torch.Tensor, hyper: Mapping[str, torch.Tensor],
+              seq_lengths: Sequence[int], cfg: SGPDMConfig, learned: Sequence[str]) -> torch.Tensor:
+    """The log joint of :func:`sgpdm_model` at these values, by the path :data:`LOG_JOINT` names."""
+    if LOG_JOINT == "direct":
+        return sgpdm_log_joint(views, X, hyper, seq_lengths, cfg, learned)
+    if LOG_JOINT != "pyro":
+        raise ValueError(f"BAYES_TALK_LOG_JOINT / sgpdm_program.LOG_JOINT: expected one of {LOG_JOINT_PATHS}, "
+                         f"found {LOG_JOINT!r}")
+    tr = poutine.trace(sgpdm_model).get_trace(views, X, hyper, seq_lengths, cfg, learned)
+    tr.compute_log_prob()
+    return tr.log_prob_sum()
 
 
 @dataclass

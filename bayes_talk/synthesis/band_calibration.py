@@ -68,6 +68,7 @@ was fitted on, and reported calibrated and raw side by side by ``evaluate``.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -423,7 +424,7 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
         n_chunks = min(len(held_idx), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
         bounds = np.linspace(0, len(held_idx), n_chunks + 1).round().astype(int)
         jobs = [(sub, [(seqs[i].mfcc, seqs[i].labels) for i in held_idx[a:b]], method, n_draws, seed)
-                for a, b in zip(bounds[:-1], bounds[1:])]
+                for a, b in itertools.pairwise(bounds)]
         say(f"band calibration: synthesising {len(held_idx)} held-out utterances in {len(jobs)} tasks")
         results = [r for chunk in executor.map(_synthesise_chunk, jobs) for r in chunk]
     else:
