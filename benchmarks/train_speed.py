@@ -11,7 +11,9 @@ aligner), started as a fresh process on a built corpus whose features are cached
   a directory holding such a tree).
 
 The runs alternate (previous, new, previous, new, ... for ``--repeats``) so that both see
-the same machine load; ``os.getloadavg()`` is recorded around each. Then the two saved
+the same machine load; ``os.getloadavg()`` is recorded around each, and the CPU time of
+the train process and its worker processes (``RUSAGE_CHILDREN``), which other processes
+on a shared machine disturb less than the wall time. Then the two saved
 models are compared array by array (state models' hyperparameters, latents, entry
 distributions; the band calibration's factors): the largest absolute and relative
 differences, and whether they are equal bit for bit.
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tarfile
@@ -53,13 +56,16 @@ def run_train(src: Path, corpus: str, out: Path, extra: list[str], env_extra: di
     env = dict(os.environ, PYTHONPATH=str(src), **env_extra)
     cmd = [sys.executable, "-m", "bayes_talk.cli", "-q", "train", corpus, "--out", str(out), *extra]
     load0 = os.getloadavg()
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, cwd=str(src), capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     load1 = os.getloadavg()
     if proc.returncode != 0:
         raise RuntimeError(f"train from {src} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return {"wall_s": round(wall, 2), "loadavg_before": [round(x, 2) for x in load0],
+    cpu = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)  # the train process and its workers
+    return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "loadavg_before": [round(x, 2) for x in load0],
             "loadavg_after": [round(x, 2) for x in load1]}
 
 
@@ -121,6 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
                 print(name, r, res, flush=True)
         comparison = compare_models(tmp / "new_0", tmp / "previous_0")
     med = {k: float(np.median([x["wall_s"] for x in v])) for k, v in runs.items()}
+    med_cpu = {k: float(np.median([x["cpu_s"] for x in v])) for k, v in runs.items()}
     result = {
         "benchmark": "train_speed", "issue": 29,
         "corpus": os.path.relpath(corpus, ROOT), "command": "bayes-talk train CORPUS --out DIR " + " ".join(extra),
@@ -130,6 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
         "runs": runs, "median_wall_s": med,
         "ratio_new_over_previous": round(med["new"] / med["previous"], 3),
         "speedup": round(med["previous"] / med["new"], 3),
+        "median_cpu_s": med_cpu, "cpu_ratio_new_over_previous": round(med_cpu["new"] / med_cpu["previous"], 3),
         "models_compared": comparison,
         "machine": {"cpus": os.cpu_count()},
     }

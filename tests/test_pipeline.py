@@ -16,10 +16,9 @@ SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 3, "max_frames_per_state"
 
 
 @pytest.fixture(scope="module")
-def corpus_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("pipe") / "corpus"
-    assert main(["corpus", "build", str(out), "--n-utterances", "10", "--seed", "3"]) == 0
-    return out
+def corpus_dir(shared_built_corpus) -> Path:
+    """The session's shared 10-utterance corpus (tests/conftest.py; read-only: copy to change it)."""
+    return shared_built_corpus
 
 
 @pytest.fixture(scope="module")
