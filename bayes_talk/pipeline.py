@@ -149,7 +149,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
             from bayes_talk.synthesis.band_calibration import fit_band_calibration
 
             band_cal = fit_band_calibration(model, corpus.sequences, holdout=calibrate_bands, seed=model.config.seed,
-                                            fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex))
+                                            fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex),
+                                            executor=ex)
     out.mkdir(parents=True, exist_ok=True)
     begin_bundle(out, DESCRIPTOR)
     audio = AudioSettings(sample_rate=int(corpus.sample_rate), fps=float(corpus.fps), n_mfcc=_mf.N_MFCC,

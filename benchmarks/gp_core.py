@@ -11,8 +11,11 @@ Everything below is measured in one run, on the same machine load:
                   gradients in ``parameters_changed``), then ``m.objective_function()``
                   and ``m.objective_function_gradients()`` (transformed to x-space).
                   x alternates between two nearby vectors so no cache can answer.
-    * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` (the Pyro trace: X prior,
-                  observation term, 1/θ hyperprior).
+    * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` through the Pyro trace
+                  (``sgpdm_program.LOG_JOINT = "pyro"``: X prior, observation term, 1/θ hyperprior).
+    * ours_direct: the same, by the model's default path since issue 29 (the same site
+                  log-densities summed without the trace, equal bit for bit:
+                  ``sgpdm_program.sgpdm_log_joint``).
     * ours_raw:   ``bayes_talk.gp.terms.observation_loglik(Y, X, α, γ, β, w)`` with X and
                   log α, log γ, log β requiring grad, plus backward (no Pyro overhead).
     * ours_raw_torch: the same term through the torch path (``train_cov`` + the Cholesky
@@ -25,7 +28,8 @@ Everything below is measured in one run, on the same machine load:
                   and the dynamics), so its floor is about 3 × floor_ours.
 (b) sgpdm_full: the two-view SGPDM with dynamics (views D = 20 + 30,
     ``SGPDM(latent_dim=8, max_iter=1)``, default fixed dynamics): one log joint +
-    gradient; reported as a ratio to the same GPy figure.
+    gradient (the default, direct path; ``sgpdm_full_pyro`` through the trace); reported
+    as a ratio to the same GPy figure.
 
 Every timing is the median of ``--repeats`` calls after one warm-up; the
 variants are interleaved within each repeat so they see the same machine load.
@@ -38,6 +42,7 @@ Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -55,7 +60,7 @@ import torch
 D_GPLVM = 50
 D_VIEWS = {"audio": 20, "visual": 30}
 LATENT = 8
-FULL_SIZES = (500, 1000, 2000)
+FULL_SIZES = (200, 500, 1000, 2000)
 QUICK_SIZES = (200, 400)
 CHECK_N = 200
 
@@ -78,6 +83,18 @@ def quiet_fit(model, views):
 
 
 # ---------------------------------------------------------------------------- setups
+@contextlib.contextmanager
+def log_joint_path(path: str):
+    """SGPDM.log_joint by ``path`` ("direct" or "pyro", bayes_talk.models.sgpdm_program.LOG_JOINT) in the block."""
+    import bayes_talk.models.sgpdm_program as sgpdm_mod
+
+    prev, sgpdm_mod.LOG_JOINT = sgpdm_mod.LOG_JOINT, path
+    try:
+        yield
+    finally:
+        sgpdm_mod.LOG_JOINT = prev
+
+
 class Ours:
     """Our single-view GPLVM: Pyro log joint and the raw observation term."""
 
@@ -95,6 +112,10 @@ class Ours:
                      for k in ("alpha", "gamma", "beta")]
 
     def pyro_eval(self) -> float:
+        with log_joint_path("pyro"):
+            return self.direct_eval()
+
+    def direct_eval(self) -> float:
         for t in self.free:
             t.grad = None
         loss = -self.m.log_joint()
@@ -175,6 +196,10 @@ class Full:
         loss.backward()
         return float(loss.detach())
 
+    def pyro_eval(self) -> float:
+        with log_joint_path("pyro"):
+            return self.eval()
+
 
 # ---------------------------------------------------------------------------- timing
 def timed(fn) -> tuple[float, float]:
@@ -214,7 +239,8 @@ def lapack_floors(K: np.ndarray) -> dict:
     return {"floor_ours": ours, "floor_gpy": gpy}
 
 
-RATIO_KEYS = ("ours_pyro", "ours_raw", "ours_raw_torch", "sgpdm_full", "floor_ours", "floor_gpy")
+RATIO_KEYS = ("ours_pyro", "ours_direct", "ours_raw", "ours_raw_torch", "sgpdm_full", "sgpdm_full_pyro",
+              "floor_ours", "floor_gpy")
 
 
 def bench_size(N: int, repeats: int) -> dict:
@@ -223,8 +249,8 @@ def bench_size(N: int, repeats: int) -> dict:
     gpy = Gpy(ours)
     full = Full(N)
     setup = time.perf_counter() - t0
-    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_raw": ours.raw_eval,
-           "ours_raw_torch": ours.raw_torch_eval, "sgpdm_full": full.eval}
+    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_direct": ours.direct_eval, "ours_raw": ours.raw_eval,
+           "ours_raw_torch": ours.raw_torch_eval, "sgpdm_full": full.eval, "sgpdm_full_pyro": full.pyro_eval}
     self_timed = lapack_floors(ours.kernel_matrix())
     for f in [*fns.values(), *self_timed.values()]:  # warm-up
         f()
@@ -400,7 +426,7 @@ def main(argv=None) -> int:
                         "(also BAYES_TALK_FUSED=0)")
     p.add_argument("--lapack", choices=("torch-mkl", "scipy"), default=None,
                    help="LAPACK provider of the fused path (default: bayes_talk.gp.lapack's)")
-    p.add_argument("--sizes", default=None, help="comma-separated N (default: 500,1000,2000)")
+    p.add_argument("--sizes", default=None, help="comma-separated N (default: 200,500,1000,2000)")
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
@@ -433,17 +459,19 @@ def main(argv=None) -> int:
         "sizes": [],
     }
     print(f"{'N':>5} {'gpy':>9} {'ours_pyro':>10} {'ours_raw':>9} {'sgpdm_full':>10}  "
-          f"{'pyro/gpy':>8} {'raw/gpy':>8} {'full/gpy':>8} {'torch/gpy':>9} {'floor/gpy':>9} {'gpyfloor/gpy':>12}")
+          f"{'pyro/gpy':>8} {'direct/gpy':>10} {'raw/gpy':>8} {'full/gpy':>8} {'torch/gpy':>9} {'floor/gpy':>9} "
+          f"{'gpyfloor/gpy':>12}")
     for N in sizes:
         r = bench_size(N, args.repeats)
         result["sizes"].append(r)
         s, q = r["seconds"], r["ratio_to_gpy"]
         print(f"{N:>5} {s['gpy']['median']:>9.4f} {s['ours_pyro']['median']:>10.4f} "
               f"{s['ours_raw']['median']:>9.4f} {s['sgpdm_full']['median']:>10.4f}  "
-              f"{q['ours_pyro']:>8.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f} "
+              f"{q['ours_pyro']:>8.2f} {q['ours_direct']:>10.2f} {q['ours_raw']:>8.2f} {q['sgpdm_full']:>8.2f} "
               f"{q['ours_raw_torch']:>9.2f} {q['floor_ours']:>9.2f} {q['floor_gpy']:>12.2f}", flush=True)
         c = r["cpu_ratio_to_gpy"]
-        print(f"{'':>5} CPU-time ratios: pyro/gpy {c['ours_pyro']:.2f}  raw/gpy {c['ours_raw']:.2f}  "
+        print(f"{'':>5} CPU-time ratios: pyro/gpy {c['ours_pyro']:.2f}  direct/gpy {c['ours_direct']:.2f}  "
+              f"raw/gpy {c['ours_raw']:.2f}  "
               f"full/gpy {c['sgpdm_full']:.2f}  torch/gpy {c['ours_raw_torch']:.2f}  "
               f"floor/gpy {c['floor_ours']:.2f}  gpyfloor/gpy {c['floor_gpy']:.2f}", flush=True)
     if not args.no_profile:

@@ -23,10 +23,9 @@ SMALL = {"latent_dim": 3, "max_iter": 20, "min_frames_per_state": 10, "max_frame
 
 
 @pytest.fixture(scope="module")
-def corpus_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("bad") / "corpus"
-    assert main(["-q", "corpus", "build", str(out), "--n-utterances", "6", "--seed", "5"]) == 0
-    return out
+def corpus_dir(shared_built_corpus) -> Path:
+    """The session's shared 10-utterance corpus (tests/conftest.py; read-only: copy to change it)."""
+    return shared_built_corpus
 
 
 @pytest.fixture(scope="module")

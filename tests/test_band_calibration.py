@@ -272,3 +272,52 @@ def test_calibrated_warning_is_the_validated_domain_not_the_raw_khat(fitted):
     old = replace(cal, info={})
     assert old.validated_khat is None and len(old.apply(raw(0.9)).warnings) == 2
     assert old.apply(raw(0.5)).warnings == ["synthesis MAP did not converge: (kept)"]
+
+
+class _PickledPool:
+    """A parallel executor stand-in: ``map`` sends every task and result through pickle, as a
+    process pool does, but runs it here (worker processes would add ~20 s of start-up; that
+    the process engines equal the local one is tests/test_executor.py's)."""
+
+    parallel = True
+    n_workers = 2
+
+    def __init__(self):
+        self.calls = []
+
+    def map(self, fn, items, desc=None, unit="task"):
+        import pickle
+
+        from bayes_talk.executor import run_task
+
+        items = list(items)
+        self.calls.append(len(items))
+        return [pickle.loads(pickle.dumps(run_task(*pickle.loads(pickle.dumps((fn, x)))))) for x in items]
+
+
+def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibration():
+    """Issue 29: with a parallel executor the held-out syntheses go through it in chunks;
+    the calibration (scale, level map, mean shrinkage, control) equals the serial one."""
+    from toydata import make_utterances
+
+    from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+
+    train = make_utterances(10, seed=3, mean_len=30)
+    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
+    model, fitted = SwitchingSGPDM(**small), []
+
+    def fit_once(sub, seqs):  # the calibration model is trained once and used by both runs
+        if not fitted:
+            fitted.append(sub.fit(seqs))
+        return fitted[0]
+
+    one = fit_band_calibration(model, train, holdout=0.3, n_draws=16, seed=1, fit=fit_once)
+    pool = _PickledPool()
+    two = fit_band_calibration(model, train, holdout=0.3, n_draws=16, seed=1, executor=pool, fit=fit_once)
+    assert pool.calls == [3]            # 3 held-out utterances, one chunk each
+    assert one.held_out == two.held_out and len(one.held_out) == 3
+    np.testing.assert_array_equal(two.scale, one.scale)
+    np.testing.assert_array_equal(two.mean_scale, one.mean_scale)
+    np.testing.assert_array_equal(two.level_raw, one.level_raw)
+    np.testing.assert_array_equal(two.control_var, one.control_var)

@@ -16,10 +16,9 @@ SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 3, "max_frames_per_state"
 
 
 @pytest.fixture(scope="module")
-def corpus_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("pipe") / "corpus"
-    assert main(["corpus", "build", str(out), "--n-utterances", "10", "--seed", "3"]) == 0
-    return out
+def corpus_dir(shared_built_corpus) -> Path:
+    """The session's shared 10-utterance corpus (tests/conftest.py; read-only: copy to change it)."""
+    return shared_built_corpus
 
 
 @pytest.fixture(scope="module")
@@ -271,23 +270,24 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
         return rec
 
     monkeypatch.setattr(pipeline, "fit_model", fake_fit)
+    n = len(json.loads((corpus_dir / "manifest.json").read_text())["sequences"])
     lst = tmp_path / "held.txt"
     lst.write_text("utt0003\n# a comment\n\nutt0007\n")
     out = pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m1", workers=1, holdout_list=lst)
     desc = json.loads((out / "bayes_talk_model.json").read_text())
-    assert desc["held_out"] == ["utt0003", "utt0007"] and desc["n_train"] == 8
-    assert len(seen[-1]) == 8 and not {"utt0003", "utt0007"} & set(seen[-1])
+    assert desc["held_out"] == ["utt0003", "utt0007"] and desc["n_train"] == n - 2
+    assert len(seen[-1]) == n - 2 and not {"utt0003", "utt0007"} & set(seen[-1])
     # --holdout N: the last N, from the command line
     assert main(["train", str(corpus_dir), "--out", str(tmp_path / "m2"), "--holdout", "3",
                  "--model", "ssgpdm-vlmm", "--no-calibrate-bands"]) == 0
     desc = json.loads((tmp_path / "m2" / "bayes_talk_model.json").read_text())
-    assert desc["held_out"] == ["utt0007", "utt0008", "utt0009"] and seen[-1][-1] == "utt0006"
+    assert desc["held_out"] == [f"utt{i:04d}" for i in range(n - 3, n)] and seen[-1][-1] == f"utt{n - 4:04d}"
     # bad lists are refused naming the file and the problem
     lst.write_text("utt0003\nnope\n")
     with pytest.raises(ValueError, match=r"held\.txt: utterance\(s\) \['nope'\] are not in"):
         pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m3", workers=1, holdout_list=lst)
-    with pytest.raises(ValueError, match=r"holdout: expected an integer in \[0, 9\]"):
-        pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m4", workers=1, holdout=10)
+    with pytest.raises(ValueError, match=rf"holdout: expected an integer in \[0, {n - 1}\]"):
+        pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m4", workers=1, holdout=n)
 
 
 # --- issue 13: synth from a transcript, or from audio alone ---------------------------------

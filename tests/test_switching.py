@@ -96,7 +96,7 @@ def test_save_load_round_trip_gives_identical_synthesis(vlmm_model, data, tmp_pa
 
 
 def test_executor_gives_the_same_model_as_sequential(data):
-    train = data[0][:10]
+    train = data[0][:6]
     seq = SwitchingSGPDM(states="phone", **SMALL).fit(train)
     with ProcessPoolExecutor(2) as ex:  # Pyro's handler stack is per process: no thread pools
         par = SwitchingSGPDM(states="phone", **SMALL).fit(train, executor=ex)
@@ -225,7 +225,8 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     from bayes_talk.synthesis.posterior import sample_synthesis
 
     train, test = data
-    m = SwitchingSGPDM(states="vlmm", seed=0, audio_context=2, **SMALL).fit(train)
+    # 8 utterances (~300 frames) are plenty to fit the 5·D-column window's PCA and some states
+    m = SwitchingSGPDM(states="vlmm", seed=0, audio_context=2, **SMALL).fit(train[:8])
     D = train[0].mfcc.shape[1]
     s = test[0]
     a = m.audio_input(s.mfcc)
@@ -251,3 +252,21 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     assert p.mean.shape == r.mean.shape and np.all(np.isfinite(p.mean))
     with pytest.raises(ValueError, match="audio context"):
         AudioContext(-1)
+
+
+def test_direct_log_joint_trains_the_same_switching_model_as_the_pyro_trace(data, monkeypatch):
+    """Issue 29: the state models fitted through the direct log joint (the default) have
+    the hyperparameters and latents of the Pyro-trace path (kept as BAYES_TALK_LOG_JOINT=pyro)."""
+    import bayes_talk.models.sgpdm_program as sgpdm_mod
+
+    train = data[0][:5]
+    fits = {}
+    for path in ("pyro", "direct"):
+        monkeypatch.setattr(sgpdm_mod, "LOG_JOINT", path)
+        fits[path] = SwitchingSGPDM(states="phone", **SMALL).fit(train)
+    ref, new = fits["pyro"], fits["direct"]
+    assert ref.models_.keys() == new.models_.keys()
+    for k in ref.models_:
+        np.testing.assert_array_equal(new.models_[k].X_, ref.models_[k].X_)
+        for h, v in ref.models_[k].hyper_.items():
+            np.testing.assert_array_equal(np.asarray(new.models_[k].hyper_[h]), np.asarray(v), err_msg=f"{k} {h}")

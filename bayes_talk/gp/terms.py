@@ -13,6 +13,7 @@ which is about twice as fast as differentiating through the Cholesky (FACTS.md).
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -87,7 +88,15 @@ def observation_loglik(
 
 
 def dynamics_split(seq_lengths: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Row indices of X_in (x^s_1..x^s_{T_s−1}), X_out (x^s_2..x^s_{T_s}) and first frames."""
+    """Row indices of X_in (x^s_1..x^s_{T_s−1}), X_out (x^s_2..x^s_{T_s}) and first frames.
+
+    Remembered for the last few length lists (the objective asks for them at every L-BFGS
+    evaluation); the index tensors are shared, so callers must not modify them."""
+    return _dynamics_split(tuple(int(t) for t in seq_lengths))
+
+
+@functools.lru_cache(maxsize=16)
+def _dynamics_split(seq_lengths: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     ins, outs, firsts = [], [], []
     start = 0
     for T in seq_lengths:

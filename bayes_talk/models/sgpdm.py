@@ -53,11 +53,10 @@ from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
 from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
 from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
+from bayes_talk.models.sgpdm_program import log_joint as program_log_joint
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
 
 log = logging.getLogger(__name__)
-
-
 
 _DEFAULTS = SGPDMConfig()
 
@@ -183,8 +182,10 @@ class SGPDM:
         return [k for k in self._log if not k.startswith("w/")]
 
     def log_joint(self) -> torch.Tensor:
-        """Log joint of the Pyro trace at the current parameters (= the MAP objective)."""
-        return self.trace().log_prob_sum()
+        """Log joint of the Pyro trace at the current parameters (= the MAP objective), by the
+        path ``sgpdm_program.LOG_JOINT`` names (:func:`~bayes_talk.models.sgpdm_program.log_joint`)."""
+        return program_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
+                                 self._learned_thetas())
 
     def trace(self) -> pyro.poutine.Trace:
         """The executed Pyro trace; ``trace().nodes[site]['log_prob_sum']`` per term."""

@@ -319,7 +319,11 @@ class SwitchingModel:
         keys.append(FALLBACK)
         log.info("training %d state models (%d states seen)", len(jobs), len(subs))
         mapper: Callable = executor.map if executor is not None else map
-        results = list(mapper(_fit_state, jobs))
+        # largest first (the fallback, then the capped states): parallel workers finish together
+        order = sorted(range(len(jobs)), key=lambda j: -len(jobs[j][0]))
+        results = [None] * len(jobs)
+        for j, r in zip(order, mapper(_fit_state, [jobs[j] for j in order])):
+            results[j] = r
         self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
         self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         self.n_training_frames_ = n_frames

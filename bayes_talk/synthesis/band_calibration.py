@@ -83,6 +83,7 @@ lines is the mathematics above.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -439,6 +440,21 @@ def split_for_calibration(n: int, holdout: float = HOLDOUT_FRACTION, seed: int =
     return [i for i in range(n) if i not in hs], held
 
 
+#: held-out syntheses per worker process when the calibration's syntheses run in parallel
+#: (contiguous chunks: more chunks balance the load, each costs one copy of the model)
+SYNTHESIS_CHUNKS_PER_WORKER = 3
+
+
+def _synthesise_chunk(job: tuple) -> list[SynthesisResult]:
+    """The posterior syntheses of one chunk of held-out utterances (a module-level function,
+    so that process pools can pickle it)."""
+    from bayes_talk.synthesis.posterior import sample_synthesis
+
+    model, utterances, method, n_draws, seed = job
+    return [sample_synthesis(model, mfcc, labels, method=method, n_draws=n_draws, seed=seed, log_warnings=False)
+            for mfcc, labels in utterances]
+
+
 def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                          n_draws: int = 64, seed: int = 0, executor=None,
                          progress: Callable[[str], None] | None = None,
@@ -448,7 +464,12 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     trained on the other utterances of ``train`` (through ``executor`` as
     ``SwitchingSGPDM.fit``), the held-out ones are synthesised with ``n_draws`` draws
     (seed ``seed``) and the factors fitted to their AAM parameters. ``fit(model, utterances)``
-    replaces the training call (e.g. the CLI's, with its progress bar and process pool)."""
+    replaces the training call (e.g. the CLI's, with its progress bar and process pool).
+
+    When ``executor`` runs tasks in other processes (its ``parallel`` is true) the held-out
+    syntheses go through it too, in contiguous chunks (the model is sent once per chunk);
+    each synthesis is seeded and single-threaded either way, so the calibration does not
+    depend on the executor (issue 29)."""
     from bayes_talk.models.switching import SwitchingModel
     from bayes_talk.synthesis.posterior import sample_synthesis
 
@@ -462,14 +483,21 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     sub = type(model)(**asdict(model.config))
     rest = [seqs[i] for i in fit_idx]
     sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
-    results, truths = [], []
-    for j, i in enumerate(held_idx):
-        s = seqs[i]
-        results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
-                                        log_warnings=False))
-        truths.append(s.aam)
-        if (j + 1) % 10 == 0 or j + 1 == len(held_idx):
-            say(f"band calibration: synthesised {j + 1}/{len(held_idx)} held-out utterances")
+    results, truths = [], [seqs[i].aam for i in held_idx]
+    if getattr(executor, "parallel", False) and len(held_idx) > 1:
+        n_chunks = min(len(held_idx), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
+        bounds = np.linspace(0, len(held_idx), n_chunks + 1).round().astype(int)
+        jobs = [(sub, [(seqs[i].mfcc, seqs[i].labels) for i in held_idx[a:b]], method, n_draws, seed)
+                for a, b in itertools.pairwise(bounds)]
+        say(f"band calibration: synthesising {len(held_idx)} held-out utterances in {len(jobs)} tasks")
+        results = [r for chunk in executor.map(_synthesise_chunk, jobs) for r in chunk]
+    else:
+        for j, i in enumerate(held_idx):
+            s = seqs[i]
+            results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
+                                            log_warnings=False))
+            if (j + 1) % 10 == 0 or j + 1 == len(held_idx):
+                say(f"band calibration: synthesised {j + 1}/{len(held_idx)} held-out utterances")
     cal = BandCalibration.fit(results, truths, method=method, names=[seqs[i].name for i in held_idx])
     cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=len(fit_idx),
                     held_out_diagnostics=_synthesis_record(results))
