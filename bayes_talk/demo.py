@@ -86,8 +86,12 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     rows: dict[str, dict] = {}
     kept: dict[str, list] = {}  # predicted means, for the gain fractions
     t2 = time.time()
-    raw = [sample_synthesis(model, s.mfcc, s.labels, method="laplace", seed=seed) for s in test]
+    raw = [sample_synthesis(model, s.mfcc, s.labels, method="laplace", seed=seed, log_warnings=False)
+           for s in test]
     post = [cal.apply(p) for p in raw]
+    for s, p in zip(test, post):   # the calibrated predictive's warnings (BandCalibration.domain), as synth
+        for w in p.warnings:
+            print(f"[demo] WARNING {s.name}: {w}", flush=True)
     post = [p.shift(lowpass(p.mean, LOWPASS_HZ) - p.mean) for p in post]   # what `synth` writes
     default = f"{DEMO_MODEL}-posterior (default)"
     rows[default] = {

@@ -387,11 +387,13 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
         from bayes_talk.synthesis.posterior import sample_synthesis
 
         r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
-                             n_draws=cfg.posterior_draws, seed=cfg.seed)
+                             n_draws=cfg.posterior_draws, seed=cfg.seed, log_warnings=False)
         cal, raw, control = getattr(model, "band_calibration_", None), None, None
         if cal is not None and cal.method == r.method:
             raw, r = r, cal.apply(r)
             control = cal.control_result(raw) if cal.control is not None else None
+        for w in r.warnings:   # those of the predictive reported (calibrated: BandCalibration.domain)
+            log.warning("%s: %s", seq.name, w)
         return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r, raw=raw,
                           control=control)
     if m.family.startswith("ssgpdm-"):
