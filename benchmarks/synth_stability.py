@@ -67,7 +67,7 @@ def measure(model_dir: Path, test: Path, n_test: int, seed: int, work: Path) -> 
         shift = np.abs(out - ref) / sd
         frame = int(np.argmax(shift.max(1)))
         inner = diag.get("diagnostics", {})
-        rows.append({"utterance": wav.stem, "frames": int(len(ref)), "warnings": diag.get("problems", []),
+        rows.append({"utterance": wav.stem, "frames": len(ref), "warnings": diag.get("problems", []),
                      "warnings_with_noise": diag_n.get("problems", []),
                      "khat": inner.get("khat"), "map_converged": inner.get("map_converged"),
                      "max_shift_sd": float(shift.max()), "frame_of_max_shift": frame,
