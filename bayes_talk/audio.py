@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
 __all__ = ["CLIP_FRACTION", "CLIP_LEVEL", "CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings",
            "clipped_fraction", "cmvn", "downmix", "feature_statistics", "load_audio",
@@ -229,6 +229,8 @@ class AudioSettings:
     cmvn: str = DEFAULT_CMVN
     #: mel filterbank upper edge (Hz); None: sr/2, the front end before issue 12
     fmax: float | None = FMAX_HZ
+    #: absolute mel-power floor (dBFS, :data:`bayes_talk.features.frontend.FLOOR_DBFS`); None: none
+    floor_dbfs: float | None = FLOOR_DBFS
 
     def __post_init__(self) -> None:
         if self.cmvn not in CMVN_MODES:
@@ -248,4 +250,5 @@ class AudioSettings:
             return cls(sample_rate=int(fallback_rate), cmvn="off", fmax=None)
         known = {k: d[k] for k in ("sample_rate", "fps", "n_mfcc", "window_s", "n_mels", "cmvn", "fmax")
                  if k in d}
+        known["floor_dbfs"] = d.get("floor_dbfs")   # recorded since issue 27; older models had none
         return cls(**known)

@@ -45,13 +45,14 @@ _DEFAULT = object()
 
 def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float = 25.0, *,
                    sample_rate: int | None = None, cmvn: str = "off", tier: str | None = None,
-                   fmax: float | None = None) -> Utterance:
+                   fmax: float | None = None, floor_dbfs: float | None = None) -> Utterance:
     """MFCCs and frame labels of a WAV and its HTK .lab or Praat TextGrid.
 
     ``sample_rate``: resample the audio to it (the model's training rate; one log line);
     ``cmvn``: the model's cepstral normalisation (:func:`bayes_talk.audio.cmvn`); ``tier``:
     the TextGrid tier holding the phones; ``fmax``: the model's mel filterbank edge (None:
-    sr/2, the front end of models trained before it was recorded). Raises ValueError
+    sr/2, the front end of models trained before it was recorded); ``floor_dbfs``: its
+    absolute mel-power floor (None: none, likewise). Raises ValueError
     naming both files when the labels and the audio disagree in length by more than two
     frames.
     """
@@ -65,7 +66,7 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     intervals = read_labels(labels, tier=tier)
     check_audio_vs_labels(wav, labels, y.size / sr, intervals[-1][1])
     T = frame_count(y.size, sr, fps)
-    feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn)
+    feats = _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax, floor_dbfs=floor_dbfs), cmvn)
     return Utterance(wav.stem, feats, None, frame_labels(intervals, T, fps), audio_path=wav)
 
 
@@ -97,6 +98,7 @@ def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, sc
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 1,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = "mean", fmax: float | None = _DEFAULT,
+          floor_dbfs: float | None = _DEFAULT,
           alignment: bool = True, executor=None, scheduler: str | None = None,
           calibrate_bands: float | None = None, **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
@@ -107,6 +109,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
 
     ``cmvn``: per-utterance cepstral normalisation (bayes_talk.audio; "mean" by default);
     ``fmax``: mel filterbank edge (default ``features.mfcc.FMAX_HZ``; None: sr/2, as before).
+    ``floor_dbfs``: absolute mel-power floor (default ``features.mfcc.FLOOR_DBFS``; None: none, as before).
     The bundle records the audio front end (sample rate, MFCC settings, ``cmvn``, feature
     statistics) and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
     last (bayes_talk.bundle).
@@ -136,10 +139,11 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a switching model, found "
                          f"{calibrate_bands!r} for {kind} (sgplvm calibrates its variances itself)")
     fmax = _mf.FMAX_HZ if fmax is _DEFAULT else fmax
+    floor_dbfs = _mf.FLOOR_DBFS if floor_dbfs is _DEFAULT else floor_dbfs
     from bayes_talk.executor import executor_for
 
     with executor_for(executor, workers, scheduler) as ex:
-        corpus = load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax,
+        corpus = load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs,
                              executor=ex if executor is not None or ex.parallel else None)
         train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
         corpus.sequences = train_seqs
@@ -154,7 +158,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     out.mkdir(parents=True, exist_ok=True)
     begin_bundle(out, DESCRIPTOR)
     audio = AudioSettings(sample_rate=int(corpus.sample_rate), fps=float(corpus.fps), n_mfcc=_mf.N_MFCC,
-                          window_s=_mf.WINDOW_S, n_mels=_mf.N_MELS, cmvn=cmvn, fmax=fmax).to_dict()
+                          window_s=_mf.WINDOW_S, n_mels=_mf.N_MELS, cmvn=cmvn, fmax=fmax,
+                          floor_dbfs=floor_dbfs).to_dict()
     audio["feature_statistics"] = feature_statistics([s.mfcc for s in corpus.sequences])
     if kind == "sgplvm":
         model.save(out / "sgpdm")
@@ -292,12 +297,24 @@ def _mean_shrinkage(res, tm) -> list[float] | None:
     return [float(a) for a in tm.calibration.mean_scale]
 
 
+def _pool_weight(res, tm) -> list[float] | None:
+    """The band calibration's per-parameter pool weights w_d (stage 3) applied to ``res``, or None."""
+    bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
+    if not bc or tm.calibration is None or tm.calibration.pool_weight is None:
+        return None
+    return [float(w) for w in tm.calibration.pool_weight]
+
+
 def _trajectory_description(res, lowpass_hz) -> str:
     """What ``trajectory.npy`` holds, in words (written to ``diagnostics.json``)."""
     calibrated = isinstance(res.diagnostics, dict) and "band_calibration" in res.diagnostics
+    has_c = getattr(res, "mean_function", None) is not None
+    toward = ("the model's explicit mean function c_t (its phonetic-context view)" if has_c
+              else "0 (the parameter's training mean)")
     what = (f"the mean of the band-calibrated {res.method} predictive: the posterior mean with each AAM "
-            "parameter d multiplied by the calibration's mean factor a_d (mean_shrinkage; 1 = unchanged, "
-            "0 = the parameter is predicted as its utterance mean)" if calibrated else
+            f"parameter's part beyond {toward} multiplied by the calibration's mean factor a_d "
+            "(mean_shrinkage; 1 = unchanged, 0 = the parameter is predicted as that mean function); "
+            "the bands' pool with the constant band (pool_weight) leaves the mean unchanged" if calibrated else
             f"the mean of the {res.method} posterior predictive (no band calibration applied)")
     filt = f", low-passed at {lowpass_hz:g} Hz (zero phase)" if lowpass_hz is not None else ""
     return what + filt + "; mean-removed AAM parameters (add the model's offset)"
@@ -366,7 +383,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         derived = _derived_labels(model_dir, wav, text, transcript, align_method)
     elif text is not None or transcript is not None:
         raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
-    front = {"sample_rate": tm.audio.sample_rate, "cmvn": tm.audio.cmvn, "fmax": tm.audio.fmax}
+    front = {"sample_rate": tm.audio.sample_rate, "cmvn": tm.audio.cmvn, "fmax": tm.audio.fmax,
+             "floor_dbfs": tm.audio.floor_dbfs}
     utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
            else _utterance_from_intervals(wav, derived, tm.fps, **front))
     if truth is not None:
@@ -429,6 +447,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                                 "converged": not problems, "problems": problems,
                                                 "trajectory_holds": _trajectory_description(res, lowpass_hz),
                                                 "mean_shrinkage": _mean_shrinkage(res, tm),
+                                                "pool_weight": _pool_weight(res, tm),
                                                 "diagnostics": res.diagnostics})
         written.update(diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
@@ -519,7 +538,8 @@ def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tupl
 
 
 def _utterance_from_intervals(wav, intervals, fps: float = 25.0, *, sample_rate: int | None = None,
-                              cmvn: str = "off", fmax: float | None = None) -> Utterance:
+                              cmvn: str = "off", fmax: float | None = None,
+                              floor_dbfs: float | None = None) -> Utterance:
     """MFCCs (the model's front end, as :func:`read_utterance`) and frame labels of a WAV
     whose phone intervals were derived from its audio."""
     from bayes_talk.audio import cmvn as _cmvn
@@ -529,5 +549,6 @@ def _utterance_from_intervals(wav, intervals, fps: float = 25.0, *, sample_rate:
     wav = Path(wav)
     y, sr = load_wav(wav, sample_rate)
     T = frame_count(y.size, sr, fps)
-    return Utterance(wav.stem, _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax), cmvn), None,
+    return Utterance(wav.stem, _cmvn(mfcc(y, sr, T, fps=fps, where=str(wav), fmax=fmax, floor_dbfs=floor_dbfs),
+                                     cmvn), None,
                     frame_labels(intervals, T, fps), audio_path=wav)

@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bayes_talk.audio import resample
-from bayes_talk.features.mfcc import FMAX_HZ
+from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
 from bayes_talk.files import write_json
 from bayes_talk.pipeline import load_trained, read_utterance, train
 
@@ -55,7 +55,7 @@ def variants(y: np.ndarray, sr: int) -> dict[str, tuple[np.ndarray, int]]:
 def synth_mean(tm, wav: Path, lab: Path, frontend: str) -> np.ndarray:
     if frontend == "new":
         utt = read_utterance(wav, lab, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
-                             fmax=tm.audio.fmax)
+                             fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
     else:  # before issue 12: the file's own rate, mel bands to sr/2, no normalisation
         utt = read_utterance(wav, lab, tm.fps, sample_rate=None, cmvn="off", fmax=None)
     res = tm.model.synthesize(utt.mfcc, utt.labels, algorithm="optimise")
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
         for label, cm in runs:
             t0 = time.perf_counter()
             mdir = train(a.train, a.model, tmp / f"model_{cm}", cmvn=cm,
-                         fmax=FMAX_HZ if label == "new" else None)
+                         fmax=FMAX_HZ if label == "new" else None, floor_dbfs=FLOOR_DBFS if label == "new" else None)
             t1 = time.perf_counter()
             work = tmp / f"audio_{cm}"
             work.mkdir()

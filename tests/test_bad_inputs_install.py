@@ -162,7 +162,7 @@ def test_synth_refuses_to_recognise_phones_in_noise_and_warns_with_labels(tmp_pa
 
     sr = 22050
     noise = _write(tmp_path / "noise.wav", 0.2 * np.random.default_rng(1).normal(size=2 * sr), sr)
-    audio = SimpleNamespace(sample_rate=sr, cmvn="mean", fmax=None)
+    audio = SimpleNamespace(sample_rate=sr, cmvn="mean", fmax=None, floor_dbfs=None)
     monkeypatch.setattr(pl, "load_trained", lambda d: SimpleNamespace(kind="ssgpdm-phone-rc", audio=audio,
                                                                         fps=25.0))
 

@@ -62,3 +62,36 @@ def test_truncation_and_errors(tmp_path):
     p2 = tmp_path / "ok.wav"
     sf.write(p2, (y * 32767).astype(np.int16), SR, subtype="PCM_16")
     assert np.allclose(mfcc_from_wav(p2), full, atol=1e-2 * np.abs(full).max())
+
+
+def test_absolute_floor_makes_digital_silence_and_inaudible_noise_alike():
+    """Issue 27: with the floor, −60 dBFS white noise leaves the features of a digitally
+    silent stretch unchanged (without it they move by tens of dB); the floor is the
+    expected mel power of white noise at its level (σ² Σ w² Σ_k M_bk, checked against
+    librosa's own mel spectrogram of such noise); ``floor_dbfs=None`` is librosa's MFCC."""
+    import librosa
+
+    from bayes_talk.features.mfcc import noise_power
+
+    sr = 22050
+    rng = np.random.default_rng(0)
+    t = np.arange(2 * sr) / sr
+    speech = 0.1 * np.sin(2 * np.pi * 180 * t) * (1 + 0.3 * rng.standard_normal(t.size))
+    y = np.concatenate([np.zeros(sr // 2), speech, np.zeros(sr // 2)])
+    noisy = y + 10 ** (-60 / 20) * rng.standard_normal(y.size)
+    edge = slice(0, 10)                                    # 0.4 s of digital silence
+    np.testing.assert_array_equal(mfcc(y, sr)[edge], mfcc(noisy, sr)[edge])
+    assert np.abs(mfcc(y, sr, floor_dbfs=None)[edge] - mfcc(noisy, sr, floor_dbfs=None)[edge]).max() > 20
+    # the floor is what white noise at that level puts into each mel band, on average
+    win, hop = round(0.06 * sr), sr // 25
+    noise = 10 ** (-30 / 20) * rng.standard_normal(40 * sr)
+    S = librosa.feature.melspectrogram(y=noise, sr=sr, n_fft=win, hop_length=hop, window="hann", center=False,
+                                       n_mels=40, fmax=7600.0)
+    np.testing.assert_allclose(S.mean(axis=1), noise_power(-30.0, sr, win, 40, 7600.0), rtol=0.08)
+    # without the floor: librosa's MFCC of the same padded frames
+    pad = (win - hop) // 2
+    yp = np.concatenate([np.zeros(pad), y, np.zeros(win)])
+    ref = librosa.feature.mfcc(y=yp, sr=sr, n_mfcc=20, n_fft=win, hop_length=hop, window="hann", center=False,
+                               n_mels=40, fmax=7600.0).T
+    got = mfcc(y, sr, floor_dbfs=None)
+    np.testing.assert_allclose(got, ref[:got.shape[0]], atol=1e-9)

@@ -165,6 +165,15 @@ def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_pat
     assert "band-calibrated" in full["trajectory_holds"] and full["mean_shrinkage"] is None   # no stage 0 here
     raw = json.loads((tmp_path / "raw" / "diagnostics.json").read_text())
     assert "band_calibration" not in raw["diagnostics"] and "no band calibration" in raw["trajectory_holds"]
+    # stage 3, the pool with the constant band: variance (1 − w) s² v + w v_c, the mean unchanged
+    w, cv = np.linspace(0.0, 1.0, D), np.full(D, 0.7)
+    BandCalibration(scale, "laplace", control_var=cv, pool_weight=w).save(m)
+    write_bundle_manifest(m)
+    assert main(args + ["--out", str(tmp_path / "pool")]) == 0
+    np.testing.assert_allclose(np.load(tmp_path / "pool" / "trajectory.npy"), t_raw, atol=1e-10)
+    np.testing.assert_allclose(np.load(tmp_path / "pool" / "variance.npy"),
+                               (1 - w) * np.load(tmp_path / "raw" / "variance.npy") * scale**2 + w * cv, rtol=1e-8)
+    assert json.loads((tmp_path / "pool" / "diagnostics.json").read_text())["pool_weight"] == pytest.approx(list(w))
     # a calibration of another model's size is refused by name
     BandCalibration(np.ones(D + 1), "laplace").save(m)
     write_bundle_manifest(m)

@@ -6,7 +6,7 @@ A module of its own so that the audio loader and the MFCC code do not import eac
 """
 from __future__ import annotations
 
-__all__ = ["FMAX_HZ", "N_MELS", "N_MFCC", "WINDOW_S"]
+__all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MELS", "N_MFCC", "WINDOW_S"]
 
 #: cepstral coefficients per frame (D_y = 20, DESIGN.md §2)
 N_MFCC = 20
@@ -20,3 +20,11 @@ N_MELS = 40
 #: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
 #: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
 FMAX_HZ = 7600.0
+#: absolute floor of the mel power spectrum (issue 27): every band's power is raised to at
+#: least the expected power of white noise at this level (dB relative to full scale, rms),
+#: so that digital silence and inaudible noise (−60 dBFS) give the same features. Without
+#: it the features of silence are set by ``power_to_db``'s floor 80 dB below the
+#: utterance's loudest frame, and −60 dBFS of noise in a digitally silent stretch moved
+#: the synthesised face by up to 1.5 sd (benchmarks/synth_stability.py). ``None``: no
+#: floor (what models trained before it was recorded used).
+FLOOR_DBFS = -50.0

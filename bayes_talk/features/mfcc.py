@@ -1,7 +1,18 @@
 """MFCC audio features at the video frame rate (deena2010 §3.3).
 
-20 coefficients from a 60 ms Hann window every 40 ms (25 Hz), computed with
-``librosa.feature.mfcc`` (40 mel bands, power spectrum, ``power_to_db``, DCT-II ortho).
+20 coefficients from a 60 ms Hann window every 40 ms (25 Hz), computed with librosa
+(40 mel bands of the power spectrum, ``librosa.feature.melspectrogram``; ``power_to_db``;
+DCT-II ortho, ``librosa.feature.mfcc``).
+
+Absolute floor. Before the logarithm each mel band's power S_b is raised to at least
+the expected power of white noise of rms σ = 10^(FLOOR_DBFS/20) in that band,
+
+    S_b ← max(S_b, σ² · Σ_n w_n² · Σ_k M_bk)
+
+(w the analysis window, M the mel filterbank: E|X_k|² = σ² Σ_n w_n² for white noise), so
+digital silence and noise below the floor give the same features whatever the
+utterance's loudness (``power_to_db``'s own floor is relative: 80 dB below the loudest
+frame). ``floor_dbfs=None``: no floor (models trained before it).
 
 Alignment with video. Video frame k shows the interval ``[k/fps, (k+1)/fps)`` =
 ``[0.04k, 0.04k + 0.04)`` s. Audio frame k is the 60 ms window centred on that interval's
@@ -26,9 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.audio import downmix, load_audio
-from bayes_talk.features.frontend import FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
-__all__ = ["FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "samples_per_frame"]
+__all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "noise_power", "samples_per_frame"]
 
 
 def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
@@ -51,12 +62,15 @@ def frame_count(n_samples: int, sample_rate: int, fps: float = 25.0) -> int:
 
 def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: float = 25.0,
          n_mfcc: int = N_MFCC, window_s: float = WINDOW_S, n_mels: int = N_MELS,
-         where: str = "audio", fmax: float | None = FMAX_HZ) -> np.ndarray:
+         where: str = "audio", fmax: float | None = FMAX_HZ,
+         floor_dbfs: float | None = FLOOR_DBFS) -> np.ndarray:
     """MFCCs aligned to video frames; returns ``(n_frames, n_mfcc)`` float64.
 
     ``y``: mono waveform (float in [-1, 1], or int16 scaled by 1/32768; a 2-D (n, channels)
     array is downmixed by :func:`bayes_talk.audio.downmix`). ``n_frames``: default
     :func:`frame_count`; a smaller value truncates, a larger one is an error. ``where`` names the source in errors.
+    ``fmax``: the mel filterbank's upper edge (None: sr/2); ``floor_dbfs``: the absolute
+    floor (module docstring; None: none).
     """
     y = np.asarray(y)
     if y.dtype == np.int16:
@@ -90,13 +104,27 @@ def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: f
     need = (n_frames - 1) * hop + win
     right = max(0, need - pad - y.size)
     yp = np.concatenate([np.zeros(pad), y, np.zeros(right)])
-    m = librosa.feature.mfcc(y=yp, sr=sample_rate, n_mfcc=n_mfcc, n_fft=win, win_length=win,
-                             hop_length=hop, window="hann", center=False, n_mels=n_mels,
-                             fmax=None if fmax is None else min(float(fmax), sample_rate / 2))
+    top = None if fmax is None else min(float(fmax), sample_rate / 2)
+    S = librosa.feature.melspectrogram(y=yp, sr=sample_rate, n_fft=win, win_length=win, hop_length=hop,
+                                       window="hann", center=False, n_mels=n_mels, fmax=top, power=2.0)
+    if floor_dbfs is not None:
+        S = np.maximum(S, noise_power(float(floor_dbfs), sample_rate, win, n_mels, top)[:, None])
+    m = librosa.feature.mfcc(S=librosa.power_to_db(S), n_mfcc=n_mfcc)
     out = np.ascontiguousarray(m.T[:n_frames], dtype=np.float64)
     if out.shape[0] != n_frames:  # pragma: no cover - guarded by the padding above
         raise RuntimeError(f"{where}: librosa returned {out.shape[0]} frames, expected {n_frames}")
     return out
+
+
+def noise_power(dbfs: float, sample_rate: int, win: int, n_mels: int = N_MELS, fmax: float | None = None
+                ) -> np.ndarray:
+    """(n_mels,) expected mel power of white noise of rms 10^(dbfs/20) in a Hann window of
+    ``win`` samples: σ² Σ_n w_n² Σ_k M_bk (module docstring), the floor of :func:`mfcc`."""
+    import librosa
+
+    window = librosa.filters.get_window("hann", win, fftbins=True)
+    basis = librosa.filters.mel(sr=sample_rate, n_fft=win, n_mels=n_mels, fmax=fmax)
+    return 10.0 ** (float(dbfs) / 10.0) * float(np.sum(window ** 2)) * basis.sum(axis=1)
 
 
 def load_wav(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarray, int]:

@@ -72,12 +72,28 @@ of (y − m)², and that Gaussian then calibrated by stages 1–2 exactly as abo
 says no more about its uncertainty than a constant band would.
 :meth:`BandCalibration.control_result` builds it for a new prediction.
 
+**Stage 3, a pool with the constant band** (issue 27). The calibrated predictive P of
+stages 0–2 is pooled with the Gaussian Q_td = N(m_td, v_d) around its own mean (v_d the
+control's variance below),
+
+    p'(y) = (1 − w_d) p_P(y) + w_d N(y; m_td, v_d),                                   (4)
+
+with w_d ∈ [0, 1] per parameter maximising the held-out log score Σ ln p'(y) — stacking
+of predictive distributions (Yao et al. 2018), concave in w_d, so the best of the grid
+w ∈ {0, 0.01, …, 1} is taken. The posterior keeps the weight where its frame-to-frame
+shape of uncertainty predicts the truth; where it does not, the constant band takes it
+over. The mean (the trajectory) is unchanged.
+:class:`~bayes_talk.synthesis.pooled_result.PooledResult` is the result type (its
+docstring says how each answer is computed). The weights are fitted on the same held-out
+utterances as stages 0–2 (in-sample for those stages); without ``pool_weight`` (a file of
+version ≤ 4, or ``pool=False``) the calibration ends at stage 2.
+
 Saved with the model as ``band_calibration.json`` (:meth:`BandCalibration.save`;
 ``bayes-talk train --calibrate-bands``), applied by ``synth`` to the posterior method it
 was fitted on, and reported calibrated and raw side by side by ``evaluate``.
 
 This module stays above ~400 lines because :class:`BandCalibration` is one object: its
-three stages, the control and the validated-domain check (:meth:`BandCalibration.domain`)
+four stages, the control and the validated-domain check (:meth:`BandCalibration.domain`)
 are fitted from the same held-out syntheses and saved in one file; about a quarter of the
 lines is the mathematics above.
 """
@@ -95,10 +111,11 @@ import numpy as np
 
 from bayes_talk.files import write_json
 from bayes_talk.synthesis.diagnostics import KHAT_MAX, convergence_problems, is_sampler_warning, sampler_warning
+from bayes_talk.synthesis.pooled_result import PooledResult, check_pool
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "BandCalibration", "fit_band_calibration",
+__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "fit_band_calibration",
            "mean_shrinkage", "min_scales",
            "split_for_calibration"]
 
@@ -106,14 +123,16 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "band_calibration.json"
 _FORMAT = "bayes_talk.band_calibration"
-_VERSION = 4
-_READS = (1, 2, 3, 4)
+_VERSION = 5
+_READS = (1, 2, 3, 4, 5)
 #: default fraction of the training utterances held out to fit the calibration
 HOLDOUT_FRACTION = 0.2
 _GRID = np.exp(np.linspace(math.log(1 / 8), math.log(8), 2001))
 #: calibrated central levels q_j of the level map's knots (stage 2)
 LEVEL_KNOTS: tuple[float, ...] = tuple(np.round(np.arange(1, 20) * 0.05, 2))
 _KNOT_EPS = 1e-9
+#: the weights w of stage 3 searched (the held-out log score is concave in each w_d)
+POOL_GRID = np.round(np.linspace(0.0, 1.0, 101), 2)
 
 
 def min_scales(result: SynthesisResult, truth: np.ndarray, levels: Sequence[float] = DEFAULT_LEVELS
@@ -184,7 +203,8 @@ class BandCalibration:
     levels q_j; method: the synthesis method they were fitted on ("laplace", ...);
     levels: the levels reported; n_utterances / n_frames: the held-out data;
     coverage_raw / coverage_calibrated: {level: pooled coverage} on that data before and
-    after (in-sample); held_out: the held-out utterance names; info: how it was made
+    after stages 1–2 (in-sample); pool_weight: (D,) weights w_d of stage 3 (None: no pool);
+    control_var / control: the constant-band control; held_out: the held-out utterance names; info: how it was made
     (hold-out fraction, seed, draws).
     """
 
@@ -202,6 +222,7 @@ class BandCalibration:
     mean_scale: np.ndarray | None = None
     control_var: np.ndarray | None = None
     control: BandCalibration | None = None
+    pool_weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.scale = np.asarray(self.scale, dtype=np.float64)
@@ -221,6 +242,10 @@ class BandCalibration:
             if self.control_var.shape != self.scale.shape or not np.all(
                     np.isfinite(self.control_var) & (self.control_var > 0)):
                 raise ValueError(f"control_var: expected {self.scale.size} finite variances > 0")
+        if self.pool_weight is not None:
+            if self.control_var is None:
+                raise ValueError("pool_weight: the pool (stage 3) needs control_var, the Gaussian's variances")
+            self.pool_weight, _ = check_pool(self.pool_weight, self.control_var, self.scale.size, "band calibration")
         self.levels = tuple(float(q) for q in self.levels)
         if self.level_raw is not None:
             raw, cal = check_level_map(self.level_raw, self.level_cal, self.scale.size, "band calibration")
@@ -230,11 +255,13 @@ class BandCalibration:
     @classmethod
     def fit(cls, results: Sequence[SynthesisResult], truths: Sequence[np.ndarray], method: str | None = None,
             levels: Sequence[float] = DEFAULT_LEVELS, per_parameter: bool = True,
-            names: Sequence[str] = (), shrink_mean: bool = True, with_control: bool = True) -> BandCalibration:
+            names: Sequence[str] = (), shrink_mean: bool = True, with_control: bool = True,
+            pool: bool = True) -> BandCalibration:
         """Fit a_d (``shrink_mean``), s_d and the level map on held-out predictions
         ``results`` and their truths (each (T_i, D)). per_parameter=False fits one factor and
         one map for all parameters (pooled). ``with_control``: also fit the constant-band
-        control (module docstring)."""
+        control; ``pool`` (needs ``with_control``): also the weights of stage 3 (module
+        docstring)."""
         if not results or len(results) != len(truths):
             raise ValueError(f"fit: need one truth per result and at least one, got {len(results)} results "
                              f"and {len(truths)} truths")
@@ -273,12 +300,17 @@ class BandCalibration:
             control_var = np.maximum(np.mean(resid ** 2, axis=0), 1e-12)
             control = cls.fit([_constant_band(r, control_var) for r in results], truths, method=f"{meth}-control",
                               levels=levels, per_parameter=per_parameter, shrink_mean=False, with_control=False)
-        return cls(scale, meth, levels, r_dj, LEVEL_KNOTS, len(results), int(N),
-                   {f"{q:g}": float(v) for q, v in zip(levels, raw)},
-                   {f"{q:g}": float(v) for q, v in zip(levels, cal)}, list(names),
-                   {"per_parameter": bool(per_parameter),
-                    "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}},
-                   a, control_var, control)
+        out = cls(scale, meth, levels, r_dj, LEVEL_KNOTS, len(results), int(N),
+                  {f"{q:g}": float(v) for q, v in zip(levels, raw)},
+                  {f"{q:g}": float(v) for q, v in zip(levels, cal)}, list(names),
+                  {"per_parameter": bool(per_parameter),
+                   "coverage_scaled": {f"{q:g}": float(v) for q, v in zip(levels, _coverage_at(s_star, scale))}},
+                  a, control_var, control)
+        if pool and with_control:
+            # results are already shrunk (stage 0): apply stages 1-2 only, then score (4) per w
+            out.pool_weight, out.info["pool_log_score"] = _fit_pool(
+                [replace(out, mean_scale=None).apply(r) for r in results], truths, control_var)
+        return out
 
     def control_result(self, result: SynthesisResult) -> SynthesisResult:
         """The constant-band control for the raw prediction ``result``: the calibrated mean
@@ -334,7 +366,9 @@ class BandCalibration:
     def apply(self, result: SynthesisResult) -> SynthesisResult:
         """The calibrated result: (0) and (1) applied to every component, then the level map (a
         :class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult`; without one,
-        the scaled mixture itself). The factors are recorded in its diagnostics under
+        the scaled mixture itself), then the pool (4) (a
+        :class:`~bayes_talk.synthesis.pooled_result.PooledResult`; without weights, stage 2's
+        result). The factors are recorded in its diagnostics under
         ``band_calibration``, with the raw level of its 90 % band (median over parameters)
         and the :meth:`domain` check, whose warning replaces the raw result's sampler warning."""
         if result.n_dims != self.scale.size:
@@ -351,13 +385,16 @@ class BandCalibration:
         if self.mean_scale is not None:
             result = _shrunk(result, self.mean_scale)
         scaled = replace(_scaled(result, s), diagnostics=diag, warnings=warn)
-        if self.level_raw is None:
+        if self.level_raw is not None:
+            knots = np.r_[0.0, self.level_cal, 1.0]
+            diag["band_calibration"]["raw_level_of_90_median"] = float(np.median(
+                [np.interp(0.9, knots, np.r_[0.0, r, 1.0]) for r in self.level_raw]))
+            scaled = RecalibratedResult(**{f.name: getattr(scaled, f.name) for f in fields(SynthesisResult)},
+                                        level_raw=self.level_raw, level_cal=np.asarray(self.level_cal))
+        if self.pool_weight is None:
             return scaled
-        knots = np.r_[0.0, self.level_cal, 1.0]
-        diag["band_calibration"]["raw_level_of_90_median"] = float(np.median(
-            [np.interp(0.9, knots, np.r_[0.0, r, 1.0]) for r in self.level_raw]))
-        return RecalibratedResult(**{f.name: getattr(scaled, f.name) for f in fields(SynthesisResult)},
-                                  level_raw=self.level_raw, level_cal=np.asarray(self.level_cal))
+        diag["band_calibration"]["pool_weight_median"] = float(np.median(self.pool_weight))
+        return PooledResult.pool(scaled, self.pool_weight, self.control_var)
 
     # ------------------------------------------------------------------ persistence
     def to_dict(self) -> dict[str, Any]:
@@ -369,7 +406,8 @@ class BandCalibration:
                 "held_out": list(self.held_out), "info": self.info,
                 "mean_scale": None if self.mean_scale is None else self.mean_scale.tolist(),
                 "control_var": None if self.control_var is None else self.control_var.tolist(),
-                "control": None if self.control is None else self.control.to_dict()}
+                "control": None if self.control is None else self.control.to_dict(),
+                "pool_weight": None if self.pool_weight is None else self.pool_weight.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "band calibration") -> BandCalibration:
@@ -388,7 +426,8 @@ class BandCalibration:
                        dict(d["coverage_calibrated"]), list(d["held_out"]), dict(d.get("info", {})),
                        None if d.get("mean_scale") is None else np.asarray(d["mean_scale"], dtype=np.float64),
                        None if d.get("control_var") is None else np.asarray(d["control_var"], dtype=np.float64),
-                       None if d.get("control") is None else cls.from_dict(d["control"], where=f"{where}, control"))
+                       None if d.get("control") is None else cls.from_dict(d["control"], where=f"{where}, control"),
+                       None if d.get("pool_weight") is None else np.asarray(d["pool_weight"], dtype=np.float64))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: incomplete or invalid band calibration ({exc})") from None
 
@@ -409,6 +448,22 @@ class BandCalibration:
         except (OSError, ValueError) as exc:
             raise ValueError(f"{p}: unreadable band calibration ({exc})") from None
         return cls.from_dict(d, where=str(p))
+
+
+def _fit_pool(calibrated: Sequence[SynthesisResult], truths: Sequence[np.ndarray], var: np.ndarray
+              ) -> tuple[np.ndarray, list[float]]:
+    """Stage 3: per parameter, the w of :data:`POOL_GRID` with the best held-out log score of
+    (4) between the calibrated predictives and N(their mean, var_d); returns (w (D,), the
+    mean log score per parameter at w)."""
+    lp = np.concatenate([r.logpdf(z) for r, z in zip(calibrated, truths)])            # (N, D)
+    y = np.concatenate([np.asarray(z, np.float64) for z in truths])
+    m = np.concatenate([r.mean for r in calibrated])
+    lq = -0.5 * (y - m) ** 2 / var - 0.5 * np.log(2 * np.pi * var)
+    w = POOL_GRID[:, None, None]
+    with np.errstate(divide="ignore"):
+        score = np.mean(np.logaddexp(np.log1p(-w) + lp[None], np.log(w) + lq[None]), axis=1)   # (G, D)
+    best = np.argmax(score, axis=0)
+    return POOL_GRID[best].astype(np.float64), [float(score[b, d]) for d, b in enumerate(best)]
 
 
 def _synthesis_record(results: Sequence[SynthesisResult]) -> dict[str, Any]:

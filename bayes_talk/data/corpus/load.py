@@ -38,7 +38,7 @@ from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.executor import Executor
 from bayes_talk.executor import single_thread as _single_thread_blas
-from bayes_talk.features.mfcc import FMAX_HZ
+from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                 seed: int = 0, n_workers: int | None = None,
                 executor: Executor | str | None = None, scheduler: str | None = None,
                 aam: str | Path | None = None, cmvn: str = "mean",
-                fmax: float | None = FMAX_HZ) -> Corpus:
+                fmax: float | None = FMAX_HZ, floor_dbfs: float | None = FLOOR_DBFS) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Utterance` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -186,7 +186,9 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     MFCCs), so every consumer -- ``train``, ``evaluate``, the benchmarks -- sees the features
     ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
     ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
-    7.6 kHz; None: sr/2, the features before issue 12); part of the cache key.
+    7.6 kHz; None: sr/2, the features before issue 12); ``floor_dbfs``: the absolute
+    mel-power floor (:data:`bayes_talk.features.frontend.FLOOR_DBFS`; None: none, the
+    features before issue 27); both part of the cache key.
     """
     from bayes_talk.audio import cmvn as _cmvn
 
@@ -252,6 +254,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
         cpath = root / f"features-{_sha256(aam_files[0])[:12]}.npz"
     if fmax is not None:  # the issue-12 front end: its own key (None keeps the older caches valid)
         key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
+    if floor_dbfs is not None:  # the issue-27 front end: its own key
+        key = hashlib.sha256(f"{key}|floor={float(floor_dbfs)}".encode()).hexdigest()
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
@@ -260,7 +264,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "visual": None if it.visual is None else str(it.visual),
                   "landmarks": None if it.landmarks is None else str(it.landmarks),
                   "features": None if it.features is None else str(it.features),
-                  "aam": None if aam is None else str(aam_path), "fmax": fmax} for it in items]
+                  "aam": None if aam is None else str(aam_path), "fmax": fmax, "floor_dbfs": floor_dbfs} for it in items]
         if aam is not None:
             _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
         results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)),

@@ -19,7 +19,7 @@ from bayes_talk.data.corpus.format import (
 from bayes_talk.data.corpus.layouts import _Item, _load_visual
 from bayes_talk.data.labels import frame_labels, write_lab
 from bayes_talk.executor import Executor, executor_for
-from bayes_talk.features.mfcc import FMAX_HZ, frame_count, load_wav, mfcc
+from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, frame_count, load_wav, mfcc
 
 
 def suggested_workers(n_tasks: int) -> int:
@@ -121,7 +121,8 @@ def _features_task(a: dict) -> tuple[dict, dict]:
                landmarks=None if a["landmarks"] is None else Path(a["landmarks"]),
                features=None if a["features"] is None else Path(a["features"]))
     y, sr = load_wav(it.wav)
-    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ))
+    mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ),
+              floor_dbfs=a.get("floor_dbfs", FLOOR_DBFS))
     frames, lm, feats = _load_visual(it)
     if feats is not None:
         vis = feats
