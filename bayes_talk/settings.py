@@ -20,7 +20,7 @@ switch          environment variable          default      effect
 ``potri_threads`` ``BAYES_TALK_POTRI_THREADS`` ``1``       the most MKL threads of ``dpotri``
                                                            (``0``: as many as torch)
 ``malloc``      ``BAYES_TALK_MALLOC``         ``1``        ``0``: leave glibc's mmap threshold alone
-                                                           (:func:`bayes_talk.memory.tune_malloc`)
+                                                           (:func:`bayes_talk.memory.release_large_blocks`)
 ``cache``       ``BAYES_TALK_CACHE``          (none)       the cache root of the articulatory
                                                            synthesiser (:func:`bayes_talk.data.articulatory.cache_dir`)
 ==============  ============================  ===========  ==========================================
