@@ -349,7 +349,13 @@ def _add_alignment_parsers(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The ``bayes-talk`` argument parser with every sub-command."""
     from bayes_talk import __version__
-    from bayes_talk.synthesis.defaults import EMCEE_WARMUP, NUTS_DEFAULTS, draws_help
+    from bayes_talk.synthesis.defaults import (
+        DEFAULT_METHOD,
+        EMCEE_WARMUP,
+        INFERENCE,
+        NUTS_DEFAULTS,
+        draws_help,
+    )
 
     p = argparse.ArgumentParser(prog="bayes-talk", description=DESCRIPTION, epilog=EPILOG,
                                 parents=[_verbosity_parser(False)], formatter_class=_HelpFormatter)
@@ -433,9 +439,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
     s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
                    help="initialiser (sgplvm: back-constraint = SGPLVM A, hmm = SGPLVM B)")
-    s.add_argument("--posterior", choices=("map", "laplace", "nuts", "emcee", "vi"), default=None,
-                   help="laplace (default for switching models)/nuts/emcee/vi: the whole-utterance synthesis "
-                        "posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
+    s.add_argument("--posterior", choices=tuple(INFERENCE), default=None,
+                   help=f"{'/'.join(m for m in INFERENCE if m != 'map')} (default for switching models: "
+                        f"{DEFAULT_METHOD}): the whole-utterance synthesis posterior; map: the paper's sequential path (Algorithm 1/2; sgplvm's only choice); "
                         "write the posterior mean, variance and diagnostics.json (every method writes bands.npz, "
                         "posterior.nc, bands.png)")
     s.add_argument("--draws", type=_positive_int, default=None,

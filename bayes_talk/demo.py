@@ -54,7 +54,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     from bayes_talk.estimators.registry import make_estimator
     from bayes_talk.evaluation.metrics import acc, amse
     from bayes_talk.executor import executor_for
-    from bayes_talk.pipeline import _aam_offset, fit_model
+    from bayes_talk.pipeline import aam_offset, fit_model
     from bayes_talk.synthesis.band_calibration import fit_band_calibration
     from bayes_talk.synthesis.posterior import sample_synthesis
     from bayes_talk.synthesis.sequential import lowpass
@@ -136,7 +136,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
 
     # side-by-side video of the first held-out utterance
     s, r = test[0], post[0]
-    offset = _aam_offset(type("C", (), {"sequences": train})())
+    offset = aam_offset(type("C", (), {"sequences": train})())
     gt_frames = corpus.aam.render(s.aam + s.meta.get("aam_mean", offset))
     syn_frames = corpus.aam.render(r.mean + offset)
     video = write_video(out / "side_by_side.mp4",

@@ -25,6 +25,8 @@ from __future__ import annotations
 import ctypes
 import os
 
+from bayes_talk import settings
+
 __all__ = ["MMAP_THRESHOLD", "release_large_blocks"]
 
 #: requests of at least this many bytes get their own mapping (1 MiB: an N×N float64
@@ -44,7 +46,7 @@ def release_large_blocks() -> bool:
     if _done is not None:
         return _done
     _done = False
-    if os.environ.get("BAYES_TALK_MALLOC", "1") == "0" or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+    if not settings.get("malloc") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
         return False
     try:
         libc = ctypes.CDLL(None)  # the symbols already loaded (find_library would run ldconfig)

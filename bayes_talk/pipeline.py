@@ -28,6 +28,7 @@ import numpy as np
 from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.files import check_format, write_json, write_npy, write_npz
+from bayes_talk.synthesis.defaults import DEFAULT_METHOD, check_method
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +166,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         model.save(out / "sgpdm")
     else:
         model.save(out)
-    offset = _aam_offset(corpus)
+    offset = aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
     if band_cal is not None:
@@ -224,7 +225,7 @@ def select_holdout(sequences: list[Utterance], holdout: int | None = None,
     return [s for s in seqs if s.name not in out], names
 
 
-def _aam_offset(corpus) -> np.ndarray:
+def aam_offset(corpus) -> np.ndarray:
     """What to add back to mean-removed AAM parameters before rendering: the AAM's own mean
     parameters plus the average of the removed per-sequence means."""
     means = [s.meta["aam_mean"] for s in corpus.sequences if "aam_mean" in s.meta]
@@ -282,7 +283,6 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
                         AudioSettings.from_dict(desc.get("audio"), where=str(d)), BandCalibration.load(d))
 
 
-POSTERIORS = ("map", "laplace", "nuts", "emcee", "vi")
 #: every file name synth can write (docs/outputs.md)
 SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
                       "bands.npz", "diagnostics.json", "labels.lab", "posterior.nc", "bands.png",
@@ -371,9 +371,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
     tm = load_trained(model_dir)
     if posterior is None:
-        posterior = "map" if tm.kind == "sgplvm" else "laplace"
-    if posterior not in POSTERIORS:
-        raise ValueError(f"posterior must be one of {POSTERIORS}, got {posterior!r}")
+        posterior = "map" if tm.kind == "sgplvm" else DEFAULT_METHOD
+    check_method(posterior)
     if posterior != "map" and tm.kind == "sgplvm":
         raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
                          "(its variances are calibrated on held-out data instead)")

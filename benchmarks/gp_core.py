@@ -12,7 +12,7 @@ Everything below is measured in one run, on the same machine load:
                   and ``m.objective_function_gradients()`` (transformed to x-space).
                   x alternates between two nearby vectors so no cache can answer.
     * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` through the Pyro trace
-                  (``sgpdm_program.LOG_JOINT = "pyro"``: X prior, observation term, 1/θ hyperprior).
+                  (``sgpdm_program.trace_log_joint``: X prior, observation term, 1/θ hyperprior).
     * ours_direct: the same, by the model's default path since issue 29 (the same site
                   log-densities summed without the trace, equal bit for bit:
                   ``sgpdm_program.sgpdm_log_joint``).
@@ -85,14 +85,17 @@ def quiet_fit(model, views):
 # ---------------------------------------------------------------------------- setups
 @contextlib.contextmanager
 def log_joint_path(path: str):
-    """SGPDM.log_joint by ``path`` ("direct" or "pyro", bayes_talk.models.sgpdm_program.LOG_JOINT) in the block."""
-    import bayes_talk.models.sgpdm_program as sgpdm_mod
+    """SGPDM.log_joint by ``path`` in the block: "direct" (``sgpdm_program.sgpdm_log_joint``,
+    the default) or "pyro" (``sgpdm_program.trace_log_joint``, the Pyro trace's log joint)."""
+    import bayes_talk.models.sgpdm as sgpdm_mod
+    from bayes_talk.models import sgpdm_program
 
-    prev, sgpdm_mod.LOG_JOINT = sgpdm_mod.LOG_JOINT, path
+    fn = {"direct": sgpdm_program.sgpdm_log_joint, "pyro": sgpdm_program.trace_log_joint}[path]
+    prev, sgpdm_mod.program_log_joint = sgpdm_mod.program_log_joint, fn
     try:
         yield
     finally:
-        sgpdm_mod.LOG_JOINT = prev
+        sgpdm_mod.program_log_joint = prev
 
 
 class Ours:
@@ -133,13 +136,10 @@ class Ours:
         return float(loss.detach())
 
     def raw_torch_eval(self) -> float:
-        from bayes_talk.gp import fused
+        from bayes_talk import settings
 
-        prev, fused.ENABLED = fused.ENABLED, False
-        try:
+        with settings.override(fused=False):
             return self.raw_eval()
-        finally:
-            fused.ENABLED = prev
 
     def kernel_matrix(self) -> np.ndarray:
         """K at the fitted state, Fortran-ordered (what the LAPACK floors factorise)."""
@@ -430,11 +430,11 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
-    import bayes_talk.gp.fused
+    from bayes_talk import settings
     from bayes_talk.gp import lapack
 
     if args.no_fused:
-        bayes_talk.gp.fused.ENABLED = False
+        settings.set_switch("fused", False)
     if args.lapack:
         lapack.set_provider(args.lapack)
     limiter = None
@@ -454,7 +454,7 @@ def main(argv=None) -> int:
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
                      "warmup": 1, "sizes": list(sizes),
                      "threads_limit": args.threads,
-                     "fused": bool(bayes_talk.gp.fused.ENABLED), "lapack_provider": lapack.provider()},
+                     "fused": bool(settings.get("fused")), "lapack_provider": lapack.provider()},
         "correctness": correctness(CHECK_N),
         "sizes": [],
     }

@@ -3,7 +3,7 @@
 For each of the first ``--n-test`` utterances of ``--test-corpus`` (projected through the
 training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
 
-* Algorithm 1's path, then :func:`~bayes_talk.synthesis.posterior.maximise_utterance`:
+* Algorithm 1's path, then :func:`~bayes_talk.synthesis.joint_map.maximise_utterance`:
   converged or not, max |∂ ln p/∂x|, Newton decrement, Hessian eigenvalues floored,
   iterations, density evaluations, seconds (wall, one torch thread), ln p;
 * the PSIS k̂ of the Laplace approximation at that MAP (``--khat-draws`` draws; k̂ ≤ 0.7 is
@@ -35,11 +35,8 @@ sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.posterior import (
-    _floored_precision,
-    _psis_diagnostics,
-    maximise_utterance,
-)
+from bayes_talk.synthesis.joint_map import floored_precision, maximise_utterance
+from bayes_talk.synthesis.posterior import psis_diagnostics
 from bayes_talk.synthesis.sequential import synthesize
 
 
@@ -89,14 +86,14 @@ def main() -> None:
                    "blocks": len(plan.blocks), "algorithm1_seconds": time.perf_counter() - t0}
             m, mp = _map_row(dens, X0)
             row.update(m)
-            lam, U, _ = _floored_precision(mp.hessian)
+            lam, U, _ = floored_precision(mp.hessian)
             L = U / np.sqrt(lam)
             x = mp.latents.reshape(-1)
             rng = np.random.default_rng(args.seed)
             Z = rng.standard_normal((max(args.khat_draws, args.restarts), x.size))
             if args.khat_draws:
                 Zk = Z[:args.khat_draws]
-                row["khat"] = _psis_diagnostics(dens, x[None] + Zk @ L.T, -0.5 * np.sum(Zk * Zk, axis=1))["khat"]
+                row["khat"] = psis_diagnostics(dens, x[None] + Zk @ L.T, -0.5 * np.sum(Zk * Zk, axis=1))["khat"]
             restarts = []
             for k in range(args.restarts):
                 r, mk = _map_row(dens, (x + L @ Z[k]).reshape(plan.n_frames, -1))

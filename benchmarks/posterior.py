@@ -13,7 +13,7 @@ Systems, each on every held-out utterance (smoothness "frame"):
 
 Metrics pooled over every (frame, dimension) entry of the held-out utterances:
 coverage of the central 50/80/90/95 % bands (MAP: Gaussian quantiles; samplers:
-``PosteriorSynthesis.quantiles`` from 2000 mixture samples), mean band width, CRPS
+``SynthesisResult.quantiles`` from 2000 mixture samples), mean band width, CRPS
 (MAP: closed form; samplers: ``crps_ensemble`` on 1000 mixture samples), NLPD of a
 Gaussian with the predictive mean and variance (moment-matched mixture for samplers),
 AMSE of the mean, seconds per frame (wall, 1 torch thread), and the worst-case
@@ -70,7 +70,8 @@ from bayes_talk.evaluation.metrics import (
     nlpd_gaussian,
 )
 from bayes_talk.synthesis.diagnostics import RHAT_MAX
-from bayes_talk.synthesis.posterior import DEFAULT_LEVELS, sample_synthesis
+from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.synthesis.result import DEFAULT_LEVELS
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 

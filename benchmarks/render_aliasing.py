@@ -47,7 +47,7 @@ from bayes_talk.data.corpus.format import (
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
     FPS,
-    _prototype_frames,
+    prototype_frames,
 )
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.features.aam import AAM
@@ -89,7 +89,7 @@ def pose_only_landmarks(tr: face.FaceTrack, size: int) -> np.ndarray:
 def fit_corpus_aam(timings, trs, seed: int, size: int, supersample: tuple[int, float]) -> AAM:
     """An AAM fitted the way ``build_corpus`` fits it, rendering only the prototype frames."""
     labels = [frame_labels(iv, T, FPS) for iv, T in timings]
-    protos = _prototype_frames(labels, np.random.default_rng([int(seed), 2**31]), AAM_FRAMES_PER_PHONE)
+    protos = prototype_frames(labels, np.random.default_rng([int(seed), 2**31]), AAM_FRAMES_PER_PHONE)
     lms = np.stack([full_landmarks(trs[s], size)[t] for s, t in protos])
     frames = render.render_frames(lms, image_size=size, supersample=supersample[0], psf_px=supersample[1])
     return AAM.fit(frames, lms, variance=AAM_VARIANCE, texture_inset=AAM_TEXTURE_INSET)

@@ -14,7 +14,7 @@ from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel, add_gain_fractions, gain_fraction
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
-from bayes_talk.evaluation.scoring import _utterance_metrics
+from bayes_talk.evaluation.scoring import utterance_metrics
 from bayes_talk.evaluation.systems import Prediction, SystemConfig, predict
 from bayes_talk.features.aam import AAM
 
@@ -66,7 +66,7 @@ def test_oracle_average_converges_and_its_bias_correction_removes_the_1_over_K_e
     v = np.concatenate([s.aam for s in built]).var(axis=0)
     raw, corrected = {}, {}
     for K in (2, 16):
-        rows = [_utterance_metrics(s.aam, Prediction(*OracleModel(n_draws=K, seed=3).predict(s)), v, None)
+        rows = [utterance_metrics(s.aam, Prediction(*OracleModel(n_draws=K, seed=3).predict(s)), v, None)
                 for s in built]
         raw[K] = np.mean([r["mse"] for r in rows])
         corrected[K] = np.mean([r["mse_corrected"] for r in rows])
@@ -88,7 +88,7 @@ def test_bias_correction_is_exact_on_a_gaussian_case():
     truth = mu + rng.normal(size=(Tn, D)) * np.sqrt(sigma2)
     s2 = draws.var(axis=0, ddof=1)
     pred = Prediction(draws.mean(axis=0), s2 * (1 + 1 / K), s2 / K)
-    r = _utterance_metrics(truth, pred, sigma2, None)
+    r = utterance_metrics(truth, pred, sigma2, None)
     assert r["mse"] == pytest.approx(sigma2.mean() * (1 + 1 / K), rel=0.03)
     assert r["mse_corrected"] == pytest.approx(sigma2.mean(), rel=0.03)
     assert r["nmse_corrected"] == pytest.approx(1.0, rel=0.03)

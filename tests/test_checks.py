@@ -4,13 +4,17 @@ from __future__ import annotations
 import pytest
 
 from bayes_talk.data.checks import LABEL_TOLERANCE_S, check_audio_vs_labels
-from bayes_talk.data.corpus import format as corpus_format
+from bayes_talk.data.corpus.layouts import check_item_audio
 from bayes_talk.data.phones import replace_unseen, substitute_unseen
 
 
 def test_tolerance_is_two_frames_and_shared_by_the_corpus_loader():
     assert LABEL_TOLERANCE_S == pytest.approx(2 / 25)
-    assert corpus_format._LABEL_TOL_S == LABEL_TOLERANCE_S
+    sr = 16000
+    check_item_audio("a.wav", "a.lab", 2 * sr, sr, [(0.0, 2.07, "sil")])
+    with pytest.raises(ValueError, match=r"a\.lab: labels end at 2\.090 s but a\.wav lasts 2\.000 s "
+                                         r"\(32000 samples at 16000 Hz\)"):
+        check_item_audio("a.wav", "a.lab", 2 * sr, sr, [(0.0, 2.09, "sil")])
 
 
 def test_within_tolerance_passes_beyond_it_names_both_files():

@@ -203,7 +203,7 @@ def test_sentence_rules(tmp_path):
 def test_worker_features_equal_in_process_features(big, big_corpus):
     """big_corpus was featurised in worker processes; recompute two sequences here."""
     from bayes_talk.audio import cmvn
-    from bayes_talk.data.corpus.workers import _features_task
+    from bayes_talk.data.corpus.workers import features_task
     from bayes_talk.executor import single_thread as _single_thread_blas
 
     m = json.loads((big / "manifest.json").read_text())
@@ -214,7 +214,7 @@ def test_worker_features_equal_in_process_features(big, big_corpus):
                 "landmarks": str(big / sm["landmarks"]), "features": None,
                 "aam": str(big / m["aam"]["path"])}
         with _single_thread_blas():
-            _, arr = _features_task(task)
+            _, arr = features_task(task)
         np.testing.assert_array_equal(cmvn(arr["mfcc"], seq.meta["cmvn"]), seq.mfcc)
         np.testing.assert_array_equal(arr["visual"] - seq.meta["aam_mean"], seq.aam)
 

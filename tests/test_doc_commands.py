@@ -95,18 +95,20 @@ OTHER_PROGRAMS = {
 #: be checked (the text around each says it was a scratch script)
 SCRATCH_SCRIPTS = {
     "/tmp/bt_analysis/analyse.py": "a scratch script of the session-3 ordering analysis "
-                                   "(docs/switching.md, docs/results.md say so)",
-    "/tmp/bt_analysis/extra.py": "the same session's latent-dimension runs (docs/results.md, item 4)",
+                                   "(docs/switching.md, docs/experiments.md say so)",
+    "/tmp/bt_analysis/extra.py": "the same session's latent-dimension runs (docs/experiments.md, item 4)",
 }
 
-#: method names that commands of docs/results.md used and the code no longer has: the record
-#: says what was run then (results.md notes the removal); any other file must use current names
+#: method names that commands of the results pages used and the code no longer has: the record
+#: says what was run then (the text beside each notes the removal); any other file must use
+#: current names
 REMOVED_METHODS = {
     "ssgpdm-vlmm-laplace": "per-segment Laplace, removed in ac54b55 for ssgpdm-vlmm-posterior (the "
                            "whole-utterance posterior)",
     "ssgpdm-phone-laplace": "as ssgpdm-vlmm-laplace, for ssgpdm-phone-posterior",
 }
-HISTORY = "docs/results.md"
+#: the results pages: the current results and the history of experiments (issue 26, item 7)
+HISTORY = ("docs/results.md", "docs/experiments.md")
 
 SHELL_PREFIXES = {"nice": 2, "time": 0}          # program -> number of its own arguments to skip
 
@@ -235,7 +237,7 @@ def command_problems(cmd: Command) -> list[str]:
         if not (ROOT / rel).exists():
             problems.append(f"{rel} is not in the repository")
     if args is not None:
-        removed = frozenset(REMOVED_METHODS) if cmd.block.path == HISTORY else frozenset()
+        removed = frozenset(REMOVED_METHODS) if cmd.block.path in HISTORY else frozenset()
         return problems + cli_problems(args, removed)
     if _is_python(prog):
         rest = list(argv[1:])

@@ -336,17 +336,13 @@ def test_fused_path_falls_back_to_jitter_when_kernel_is_singular(caplog):
 
 
 def _both_paths(fn):
-    """fn() with the fused path on, then with the torch path (fused.ENABLED off)."""
-    from bayes_talk.gp import fused
+    """fn() with the fused path on, then with the torch path (settings switch ``fused`` off)."""
+    from bayes_talk import settings
 
-    prev = fused.ENABLED
-    try:
-        fused.ENABLED = True
+    with settings.override(fused=True):
         a = fn()
-        fused.ENABLED = False
+    with settings.override(fused=False):
         b = fn()
-    finally:
-        fused.ENABLED = prev
     return a, b
 
 
@@ -376,6 +372,7 @@ def test_fused_threads_providers_and_repeated_backward_agree():
     passes bit for bit; the whole term agrees across thread counts and with scipy's
     LAPACK to round-off; a second backward through the same graph (retain_graph) gives
     the same gradients."""
+    from bayes_talk import settings
     from bayes_talk.gp import fused, lapack
     from bayes_talk.gp.threads import torch_threads
 
@@ -408,12 +405,9 @@ def test_fused_threads_providers_and_repeated_backward_agree():
             results[n] = passes(), term()
     for a, b in zip(results[1][0], results[2][0]):
         assert np.array_equal(a, b)
-    prev = lapack.provider()
-    try:
-        lapack.set_provider("scipy")
+    with settings.override(lapack="scipy"):
+        assert lapack.provider() == "scipy"
         results["scipy"] = (None, term())
-    finally:
-        lapack.set_provider(prev)
     ref_ll, ref_g = results[1][1]
     for key in (2, "scipy"):
         ll, g = results[key][1]
@@ -428,14 +422,16 @@ def test_fused_threads_providers_and_repeated_backward_agree():
                                 {"dyn_linear": 0.1}])
 def test_direct_log_joint_equals_the_pyro_trace_bit_for_bit(kw, monkeypatch):
     """Issue 29: the log joint is summed without running the Pyro program; value and
-    gradient must be the trace's, bit for bit (same terms, same order)."""
-    import bayes_talk.models.sgpdm_program as sgpdm_mod
+    gradient must be the trace's (``sgpdm_program.trace_log_joint``), bit for bit (same
+    terms, same order)."""
+    import bayes_talk.models.sgpdm as sgpdm_mod
+    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     audio, video = _toy(30)
     m = SGPDM(latent_dim=2, max_iter=5, **kw).fit({"audio": audio, "visual": video}, seq_lengths=[12, 18])
     grads = {}
-    for path in sgpdm_mod.LOG_JOINT_PATHS:
-        monkeypatch.setattr(sgpdm_mod, "LOG_JOINT", path)
+    for path, fn in (("direct", sgpdm_log_joint), ("pyro", trace_log_joint)):
+        monkeypatch.setattr(sgpdm_mod, "program_log_joint", fn)
         free = m._free_tensors()
         for t in free:
             t.grad = None
@@ -445,19 +441,17 @@ def test_direct_log_joint_equals_the_pyro_trace_bit_for_bit(kw, monkeypatch):
     (v1, g1), (v2, g2) = grads["direct"], grads["pyro"]
     assert v1 == v2
     assert all(torch.equal(a, b) for a, b in zip(g1, g2))
-    monkeypatch.setattr(sgpdm_mod, "LOG_JOINT", "bogus")
-    with pytest.raises(ValueError, match="BAYES_TALK_LOG_JOINT"):
-        m.log_joint()
 
 
 def test_fit_through_the_direct_log_joint_equals_the_pyro_fit(monkeypatch):
     """The whole L-BFGS fit gives the same hyperparameters and latents by both paths."""
-    import bayes_talk.models.sgpdm_program as sgpdm_mod
+    import bayes_talk.models.sgpdm as sgpdm_mod
+    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     audio, video = _toy(40)
     fits = {}
-    for path in sgpdm_mod.LOG_JOINT_PATHS:
-        monkeypatch.setattr(sgpdm_mod, "LOG_JOINT", path)
+    for path, fn in (("direct", sgpdm_log_joint), ("pyro", trace_log_joint)):
+        monkeypatch.setattr(sgpdm_mod, "program_log_joint", fn)
         fits[path] = SGPDM(latent_dim=2, max_iter=40).fit({"audio": audio, "visual": video}, seq_lengths=[15, 25])
     a, b = fits["direct"], fits["pyro"]
     assert np.array_equal(a.X_, b.X_)

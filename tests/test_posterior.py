@@ -24,15 +24,15 @@ from bayes_talk.synthesis.joint import (
     make_plan,
     pyro_log_density,
 )
-from bayes_talk.synthesis.posterior import (
+from bayes_talk.synthesis.joint_map import (
     MAP_DTOL,
     MAP_GTOL,
     MapResult,
     maximise_utterance,
-    mode_jumps,
     restart_map,
-    sample_synthesis,
 )
+from bayes_talk.synthesis.mode_search import mode_jumps
+from bayes_talk.synthesis.posterior import sample_synthesis
 from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
 from bayes_talk.synthesis.segment_objective import numpy_gp
 from bayes_talk.synthesis.variational import run_vi
@@ -80,6 +80,30 @@ def test_laplace_is_exact_on_a_gaussian():
     d = run_laplace(gauss_lp, MU, n_draws=10, seed=0)
     np.testing.assert_allclose(d.stats["cov"], COV, rtol=1e-8)
     np.testing.assert_allclose(d.stats["mean"], MU)
+
+
+def test_laplace_floors_a_negative_curvature_by_its_modulus():
+    """The one Laplace (issue 26): a Hessian that is not negative definite (a MAP short of a
+    maximum) gives the covariance U diag(1/|λ|) Uᵀ of P = −H, tiny eigenvalues floored at
+    1e-8·max|λ|, as the synthesis posterior has always done (``joint_map.floored_precision``).
+    The former test-only ``run_laplace`` floored a negative eigenvalue at 1e-8·max|λ| instead
+    (a near-infinite variance); on a proper maximum the two agree exactly."""
+    H = -np.diag([4.0, -0.25, 1e-12])
+    d = run_laplace(None, np.zeros(3), n_draws=5, seed=0, hessian=H)
+    np.testing.assert_allclose(np.diag(d.stats["cov"]), [1 / 4.0, 1 / 0.25, 1 / 4e-8], rtol=1e-12)
+    assert d.stats["n_floored"] == 2
+    assert d.samples.shape == (1, 5, 3)
+
+
+def test_synthesis_laplace_is_run_laplace(toy):
+    """The synthesis posterior's Laplace draws are those of ``samplers.run_laplace`` given the
+    joint MAP's closed-form Hessian and the same seed, bit for bit (one Laplace)."""
+    model, test = toy
+    s = test[0]
+    r = sample_synthesis(model, s.mfcc, s.labels, method="laplace", n_draws=16, seed=4)
+    x_map = r.map.latents.reshape(-1)
+    d = run_laplace(None, x_map, 200, seed=4, hessian=r.map.hessian)
+    assert np.array_equal(d.samples[0, :16], r.latent_draws[0].reshape(16, -1))
 
 
 def test_vi_fits_a_known_gaussian():
@@ -298,7 +322,7 @@ def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
     mean VJP) equals the NumPy/LAPACK reference to 1e-9 relative for every state model's
     audio, visual and dynamics GP (β_x = 10⁶), with and without the extra variance, for 1
     and 40 rows, near and far from the training inputs."""
-    from bayes_talk.gp import fused
+    from bayes_talk import settings
 
     model, _ = toy
     rng = np.random.default_rng(1)
@@ -317,9 +341,8 @@ def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
                     for x, y in zip(a, b):
                         np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
                 mv, vjp = g.mean_var(Xs), g.mean_vjp(Xs, G)
-                monkeypatch.setattr(fused, "ENABLED", False)
-                mv_ref, vjp_ref = g.mean_var(Xs), g.mean_vjp(Xs, G)
-                monkeypatch.setattr(fused, "ENABLED", True)
+                with settings.override(fused=False):
+                    mv_ref, vjp_ref = g.mean_var(Xs), g.mean_vjp(Xs, G)
                 np.testing.assert_allclose(mv[0], mv_ref[0], rtol=1e-9, atol=1e-9 * np.abs(mv_ref[0]).max())
                 np.testing.assert_allclose(mv[1], mv_ref[1], rtol=1e-9)
                 np.testing.assert_allclose(vjp, vjp_ref, rtol=1e-9, atol=1e-9 * np.abs(vjp_ref).max())

@@ -115,7 +115,7 @@ def test_inference_data_groups_and_netcdf_round_trip(tmp_path):
 
 
 def test_evaluate_scores_the_bands_of_the_result_not_a_gaussian_of_its_moments():
-    from bayes_talk.evaluation.scoring import _utterance_metrics
+    from bayes_talk.evaluation.scoring import utterance_metrics
     from bayes_talk.evaluation.systems import Prediction
 
     # two well separated modes at ±3 (sd 0.5): the mixture's 50 % band is [-3, 3], the
@@ -125,12 +125,12 @@ def test_evaluate_scores_the_bands_of_the_result_not_a_gaussian_of_its_moments()
     r = SynthesisResult("laplace", None, m, np.full_like(m, 0.25))
     z = np.where(np.arange(T)[:, None] % 2 == 0, 0.0, 2.9) * np.ones((T, D))  # half at the gap, half by a mode
     pred = Prediction(r.mean, r.var, result=r)
-    out = _utterance_metrics(z, pred, np.ones(D), None)
+    out = utterance_metrics(z, pred, np.ones(D), None)
     for level in (0.5, 0.9):
         lo, hi = r.interval(level)
         assert out[f"coverage_{int(level * 100)}"] == pytest.approx(np.mean((z >= lo) & (z <= hi)))
     assert out["coverage_50"] == pytest.approx(1.0)
-    gauss = _utterance_metrics(z, Prediction(r.mean, r.var), np.ones(D), None)
+    gauss = utterance_metrics(z, Prediction(r.mean, r.var), np.ones(D), None)
     assert gauss["coverage_50"] == pytest.approx(0.5)  # the values by a mode lie outside ±2.05
 
 

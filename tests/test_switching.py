@@ -256,13 +256,15 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
 
 def test_direct_log_joint_trains_the_same_switching_model_as_the_pyro_trace(data, monkeypatch):
     """Issue 29: the state models fitted through the direct log joint (the default) have
-    the hyperparameters and latents of the Pyro-trace path (kept as BAYES_TALK_LOG_JOINT=pyro)."""
-    import bayes_talk.models.sgpdm_program as sgpdm_mod
+    the hyperparameters and latents of the Pyro-trace path (``sgpdm_program.trace_log_joint``,
+    kept as the reference)."""
+    import bayes_talk.models.sgpdm as sgpdm_mod
+    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     train = data[0][:5]
     fits = {}
-    for path in ("pyro", "direct"):
-        monkeypatch.setattr(sgpdm_mod, "LOG_JOINT", path)
+    for path, fn in (("pyro", trace_log_joint), ("direct", sgpdm_log_joint)):
+        monkeypatch.setattr(sgpdm_mod, "program_log_joint", fn)
         fits[path] = SwitchingSGPDM(states="phone", **SMALL).fit(train)
     ref, new = fits["pyro"], fits["direct"]
     assert ref.models_.keys() == new.models_.keys()

@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from bayes_talk import settings
 from bayes_talk.data.phones import PHONES, SILENCE
 
 __all__ = [
@@ -324,7 +325,7 @@ class ArticulatoryResult:
 def cache_dir() -> Path:
     """``$BAYES_TALK_CACHE/vtl``, else ``$XDG_CACHE_HOME/bayes_talk/vtl``, else
     ``~/.cache/bayes_talk/vtl``."""
-    root = os.environ.get("BAYES_TALK_CACHE")
+    root = settings.get("cache")
     if root:
         return Path(root) / "vtl"
     xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")

@@ -138,7 +138,7 @@ def _espeak_paths() -> tuple[str, str]:
     return str(espeakng_loader.get_library_path()), str(espeakng_loader.get_data_path())
 
 
-def _worker(request: SpeechRequest) -> SpeechResult:
+def synthesize_in_subprocess(request: SpeechRequest) -> SpeechResult:
     """Synthesise ``request`` in a fresh ``python`` subprocess and assemble the result."""
     lib_path, data_path = _espeak_paths()
     payload = json.dumps({"text": request.text, "voice": request.voice,
@@ -304,7 +304,7 @@ def synthesize_many(requests: list[SpeechRequest], n_workers: int = 2) -> list[S
     if n_workers < 1:
         raise ValueError(f"n_workers: expected >= 1, found {n_workers}")
     with ThreadPoolExecutor(max_workers=min(n_workers, len(requests))) as ex:
-        return list(ex.map(_worker, requests))
+        return list(ex.map(synthesize_in_subprocess, requests))
 
 
 def jittered_requests(texts: list[str], seed: int, voice: str = "en", rate: int = DEFAULT_RATE,

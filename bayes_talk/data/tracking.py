@@ -50,18 +50,18 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.corpus.format import (
-    _VIDEO_EXT,
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
     FPS,
-    _prototype_frames,
+    VIDEO_EXT,
+    prototype_frames,
 )
 from bayes_talk.data.corpus.layouts import (
-    _check_audio_vs_labels,
-    _label_file,
-    _read_images,
-    _read_video,
+    check_item_audio,
+    label_file_for,
+    read_images,
+    read_video,
 )
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.features.aam_fit import (
@@ -107,8 +107,8 @@ class _Video:
 
     def load_frames(self) -> np.ndarray:
         if self.frames is None:
-            self.frames = (_read_images(self.visual) if self.visual.is_dir()
-                           else _read_video(self.visual))
+            self.frames = (read_images(self.visual) if self.visual.is_dir()
+                           else read_video(self.visual))
         return self.frames
 
 
@@ -126,12 +126,12 @@ def _scan(root: Path) -> list[_Video]:
     out = []
     for wav in wavs:
         name = wav.stem
-        lab = _label_file(root, wav)
+        lab = label_file_for(root, wav)
         y, sr = load_wav(wav)
         intervals = read_labels(lab)
-        _check_audio_vs_labels(wav, lab, y.size, sr, intervals)
+        check_item_audio(wav, lab, y.size, sr, intervals)
         T = frame_count(y.size, sr, FPS)
-        vids = [root / f"{name}{e}" for e in _VIDEO_EXT if (root / f"{name}{e}").exists()]
+        vids = [root / f"{name}{e}" for e in VIDEO_EXT if (root / f"{name}{e}").exists()]
         if (root / name).is_dir():
             visual = root / name
         elif vids:
@@ -239,7 +239,7 @@ def _proposals(videos: list[_Video], per_phone: int, per_video: int,
         raise ValueError(f"per_phone: expected >= 1, found {per_phone}")
     labels = [v.labels for v in videos]
     picks = [(s, t, labels[s][t]) for s, t in
-             _prototype_frames(labels, np.random.default_rng([int(seed), 2**31]), int(per_phone))]
+             prototype_frames(labels, np.random.default_rng([int(seed), 2**31]), int(per_phone))]
     covered = {s for s, _, _ in picks}
     rng = np.random.default_rng([int(seed), 2**31, 1])
     for s, v in enumerate(videos):

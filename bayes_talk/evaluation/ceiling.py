@@ -92,12 +92,6 @@ def corpus_generator(manifest: dict) -> str:
     return str(manifest.get("speech", "espeak"))
 
 
-def _cached_aam(path: str):
-    from bayes_talk.data.corpus.workers import _cached_aam as cached
-
-    return cached(str(path))
-
-
 def oracle_draws(intervals: list, n_frames: int, aam, *, n_draws: int, seed: int | list[int],
                  image_size: int, renderer: dict, fps: float = 25.0,
                  mean_removal: bool = True, speech: str = "espeak") -> np.ndarray:
@@ -149,8 +143,10 @@ class OracleModel:
 
     def predict(self, seq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean_K, predictive variance s^2 (1 + 1/K), finite-sample MSE bias s^2 / K)."""
+        from bayes_talk.data.corpus.workers import cached_aam
+
         meta = _generator_context(seq)
-        aam = _cached_aam(meta["aam_path"])
+        aam = cached_aam(str(meta["aam_path"]))
         # fresh randomness: a 4-entry seed never equals the corpus's [seed, i, 1] streams
         key = [int(self.seed), 9, zlib.crc32(str(seq.name).encode("utf-8"))]
         draws = oracle_draws(meta["intervals"], seq.n_frames, aam, n_draws=self.n_draws, seed=key,

@@ -43,8 +43,13 @@ from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.ceiling import add_gain_fractions, corpus_generator
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
-from bayes_talk.evaluation.scoring import _clean, _summary, _utterance_metrics, calibration_inputs
-from bayes_talk.evaluation.splits import Split, _dims, check_test_set, make_splits
+from bayes_talk.evaluation.scoring import (
+    calibration_inputs,
+    json_safe,
+    summary_stats,
+    utterance_metrics,
+)
+from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, make_splits
 from bayes_talk.evaluation.systems import (
     METHODS,
     fit_band_calibration,
@@ -156,7 +161,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                     raise RuntimeError(f"{name} predicted shape {pred.mean.shape} for {seq.name}, "
                                        f"expected {seq.aam.shape}")
                 ll = log_likelihood(name, model, seq, pred)
-                rows.append(_utterance_metrics(seq.aam, pred, variance, ll))
+                rows.append(utterance_metrics(seq.aam, pred, variance, ll))
                 for key, res in calibration_inputs(name, pred).items():
                     cal_rows[name][key].append(CAL.score_utterance(res, seq.aam, seed=cfg.seed))
                 if traj is not None and j == 0:
@@ -210,7 +215,7 @@ def run_protocol(
         pool = seqs + tests
         splits = [Split(0, tuple(range(len(seqs))), tuple(range(len(seqs), len(pool))))]
     else:
-        _dims(seqs, "corpus")
+        feature_dims(seqs, "corpus")
         pool = seqs
         splits = make_splits(protocol, len(seqs))
     families = group_by_family(names)
@@ -259,7 +264,7 @@ def run_protocol(
         rows = per_utt[name]
         entry: dict[str, Any] = {"label": m.label, "family": m.family, "has_variance": m.has_variance}
         for k in rows[0]:
-            entry[k] = _summary([r[k] for r in rows])
+            entry[k] = summary_stats([r[k] for r in rows])
         entry["headline"] = {lab: (entry[k]["mean"] if k in entry else None) for lab, k in protocol.headline}
         for key, sc in cal_rows[name].items():
             if sc:
@@ -303,7 +308,7 @@ def run_protocol(
     section = CAL.markdown_calibration(result_methods)
     if section:
         result["markdown_sections"] = [section]
-    return _clean(result), traj
+    return json_safe(result), traj
 
 
 def evaluate(

@@ -15,7 +15,8 @@ from bayes_talk.evaluation import metrics as M
 VAR_FLOOR = 1e-10
 
 
-def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | None) -> dict[str, float]:
+def utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | None) -> dict[str, float]:
+    """The point and probabilistic metrics of one utterance's prediction ``pred`` against the true features ``z``."""
     mean = pred.mean
     out = {
         "mse": float(M.mse([z], [mean])[0]),
@@ -42,7 +43,8 @@ def _utterance_metrics(z: np.ndarray, pred, variance: np.ndarray, ll: float | No
     return out
 
 
-def _summary(values: list[float]) -> dict[str, Any]:
+def summary_stats(values: list[float]) -> dict[str, Any]:
+    """Mean, std and 95% interval of the finite ``values`` (:func:`~bayes_talk.evaluation.metrics.summarise`); all None if none."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         v = np.asarray(values, dtype=np.float64)
@@ -52,19 +54,19 @@ def _summary(values: list[float]) -> dict[str, Any]:
     return s
 
 
-def _clean(obj: Any) -> Any:
+def json_safe(obj: Any) -> Any:
     """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python, tuples -> lists."""
     if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
+        return {str(k): json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, (np.integer,)):
         return int(obj)
     if isinstance(obj, (float, np.floating)):
         f = float(obj)
         return f if math.isfinite(f) else None
     if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
+        return json_safe(obj.tolist())
     return obj
 
 

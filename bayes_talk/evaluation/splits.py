@@ -64,7 +64,8 @@ def make_splits(protocol: Protocol, n_items: int) -> list[Split]:
 
 
 # ---------------------------------------------------------------------------- test-set checks
-def _dims(seqs: Sequence[Utterance], what: str) -> tuple[int, int]:
+def feature_dims(seqs: Sequence[Utterance], what: str) -> tuple[int, int]:
+    """(D_y, D_z), the audio and visual feature dimensions shared by ``seqs`` (ValueError naming ``what`` otherwise)."""
     if not seqs:
         raise ValueError(f"{what}: no utterances")
     dims = {(s.mfcc.shape[1], None if s.aam is None else s.aam.shape[1]) for s in seqs}
@@ -86,8 +87,8 @@ def check_test_set(train: Sequence[Utterance], test: Sequence[Utterance],
     label used by the test set must be in the training phone set (declared, else the
     labels seen in training).
     """
-    dy, dz = _dims(train, "training corpus")
-    ty, tz = _dims(test, "test corpus")
+    dy, dz = feature_dims(train, "training corpus")
+    ty, tz = feature_dims(test, "test corpus")
     if dy != ty:
         raise ValueError(f"test corpus differs in audio feature dimension: training has D_y = {dy}, test has {ty}")
     if dz != tz:

@@ -50,6 +50,7 @@ import numba
 import numpy as np
 import torch
 
+from bayes_talk import settings
 from bayes_talk.gp.lapack import potrf_lower, potri_lower, potrs_lower
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -281,12 +282,8 @@ def rbf_matrix_normal(X: torch.Tensor, alpha, gamma, beta, V: torch.Tensor) -> t
     return _RBFMatrixNormal.apply(X, alpha, gamma, beta, V, state)
 
 
-#: switch for the fused path in :mod:`bayes_talk.gp.terms` (on by default; off with the
-#: environment variable BAYES_TALK_FUSED=0 or by setting it to False).
-ENABLED = os.environ.get("BAYES_TALK_FUSED", "1") != "0"
-
-
 def fused_ok(*tensors) -> bool:
-    """Whether the fused path applies: enabled, float64 CPU tensors (or plain numbers)."""
-    return ENABLED and all(not isinstance(t, torch.Tensor) or (t.dtype == torch.float64 and t.device.type == "cpu")
+    """Whether the fused path applies: switched on (:mod:`bayes_talk.settings` ``fused``),
+    float64 CPU tensors (or plain numbers)."""
+    return settings.get("fused") and all(not isinstance(t, torch.Tensor) or (t.dtype == torch.float64 and t.device.type == "cpu")
                for t in tensors)

@@ -18,13 +18,14 @@ Two providers of the three routines:
   ``overwrite`` flags so they work in place too; used where torch exports no LAPACK
   symbols (other platforms, other torch builds).
 
-The default is ``torch-mkl`` when available, else ``scipy``; the environment variable
-``BAYES_TALK_LAPACK=scipy`` (read at import) or :func:`set_provider` chooses scipy.
+The default is ``torch-mkl`` when available, else ``scipy``; the switch ``lapack`` of
+:mod:`bayes_talk.settings` (``BAYES_TALK_LAPACK=scipy``, read at each call) or
+:func:`set_provider` chooses scipy.
 :func:`provider` names the one in use.
 
 Threads: MKL inside torch follows ``torch.set_num_threads``, except ``dpotri``, which
-runs on at most :data:`POTRI_THREADS` MKL threads (default 1; environment variable
-``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). Measured on this shared 2-core machine
+runs on at most ``potri_threads`` MKL threads (:mod:`bayes_talk.settings`; default 1,
+environment variable ``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). Measured on this shared 2-core machine
 with other processes on both cores (one thread; median of 7): MKL ``dpotrf`` + ``dpotri``
 at N = 2000 took 0.14 + 0.19 s on one thread, and 0.19 + 1.65 s on two threads (at
 N = 1000 0.05 s against 3.6 s): MKL's two-thread ``dpotri`` collapses when the second
@@ -33,12 +34,12 @@ core is taken, its ``dpotrf`` does not. On an idle multi-core machine raise it.
 from __future__ import annotations
 
 import ctypes
-import os
 
 import numpy as np
 import torch
 from scipy.linalg import lapack
 
+from bayes_talk import settings
 from bayes_talk.gp.threads import torch_cpu_library
 
 _c_int = ctypes.c_int
@@ -57,25 +58,26 @@ def _torch_lapack() -> ctypes.CDLL | None:
 
 
 _TORCH_LIB = _torch_lapack()
-_LIB = None if os.environ.get("BAYES_TALK_LAPACK", "") == "scipy" else _TORCH_LIB
+
+
+def _lib():
+    """torch's LAPACK library, or None for scipy (the ``lapack`` switch, or none exported)."""
+    return None if settings.get("lapack") == "scipy" else _TORCH_LIB
 
 
 def provider() -> str:
     """The LAPACK in use: ``"torch-mkl"`` or ``"scipy"`` (see the module docstring)."""
-    return "torch-mkl" if _LIB is not None else "scipy"
+    return "torch-mkl" if _lib() is not None else "scipy"
 
 
 def set_provider(name: str) -> None:
-    """Use ``"torch-mkl"`` (when torch exports it) or ``"scipy"`` from now on."""
-    global _LIB
-    if name == "scipy":
-        _LIB = None
-    elif name == "torch-mkl":
-        if _TORCH_LIB is None:
-            raise ValueError("LAPACK provider 'torch-mkl': this torch build exports no dpotrf_/dpotri_/dpotrs_")
-        _LIB = _TORCH_LIB
-    else:
+    """Use ``"torch-mkl"`` (when torch exports it) or ``"scipy"`` from now on (sets the
+    ``lapack`` switch of :mod:`bayes_talk.settings` for the process)."""
+    if name not in ("torch-mkl", "scipy"):
         raise ValueError(f"unknown LAPACK provider {name!r}: expected 'torch-mkl' or 'scipy'")
+    if name == "torch-mkl" and _TORCH_LIB is None:
+        raise ValueError("LAPACK provider 'torch-mkl': this torch build exports no dpotrf_/dpotri_/dpotrs_")
+    settings.set_switch("lapack", name)
 
 
 def _check(a: np.ndarray, what: str) -> None:
@@ -91,13 +93,14 @@ def _data(a: np.ndarray):
 def _square_in_place(a: np.ndarray, routine: str, scipy_call) -> int:
     """``routine`` ('L') on the square array ``a`` in place; LAPACK's ``info``."""
     _check(a, routine)
-    if _LIB is None:
+    lib = _lib()
+    if lib is None:
         out, info = scipy_call(a)
         if out is not a and a.size:
             a[...] = out
         return int(info)
     n_, info = _c_int(a.shape[0]), _c_int(0)
-    getattr(_LIB, routine + "_")(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
+    getattr(lib, routine + "_")(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
     return info.value
 
 
@@ -108,17 +111,15 @@ def potrf_lower(a: np.ndarray) -> int:
     return _square_in_place(a, "dpotrf", lambda a: lapack.dpotrf(a, lower=1, clean=0, overwrite_a=1))
 
 
-#: the most MKL threads ``dpotri`` runs on (None: as many as torch; module docstring)
-POTRI_THREADS: int | None = int(os.environ.get("BAYES_TALK_POTRI_THREADS", "1")) or None
-
-
 def potri_lower(a: np.ndarray) -> int:
     """Overwrite the lower triangle of ``a`` (holding L) with that of K⁻¹ (``dpotri``,
     'L'); the strict upper triangle is not touched. Returns ``info``."""
-    set_local = getattr(_LIB, "MKL_Set_Num_Threads_Local", None) if _LIB is not None else None
-    if set_local is None or POTRI_THREADS is None:
+    lib = _lib()
+    threads = settings.get("potri_threads")
+    set_local = getattr(lib, "MKL_Set_Num_Threads_Local", None) if lib is not None else None
+    if set_local is None or threads is None:
         return _square_in_place(a, "dpotri", lambda a: lapack.dpotri(a, lower=1, overwrite_c=1))
-    prev = set_local(max(1, min(POTRI_THREADS, torch.get_num_threads())))
+    prev = set_local(max(1, min(threads, torch.get_num_threads())))
     try:
         return _square_in_place(a, "dpotri", None)
     finally:
@@ -130,12 +131,13 @@ def potrs_lower(L: np.ndarray, b: np.ndarray) -> int:
     triangle of ``L`` (``dpotrs``, 'L'). Returns ``info``."""
     _check(L, "potrs factor")
     _check(b, "potrs right-hand side")
-    if _LIB is None:
+    lib = _lib()
+    if lib is None:
         out, info = lapack.dpotrs(L, b, lower=1, overwrite_b=1)
         if out is not b and b.size:
             b[...] = out
         return int(info)
     n_, d_, info = _c_int(L.shape[0]), _c_int(b.shape[1]), _c_int(0)
-    _LIB.dpotrs_(b"L", ctypes.byref(n_), ctypes.byref(d_), _data(L), ctypes.byref(n_),
+    lib.dpotrs_(b"L", ctypes.byref(n_), ctypes.byref(d_), _data(L), ctypes.byref(n_),
                  _data(b), ctypes.byref(n_), ctypes.byref(info), _LEN1)
     return info.value

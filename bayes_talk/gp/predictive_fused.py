@@ -30,7 +30,7 @@ LOG_2PI = math.log(2.0 * math.pi)
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
-def _kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> np.ndarray:
+def kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> np.ndarray:
     """k(Xs, X) (T×N) from the differences x − X_i."""
     T, d = Xs.shape
     N = X.shape[0]
@@ -46,7 +46,7 @@ def _kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> n
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
-def _forward(L: np.ndarray, k: np.ndarray) -> np.ndarray:
+def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
     """V = k L⁻ᵀ (T×N): each row solves L v = k_t. Row i of L is applied to every input
     while it is in cache, so L is read once per call, not once per input."""
     T, N = k.shape
@@ -73,8 +73,8 @@ def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndar
     T, d = Xs.shape
     N, D = A.shape
     floor = 1.0 / beta
-    k = _kernel_rows(X, alpha, gamma, Xs)
-    v = _forward(L, k)                    # L v = k
+    k = kernel_rows(X, alpha, gamma, Xs)
+    v = forward_solve_rows(L, k)                    # L v = k
     w = v.copy()
     for i in range(N - 1, -1, -1):        # Lᵀ u = v (u overwrites w), column form: row i of L again
         piv = L[i, i]
@@ -130,8 +130,8 @@ def predictive_mean_var(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.nd
     T = Xs.shape[0]
     N, D = A.shape
     floor = 1.0 / beta
-    k = _kernel_rows(X, alpha, gamma, Xs)
-    v = _forward(L, k)
+    k = kernel_rows(X, alpha, gamma, Xs)
+    v = forward_solve_rows(L, k)
     for t in range(T):
         vv = 0.0
         for i in range(N):
@@ -152,7 +152,7 @@ def predictive_mean_vjp(X: np.ndarray, A: np.ndarray, alpha: float, gamma: float
     """Σ_m G_tm ∂μ_m(x_t)/∂x_t (into out, (T, d)): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
     T, d = Xs.shape
     N, D = A.shape
-    k = _kernel_rows(X, alpha, gamma, Xs)
+    k = kernel_rows(X, alpha, gamma, Xs)
     for t in range(T):
         for j in range(d):
             out[t, j] = 0.0

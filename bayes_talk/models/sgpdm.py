@@ -1,8 +1,9 @@
 """The shared Gaussian-process dynamical model (SGPDM): the model class and its MAP fit.
 
 The settings and the Pyro program are in :mod:`bayes_talk.models.sgpdm_program`,
-persistence in :mod:`bayes_talk.models.sgpdm_io`, inference of latents for new
-observations in :mod:`bayes_talk.synthesis.latents`.
+inference of latents for new observations in :mod:`bayes_talk.synthesis.latents`.
+Persistence (:meth:`SGPDM.state` / :meth:`SGPDM.from_state`) is here, with the class whose
+fitted attributes it writes and restores.
 
 deena2010 §2.1.1 (eq. 1–7), deena2009 §2; conventions pinned in DESIGN.md §3.
 
@@ -47,18 +48,20 @@ import torch
 from pyro import poutine
 
 from bayes_talk.errors import not_fitted
-from bayes_talk.files import read_model_files, write_model_files
+from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
-from bayes_talk.models.sgpdm_io import FORMAT_NAME, FORMAT_VERSION, sgpdm_from_state, sgpdm_state
 from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
-from bayes_talk.models.sgpdm_program import log_joint as program_log_joint
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
+from bayes_talk.models.sgpdm_program import sgpdm_log_joint as program_log_joint
 
 log = logging.getLogger(__name__)
 
 _DEFAULTS = SGPDMConfig()
+
+FORMAT_VERSION = 1
+FORMAT_NAME = "bayes_talk.sgpdm"
 
 
 class SGPDM:
@@ -182,8 +185,8 @@ class SGPDM:
         return [k for k in self._log if not k.startswith("w/")]
 
     def log_joint(self) -> torch.Tensor:
-        """Log joint of the Pyro trace at the current parameters (= the MAP objective), by the
-        path ``sgpdm_program.LOG_JOINT`` names (:func:`~bayes_talk.models.sgpdm_program.log_joint`)."""
+        """Log joint of the Pyro program at the current parameters (= the MAP objective;
+        :func:`~bayes_talk.models.sgpdm_program.sgpdm_log_joint`)."""
         return program_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
                                  self._learned_thetas())
 
@@ -422,14 +425,60 @@ class SGPDM:
 
     # ------------------------------------------------------------------ persistence
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """(JSON-able metadata, arrays) that fully describe the fitted model
-        (:func:`bayes_talk.models.sgpdm_io.sgpdm_state`)."""
-        return sgpdm_state(self)
+        """(JSON-able metadata, arrays) that fully describe the fitted model."""
+        self._require_fitted()
+        meta = {
+            "format": self.format_name,
+            "version": self.format_version,
+            "config": asdict(self.config),
+            "views": self.view_names,
+            "seq_lengths": self.seq_lengths_,
+            "history": self.history.log_joint,
+            "history_monitor": self.history.monitor,
+            "history_best_step": self.history.best_step,
+        }
+        arrays: dict[str, np.ndarray] = {"X": self.X_}
+        for v in self.view_names:
+            arrays[f"Y/{v}"] = self._Y[v].numpy()
+            arrays[f"mean/{v}"] = self.means_[v]
+        for k, val in self.hyper_.items():
+            arrays[f"hyper/{k}"] = np.asarray(val, dtype=np.float64)
+        if self.backconstraint is not None:
+            for k, val in self.backconstraint.state().items():
+                arrays[f"bc/{k}"] = val
+        for v, c in self.var_scale_.items():
+            arrays[f"varscale/{v}"] = c
+        return meta, arrays
 
     @classmethod
     def from_state(cls, meta: dict, arrays: Mapping[str, np.ndarray]) -> SGPDM:
         """A fitted model from :meth:`state`'s metadata and arrays (ValueError if incomplete)."""
-        return sgpdm_from_state(cls, meta, arrays)
+        check_format(meta, cls.format_name, cls.format_version, f"{cls.__name__} model")
+        try:
+            obj = cls(**meta["config"])
+            obj.view_names = list(meta["views"])
+            obj.seq_lengths_ = [int(t) for t in meta["seq_lengths"]]
+            obj.history = FitHistory(list(meta.get("history", [])), list(meta.get("history_monitor", [])),
+                                     meta.get("history_best_step"))
+            obj.X_ = np.asarray(arrays["X"], dtype=np.float64)
+            obj._Y = {v: torch.as_tensor(np.asarray(arrays[f"Y/{v}"], dtype=np.float64)) for v in obj.view_names}
+            obj.means_ = {v: np.asarray(arrays[f"mean/{v}"], dtype=np.float64) for v in obj.view_names}
+            hyper = {k[len("hyper/"):]: torch.as_tensor(np.asarray(a, dtype=np.float64))
+                     for k, a in arrays.items() if k.startswith("hyper/")}
+            bc_keys = {k[3:]: arrays[k] for k in arrays if k.startswith("bc/")}
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"SGPDM model is incomplete or corrupt: missing {exc}") from None
+        obj.backconstraint = MLPBackConstraint.from_state(bc_keys) if bc_keys else None
+        if obj.backconstraint is not None:
+            obj._bc_params = obj.backconstraint.parameters()
+        obj._X = torch.as_tensor(obj.X_)
+        obj._log = {}
+        obj._fixed = hyper
+        obj._restore_extra(arrays)
+        obj._finalise()
+        obj.var_scale_ = {k[len("varscale/"):]: np.asarray(a, dtype=np.float64)
+                          for k, a in arrays.items() if k.startswith("varscale/")}
+        return obj
 
     def _restore_extra(self, arrays: Mapping[str, np.ndarray]) -> None:
         """Hook for subclasses: restore their own arrays before the predictors are built."""

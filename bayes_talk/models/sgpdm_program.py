@@ -5,7 +5,6 @@ initialisation of the latents and the record of a fit."""
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -18,16 +17,8 @@ from pyro import poutine
 from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_loglik, observation_loglik
 
-__all__ = ["LOG_JOINT", "LOG_JOINT_PATHS", "FitHistory", "SGPDMConfig", "log_joint", "median_sq_dist", "pca_scores",
-           "sgpdm_log_joint", "sgpdm_model"]
-
-#: how :func:`log_joint` (and so ``SGPDM.log_joint``, the MAP objective) is evaluated:
-#: "direct" (the default: :func:`sgpdm_log_joint`, the site log-densities summed without
-#: running the Pyro program) or "pyro" (the trace's ``log_prob_sum()``, the path before
-#: issue 29, kept as the reference). Both give the same bits. Environment: BAYES_TALK_LOG_JOINT.
-LOG_JOINT_PATHS = ("direct", "pyro")
-LOG_JOINT = os.environ.get("BAYES_TALK_LOG_JOINT", "direct")
-
+__all__ = ["FitHistory", "SGPDMConfig", "median_sq_dist", "pca_scores", "sgpdm_log_joint", "sgpdm_model",
+           "trace_log_joint"]
 
 @dataclass
 class SGPDMConfig:
@@ -193,14 +184,11 @@ def sgpdm_log_joint(
     return total
 
 
-def log_joint(views: Mapping[str, torch.Tensor], X: torch.Tensor, hyper: Mapping[str, torch.Tensor],
-              seq_lengths: Sequence[int], cfg: SGPDMConfig, learned: Sequence[str]) -> torch.Tensor:
-    """The log joint of :func:`sgpdm_model` at these values, by the path :data:`LOG_JOINT` names."""
-    if LOG_JOINT == "direct":
-        return sgpdm_log_joint(views, X, hyper, seq_lengths, cfg, learned)
-    if LOG_JOINT != "pyro":
-        raise ValueError(f"BAYES_TALK_LOG_JOINT / sgpdm_program.LOG_JOINT: expected one of {LOG_JOINT_PATHS}, "
-                         f"found {LOG_JOINT!r}")
+def trace_log_joint(views: Mapping[str, torch.Tensor], X: torch.Tensor, hyper: Mapping[str, torch.Tensor],
+                    seq_lengths: Sequence[int], cfg: SGPDMConfig, learned: Sequence[str]) -> torch.Tensor:
+    """The log joint of :func:`sgpdm_model` as its Pyro trace's ``log_prob_sum()``: the
+    reference that :func:`sgpdm_log_joint` (the MAP objective, the same sites summed without
+    running the program; issue 29) equals bit for bit (tests/test_gp_core.py)."""
     tr = poutine.trace(sgpdm_model).get_trace(views, X, hyper, seq_lengths, cfg, learned)
     tr.compute_log_prob()
     return tr.log_prob_sum()

@@ -174,10 +174,6 @@ def _states_from_dict(d: dict):
     return PhoneStates.from_dict(d) if kind == "phone" else VLMM.from_dict(d)
 
 
-def _key(state: tuple[str, ...]) -> str:
-    return " ".join(state)
-
-
 _DEFAULTS = SwitchingConfig()
 
 

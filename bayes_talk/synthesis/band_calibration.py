@@ -110,7 +110,12 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.files import write_json
-from bayes_talk.synthesis.diagnostics import KHAT_MAX, convergence_problems, is_sampler_warning, sampler_warning
+from bayes_talk.synthesis.diagnostics import (
+    KHAT_MAX,
+    convergence_problems,
+    is_sampler_warning,
+    sampler_warning,
+)
 from bayes_talk.synthesis.pooled_result import PooledResult, check_pool
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult

@@ -1,10 +1,18 @@
-"""Default settings of the synthesis posterior's samplers, in one torch-free module.
+"""The inference methods of the synthesis posterior and their defaults, in one torch-free table.
 
-The library (:mod:`bayes_talk.synthesis.samplers`, :mod:`bayes_talk.synthesis.posterior`)
-and the CLI's help text read these, so the two cannot drift apart; importing this
-module pulls in neither torch nor pyro (``bayes-talk --help`` stays fast).
+:data:`INFERENCE` names every method that :func:`~bayes_talk.synthesis.posterior.sample_synthesis`
+(and so ``synth --posterior`` and the evaluation harness) can run: the callable that draws,
+its default draws and joint-MAP restarts, its options, which convergence diagnostics apply to
+it and what to try when they fail. The library, the CLI's choices and help text, the
+pipeline and docs/uncertainty.md (its "Inference methods" table is :func:`markdown_table`,
+checked by a test) read it, so they cannot drift apart; importing this module pulls in
+neither torch nor pyro (``bayes-talk --help`` stays fast).
 """
 from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 #: NUTS defaults of the library and the CLI (docs/uncertainty.md "Sampler options"): chains,
 #: warm-up iterations per chain, draws kept per chain, target acceptance statistic of the
@@ -13,21 +21,110 @@ from __future__ import annotations
 #: modes the chains reached are searched for and turned into jumps; part of ``warmup``)
 NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10,
                  "jump_attempts": 2, "pilot": 150}
-#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
-DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
-                 "emcee": 320, "vi": 64}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
 #: emcee burn-in steps
 EMCEE_WARMUP = 500
 
+#: the convergence diagnostics (:func:`~bayes_talk.synthesis.diagnostics.convergence_problems`)
+#: a method can have: Pareto k̂ of the importance weights p/q of iid proposal draws; R-hat and
+#: bulk/tail ESS across chains; NUTS divergences and E-BFMI; emcee's chain length ≥ 50 τ
+DIAGNOSTICS = ("khat", "rhat_ess", "divergences_bfmi", "autocorrelation")
+
+
+@dataclass(frozen=True)
+class InferenceMethod:
+    """One way to infer the whole-utterance synthesis posterior (docs/uncertainty.md).
+
+    runner: ``"module:function"`` of the callable that draws (imported by :meth:`load`, so
+    this table stays torch-free); draws: default draws kept, pooled over chains;
+    map_restarts: restarts of the joint MAP per round from draws of its Laplace
+    approximation before the method runs; diagnostics: those of :data:`DIAGNOSTICS` that
+    apply; options: the method's own defaults (``sampler_kw``); advice: what to try when its
+    checks fail (added to the warning)."""
+
+    name: str
+    summary: str
+    runner: str
+    draws: int
+    map_restarts: int
+    diagnostics: tuple[str, ...]
+    advice: str = ""
+    options: dict = field(default_factory=dict)
+
+    def load(self) -> Callable:
+        """The callable named by :attr:`runner`."""
+        module, _, name = self.runner.partition(":")
+        return getattr(importlib.import_module(module), name)
+
+
+#: every inference method, by name; the first with draws is the default of switching models
+INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
+    InferenceMethod(
+        "map", "a point estimate: the joint MAP path (`sample_synthesis`); `synth --posterior map` runs "
+               "the paper's sequential path (Algorithm 1/2) instead",
+        "bayes_talk.synthesis.joint_map:maximise_utterance", draws=1, map_restarts=0, diagnostics=()),
+    InferenceMethod(
+        "laplace", "iid draws of the Gaussian at the joint MAP (closed-form Hessian, floored eigenvalues)",
+        "bayes_talk.synthesis.samplers:run_laplace", draws=64, map_restarts=0, diagnostics=("khat",),
+        advice="the Gaussian approximation is poor here (the posterior is multimodal); its calibrated bands "
+               "are calibrated empirically (train --calibrate-bands), not by the approximation; "
+               "--posterior nuts explores more but may not converge either",
+        options={"khat_draws": 200}),
+    InferenceMethod(
+        "nuts", "NUTS in coordinates whitened at the MAP, with a pilot mode search and mode-jumping moves",
+        "bayes_talk.synthesis.mode_search:nuts_with_mode_search",
+        draws=NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], map_restarts=6,
+        diagnostics=("rhat_ess", "divergences_bfmi"),
+        advice="run more draws/warm-up (or raise the target acceptance for divergences); chains in different "
+               "modes of a multimodal posterior will not agree",
+        options={**NUTS_DEFAULTS, "coords": "whitened"}),
+    InferenceMethod(
+        "emcee", "emcee's ensemble (differential-evolution moves) in whitened coordinates",
+        "bayes_talk.synthesis.samplers:run_emcee", draws=320, map_restarts=6,
+        diagnostics=("rhat_ess", "autocorrelation"),
+        advice="run it longer (max_steps) or use --posterior nuts",
+        options={"warmup": EMCEE_WARMUP}),
+    InferenceMethod(
+        "vi", "full-rank Gaussian variational inference (Pyro SVI) in whitened coordinates",
+        "bayes_talk.synthesis.variational:run_vi", draws=64, map_restarts=0, diagnostics=("khat",),
+        advice="the Gaussian q fitted within one mode is a poor importance proposal here (the posterior is "
+               "multimodal and non-Gaussian); more steps will not change that",
+        options={**VI_DEFAULTS, "khat_draws": 200}),
+)}
+#: the default method for a switching model (the SGPLVM has only "map")
+DEFAULT_METHOD = "laplace"
+#: draws kept by default, pooled over chains, by method (from :data:`INFERENCE`)
+DEFAULT_DRAWS = {n: m.draws for n, m in INFERENCE.items()}
+
+
+def check_method(name: str) -> InferenceMethod:
+    """The method called ``name``; ValueError listing the valid names otherwise."""
+    try:
+        return INFERENCE[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"posterior must be one of {tuple(INFERENCE)}, got {name!r}") from None
+
 
 def draws_help() -> str:
     """The default draws of each sampler as the CLI's ``--draws`` help states them."""
     n = NUTS_DEFAULTS
-    return (f"default: laplace {DEFAULT_DRAWS['laplace']}, nuts {n['chains']} x {n['draws_per_chain']}, "
-            f"emcee {DEFAULT_DRAWS['emcee']}, vi {DEFAULT_DRAWS['vi']}")
+    parts = [f"{m.name} {n['chains']} x {n['draws_per_chain']}" if m.name == "nuts" else f"{m.name} {m.draws}"
+             for m in INFERENCE.values() if m.name != "map"]
+    return "default: " + ", ".join(parts)
 
 
-__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "VI_DEFAULTS", "draws_help"]
+def markdown_table() -> str:
+    """The "Inference methods" table of docs/uncertainty.md."""
+    rows = ["| method | what it does | callable | default draws | MAP restarts | diagnostics |",
+            "|---|---|---|---|---|---|"]
+    for m in INFERENCE.values():
+        diag = ", ".join(m.diagnostics) or "–"
+        rows.append(f"| `{m.name}` | {m.summary} | `{m.runner.replace(':', '.')}` | {m.draws} | {m.map_restarts} "
+                    f"| {diag} |")
+    return "\n".join(rows)
+
+
+__all__ = ["DEFAULT_DRAWS", "DEFAULT_METHOD", "DIAGNOSTICS", "EMCEE_WARMUP", "INFERENCE", "NUTS_DEFAULTS",
+           "VI_DEFAULTS", "InferenceMethod", "check_method", "draws_help", "markdown_table"]

@@ -1,8 +1,7 @@
 """Sampler diagnostics through ArviZ (DESIGN.md §6) - the only synthesis module that imports arviz.
 
 Every ArviZ call goes through :mod:`bayes_talk.arviz_compat` (ArviZ 0.2x on Python 3.11,
-1.x on >= 3.12; DESIGN.md §6); ``bayes_talk.evaluation.diagnostics`` re-exports this module
-for older callers.
+1.x on >= 3.12; DESIGN.md §6).
 
 * :func:`chain_diagnostics` - draws (chains, draws, n): rank-normalised split R-hat
   (``arviz.rhat(method="rank")``, Vehtari et al. 2021), bulk and tail ESS

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bayes_talk.synthesis.defaults import INFERENCE
 from bayes_talk.synthesis.joint import UtteranceDensity
 
 #: trust-region Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
@@ -30,7 +31,7 @@ MAP_DTOL = 1e-6
 #: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
 #: held-out utterance restarts found one 27 nats above the first, docs/uncertainty.md), and
 #: the samplers run in coordinates whitened at the best mode found
-MAP_RESTARTS = {"map": 0, "laplace": 0, "nuts": 6, "emcee": 6, "vi": 0}
+MAP_RESTARTS = {n: m.map_restarts for n, m in INFERENCE.items()}
 MAP_RESTART_ROUNDS = 3
 
 
@@ -49,7 +50,7 @@ class MapResult:
     hessian_modified: int = 0  # eigenvalues of −∇² ln p floored (not a strict maximum if > 0)
 
 
-def _floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
+def floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
     """Eigen-decomposition of P = −H with eigenvalues floored at floor·max|λ| (and |λ| used
     for negative ones): (eigenvalues, eigenvectors, number modified)."""
     P = -0.5 * (H + H.T)
@@ -94,7 +95,7 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
     H = dens.hessian(x)
     state = _newton_state(H, g, gtol, dtol)
     if not state["converged"] and max_iter > 0:
-        lam, U, _ = _floored_precision(H)
+        lam, U, _ = floored_precision(H)
         L = U / np.sqrt(lam)
         xs = x.copy()
         cache: dict = {}
@@ -145,7 +146,7 @@ def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarr
     gradient, and the iteration count."""
     from scipy.optimize import minimize
 
-    lam, U, _ = _floored_precision(dens.hessian(x0))
+    lam, U, _ = floored_precision(dens.hessian(x0))
     L = U / np.sqrt(lam)
     best = {"f": f0, "x": x0, "g": g0}
 
@@ -169,7 +170,7 @@ def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarr
 def _newton_state(H: np.ndarray, g: np.ndarray, gtol: float, dtol: float) -> dict:
     """The convergence test at a point with Hessian H and gradient g of ln p: max |g|, the
     Newton decrement ½ gᵀP⁻¹g (P = −H, eigenvalues floored), eigenvalues floored, converged."""
-    lam, U, n_mod = _floored_precision(H)
+    lam, U, n_mod = floored_precision(H)
     decrement = 0.5 * float(np.sum((U.T @ g) ** 2 / lam))
     gnorm = float(np.max(np.abs(g)))
     return {"grad_norm": gnorm, "decrement": decrement, "n_mod": n_mod,
@@ -189,7 +190,7 @@ def restart_map(dens: UtteranceDensity, mp: MapResult, n_restarts: int, seed: in
     rng = np.random.default_rng([seed, 0x6D6170])
     found: list[MapResult] = []
     for _ in range(rounds):
-        lam, U, _ = _floored_precision(mp.hessian)
+        lam, U, _ = floored_precision(mp.hessian)
         L = U / np.sqrt(lam)
         x = mp.latents.reshape(-1)
         best = mp

@@ -15,7 +15,7 @@ import numpy as np
 
 from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
 from bayes_talk.synthesis.joint import UtteranceDensity
-from bayes_talk.synthesis.joint_map import MapResult, _floored_precision, maximise_utterance
+from bayes_talk.synthesis.joint_map import MapResult, floored_precision, maximise_utterance
 from bayes_talk.synthesis.samplers import run_nuts
 from bayes_talk.synthesis.whitening import Whitened, whitening
 
@@ -50,7 +50,7 @@ def mode_jumps(best: MapResult, modes: list[MapResult], frame_tol: float = JUMP_
         raise ValueError("mode_jumps needs the best mode's Hessian (MapResult.hessian)")
     xb = best.latents
     T, d = xb.shape
-    lam, U, _ = _floored_precision(best.hessian)
+    lam, U, _ = floored_precision(best.hessian)
     P = (U * lam) @ U.T
     out: list[np.ndarray] = []
     for m in sorted((m for m in modes if m.converged), key=lambda m: -m.log_density):

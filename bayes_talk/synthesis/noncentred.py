@@ -21,7 +21,7 @@ The map ε ↦ x is triangular (x_t depends on ε_t and x_{t−1}), so
 (the Jacobian's diagonal blocks are L_π, diag σ_x(x_{t−1}) and I). The dynamics terms of
 ln p and of (2) cancel to Σ −½‖ε_t‖² − (d/2) ln 2π, but :class:`NonCentred` evaluates (2)
 as written, on top of the existing numpy density
-(:class:`~bayes_talk.synthesis.joint_density.UtteranceDensity`), so the two coordinate
+(:class:`~bayes_talk.synthesis.joint.UtteranceDensity`), so the two coordinate
 systems share one density. Its gradient is the reverse pass of (1): with x̄ = ∂/∂x of
 ln p + (2) (x treated as free),
 
@@ -40,8 +40,8 @@ import numba
 import numpy as np
 import torch
 
-from bayes_talk.gp.predictive_fused import Runs, _forward, _kernel_rows
-from bayes_talk.synthesis.joint_density import UtteranceDensity
+from bayes_talk.gp.predictive_fused import Runs, forward_solve_rows, kernel_rows
+from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.whitening import Potential
 
 
@@ -52,8 +52,8 @@ def _mean_var_vjp(X, A, L, alpha, gamma, beta, Xs, G, gs, out):
     T, d = Xs.shape
     N, D = A.shape
     floor = 1.0 / beta
-    k = _kernel_rows(X, alpha, gamma, Xs)
-    v = _forward(L, k)
+    k = kernel_rows(X, alpha, gamma, Xs)
+    v = forward_solve_rows(L, k)
     w = v.copy()
     for i in range(N - 1, -1, -1):
         piv = L[i, i]

@@ -8,7 +8,7 @@ over frames,
           + [t smooth] ln s(x_{t−1}, x_t)                                                    (1)
 
 (:class:`FrameFactors`; a test holds Σ_t f_t equal to
-:class:`~bayes_talk.synthesis.joint_density.UtteranceDensity` to round-off). Conditional SMC
+:class:`~bayes_talk.synthesis.joint.UtteranceDensity` to round-off). Conditional SMC
 with ancestor sampling (Andrieu, Doucet & Holenstein 2010; Lindsten, Jordan & Schön 2014,
 "Particle Gibbs with ancestor sampling", Alg. 2) is then a Markov kernel that leaves
 p(X | Ŷ) invariant: N − 1 particles are proposed frame by frame, the reference path is
@@ -32,7 +32,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
-from bayes_talk.synthesis.joint_density import UtteranceDensity
+from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
 
 

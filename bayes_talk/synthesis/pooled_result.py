@@ -33,7 +33,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from bayes_talk.synthesis.result import SynthesisResult, _check_level
+from bayes_talk.errors import check_level
+from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["PooledResult", "check_pool"]
 
@@ -116,7 +117,7 @@ class PooledResult(SynthesisResult):
 
     def quantile(self, q: float) -> np.ndarray:
         """F⁻¹(q) (T, D) of (4): bisection between the parts' own q-quantiles."""
-        q = _check_level(q, "q")
+        q = check_level(q, "q")
         a = self.base.quantile(q)
         b = self.base.mean + np.sqrt(self.pool_var) * float(ndtri(q))
         lo, hi = np.minimum(a, b), np.maximum(a, b)

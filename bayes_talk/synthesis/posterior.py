@@ -57,7 +57,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP, INFERENCE, check_method
 from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
@@ -67,28 +67,24 @@ from bayes_talk.synthesis.diagnostics import (
     sampler_warning,
 )
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
-from bayes_talk.synthesis.joint_map import (  # noqa: F401 - MAP_* and MapResult: re-exported
-    MAP_DTOL,
+from bayes_talk.synthesis.joint_map import (
     MAP_GTOL,
-    MAP_LBFGS_ITER,
     MAP_MAX_ITER,
-    MAP_RESTART_ROUNDS,
-    MAP_RESTARTS,
-    MapResult,
-    _floored_precision,
     maximise_utterance,
     restart_map,
 )
-from bayes_talk.synthesis.mode_search import mode_jumps, nuts_with_mode_search
+from bayes_talk.synthesis.mode_search import nuts_with_mode_search
 from bayes_talk.synthesis.noncentred import nuts_noncentred
-from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
+from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.samplers import (
     INIT_SCALE,
     NUTS_DEFAULTS,
     Draws,
+    laplace_scale,
     run_emcee,
+    run_laplace,
 )
-from bayes_talk.synthesis.sequential import _check_inputs, synthesize
+from bayes_talk.synthesis.sequential import check_inputs, synthesize
 from bayes_talk.synthesis.variational import run_vi
 from bayes_talk.synthesis.whitening import Whitened
 
@@ -97,22 +93,17 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee", "vi")
+#: the inference methods (:data:`~bayes_talk.synthesis.defaults.INFERENCE`, the one table)
+POSTERIOR_METHODS = tuple(INFERENCE)
 #: coordinates NUTS moves in: X = X_MAP + L z (whitened at the mode, with the pilot mode
 #: search) or the standardised dynamics innovations ε (:mod:`bayes_talk.synthesis.noncentred`)
 NUTS_COORDS = ("whitened", "noncentred")
-#: draws of the Laplace approximation used for PSIS k̂ (at least; n_draws if larger)
-LAPLACE_KHAT_DRAWS = 200
 #: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
 #: chains, the chain may run on to this many times its first length to meet the autocorrelation
 #: rule, within this many stored floats
 EMCEE_REPORTED_WALKERS = 16
 EMCEE_MAX_STEPS_FACTOR = 10
 EMCEE_MAX_STORED_FLOATS = 1.25e8
-
-
-#: the former name of :class:`~bayes_talk.synthesis.result.SynthesisResult` (the same type)
-PosteriorSynthesis = SynthesisResult
 
 
 def sample_synthesis(
@@ -156,8 +147,7 @@ def sample_synthesis(
         is a projection of spliced MFCCs, and transforming it a second time would condition
         on different audio.
     """
-    if method not in POSTERIOR_METHODS:
-        raise ValueError(f"method must be one of {POSTERIOR_METHODS}, got {method!r}")
+    spec = check_method(method)
     smoothness = "frame" if smoothness is True else "off" if smoothness is False else smoothness
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
@@ -168,10 +158,10 @@ def sample_synthesis(
         raise ValueError(f"chains must be >= 1, got {chains}")
     if warmup is not None and warmup < 0:
         raise ValueError(f"warmup must be >= 0, got {warmup}")
-    map_restarts = MAP_RESTARTS[method] if map_restarts is None else int(map_restarts)
+    map_restarts = spec.map_restarts if map_restarts is None else int(map_restarts)
     if map_restarts < 0:
         raise ValueError(f"map_restarts must be >= 0, got {map_restarts}")
-    mfcc = _check_inputs(model, mfcc, labels)
+    mfcc = check_inputs(model, mfcc, labels)
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
@@ -185,6 +175,7 @@ def sample_synthesis(
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
             skw, map_restarts: int = 0, audio_view: bool = False) -> SynthesisResult:
+    spec = INFERENCE[method]
     plan = make_plan(model, mfcc, labels, smoothness, audio_view)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
@@ -195,8 +186,8 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     modes: list = []
     if map_restarts:
         mp, modes = restart_map(dens, mp, map_restarts, seed, max_iter=map_iter)
-    lam, U, n_mod = _floored_precision(mp.hessian)
-    L = U / np.sqrt(lam)                         # Laplace covariance = L Lᵀ
+    L, floored = laplace_scale(mp.hessian)       # Laplace covariance = L Lᵀ
+    n_mod = floored["n_floored"]
     diag: dict = {"map_converged": mp.converged, "map_grad_norm": mp.grad_norm, "map_iter": mp.n_iter,
                   "map_decrement": mp.decrement,
                   "map_log_density": mp.log_density, "algorithm1_log_density": mp.start_log_density,
@@ -215,18 +206,19 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         Xs = x_map[None, None]
     elif method == "laplace":
         # extra draws (beyond n_draws) only to estimate k̂; the first n_draws are the result
-        Z = rng.standard_normal((max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS))), T * d))
-        Xall = x_map[None] + Z @ L.T
+        n_k = max(n_draws, int(skw.pop("khat_draws", spec.options["khat_draws"])))
+        draws = run_laplace(None, x_map, n_k, rng, scale=L)
+        Xall, Z = draws.samples[0], draws.stats["z"]
         Xs = Xall[None, :n_draws]
-        diag.update(_psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1), n_draws, sample_stats))
+        diag.update(psis_diagnostics(dens, Xall, -0.5 * np.sum(Z * Z, axis=1), n_draws, sample_stats))
     elif method == "vi":
         g = Whitened(dens, x_map, L)
-        n_k = max(n_draws, int(skw.pop("khat_draws", LAPLACE_KHAT_DRAWS)))
+        n_k = max(n_draws, int(skw.pop("khat_draws", spec.options["khat_draws"])))
         draws = run_vi(g, T * d, n_draws=n_k, seed=seed, **skw)
         Xall = g.to_x(draws.samples[0])
         Xs = Xall[None, :n_draws]
         st = draws.stats
-        diag.update(_psis_diagnostics(dens, Xall, st["log_q"], n_draws, sample_stats))
+        diag.update(psis_diagnostics(dens, Xall, st["log_q"], n_draws, sample_stats))
         diag.update({"vi_steps": st["steps"],
                      "vi_particles": st["particles"], "vi_elbo_start": st["elbo_start"],
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
@@ -235,7 +227,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         if method == "nuts":
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
-            coords = skw.pop("coords", "whitened")
+            coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
             if coords == "noncentred":
@@ -268,11 +260,11 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
     zm, zv = visual_predictive(plan, Xs)
-    if method in ("nuts", "emcee"):
+    if "rhat_ess" in spec.diagnostics:
         # what users consume: the AAM parameters' means at the draws, per frame, beside the latents
         diag.update(frame_diagnostics(zm, "aam_"))
         diag.update({k: v for k, v in frame_diagnostics(Xs).items() if k.endswith("_per_frame")})
-    if method != "map":
+    if spec.diagnostics:
         warn += _convergence_warnings(method, diag)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
                            warnings=warn, sample_stats=sample_stats, mean_function=plan.visual_offset)
@@ -298,7 +290,7 @@ def visual_predictive(plan, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 KHAT_CHUNK = 50
 
 
-def _psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray, n_keep: int | None = None,
+def psis_diagnostics(dens: UtteranceDensity, X: np.ndarray, log_q: np.ndarray, n_keep: int | None = None,
                       sample_stats: dict | None = None) -> dict:
     """PSIS k̂ and ESS of an approximation q of p (Laplace, VI) from its draws X (S, T·d) and
     their ln q (constants free): log weights ln p(x_s) − ln q(x_s) (Vehtari et al. 2024); ln p
@@ -361,30 +353,12 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
         return []
     # the whole-utterance posterior is multimodal (docs/uncertainty.md): no sampler here is a
     # sure cure, so the advice says what to try and what the bands then are
-    advice = {"laplace": "the Gaussian approximation is poor here (the posterior is multimodal); its "
-                         "calibrated bands are calibrated empirically (train --calibrate-bands), not by "
-                         "the approximation; --posterior nuts explores more but may not converge either",
-              "nuts": "run more draws/warm-up (or raise the target acceptance for divergences); chains "
-                      "in different modes of a multimodal posterior will not agree",
-              "emcee": "run it longer (max_steps) or use --posterior nuts",
-              "vi": "the Gaussian q fitted within one mode is a poor importance proposal here (the "
-                    "posterior is multimodal and non-Gaussian); more steps will not change that"}.get(method, "")
-    return sampler_warning(method, fails, advice)
+    return sampler_warning(method, fails, INFERENCE[method].advice)
 
 
 __all__ = [
-    "DEFAULT_LEVELS",
-    "MAP_DTOL",
-    "MAP_GTOL",
-    "MAP_MAX_ITER",
-    "MAP_RESTARTS",
     "POSTERIOR_METHODS",
-    "MapResult",
-    "PosteriorSynthesis",
-    "SynthesisResult",
-    "maximise_utterance",
-    "mode_jumps",
-    "restart_map",
+    "psis_diagnostics",
     "sample_synthesis",
     "visual_predictive",
 ]

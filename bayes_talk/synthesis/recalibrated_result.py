@@ -50,7 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from bayes_talk.synthesis.result import SynthesisResult, _check_level
+from bayes_talk.errors import check_level
+from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["RecalibratedResult", "check_level_map"]
 
@@ -157,7 +158,7 @@ class RecalibratedResult(SynthesisResult):
 
     def quantile(self, q: float) -> np.ndarray:
         """F'⁻¹(q) = F⁻¹(G_d⁻¹(q)) (T, D), the mixture quantile at each parameter's level."""
-        q = _check_level(q, "q")
+        q = check_level(q, "q")
         levels = self._G(np.full(self.n_dims, q), inverse=True)
         if self._cols is None:
             self._cols = [SynthesisResult(self.method, None, np.ascontiguousarray(self.draw_mean[..., d:d + 1]),

@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import logsumexp, ndtr, ndtri
 
+from bayes_talk.errors import check_level
+
 if TYPE_CHECKING:
     import arviz
 
@@ -51,13 +53,6 @@ DEFAULT_LEVELS = (0.5, 0.8, 0.9, 0.95)
 PREDICTIVE_DRAWS = 100
 _TINY_SD = 1e-150
 _Q_TOL = 1e-12
-
-
-def _check_level(level: float, what: str = "level") -> float:
-    q = float(level)
-    if not 0.0 < q < 1.0:
-        raise ValueError(f"{what} must be in (0, 1), got {level!r}")
-    return q
 
 
 @dataclass
@@ -80,9 +75,6 @@ class SynthesisResult:
     mean_function: (T, D) the explicit mean function c_t already included in every μ^k
         (``SwitchingConfig.context_mean``: μ^k = c_t + μ_Z(x^k)), or None (zero). The band
         calibration's mean stage shrinks μ^k − c_t, not μ^k.
-
-    The positional order of the first eleven fields is that of the former
-    ``PosteriorSynthesis`` (still importable under that name).
     """
 
     method: str
@@ -235,7 +227,7 @@ class SynthesisResult:
 
     def quantile(self, q: float) -> np.ndarray:
         """F⁻¹(q) (T, D): the exact mixture quantile of every entry (see the module docstring)."""
-        q = _check_level(q, "q")
+        q = check_level(q, "q")
         m, s = self._components()
         z = float(ndtri(q))
         if len(m) == 1:
@@ -267,7 +259,7 @@ class SynthesisResult:
 
     def interval(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """The central ``level`` band (lower, upper), each (T, D): F⁻¹((1 ∓ level)/2)."""
-        level = _check_level(level)
+        level = check_level(level)
         return self.quantile(0.5 - level / 2), self.quantile(0.5 + level / 2)
 
     def quantiles(self, levels=DEFAULT_LEVELS, n_samples: int | None = None,
@@ -279,7 +271,7 @@ class SynthesisResult:
         if n_samples is not None or seed is not None:
             warnings.warn("SynthesisResult.quantiles: n_samples and seed are ignored (exact mixture "
                           "quantiles)", DeprecationWarning, stacklevel=2)
-        levels = [_check_level(q) for q in levels]
+        levels = [check_level(q) for q in levels]
         return {q: self.interval(q) for q in levels}
 
     def sample(self, n: int = 2000, seed: int | None = None) -> np.ndarray:

@@ -22,9 +22,11 @@ statistics for :mod:`bayes_talk.synthesis.diagnostics`. Same seed -> same draws.
   on up to ``max_steps`` to meet it; ``Draws.stats["autocorr_ok"]`` says whether it did.
 * variational inference (:func:`bayes_talk.synthesis.variational.run_vi`) lives in its own
   module and returns the same :class:`Draws`.
-* :func:`run_laplace` - Gaussian N(x_MAP, (-∇²log p)⁻¹) with the Hessian from
-  ``torch.autograd.functional.hessian``; a non-positive-definite negative Hessian (MAP not
-  exactly at a maximum) has its eigenvalues floored, and that is recorded.
+* :func:`run_laplace` - Gaussian N(x_MAP, (-∇²log p)⁻¹), the one Laplace approximation of
+  the package (the synthesis posterior's ``method="laplace"`` runs it with the closed-form
+  Hessian of the joint MAP; otherwise ``torch.autograd.functional.hessian``); a
+  non-positive-definite negative Hessian (MAP not exactly at a maximum) has its
+  eigenvalues floored (negative ones by their modulus), and that is recorded.
 
 Torch runs with one thread inside every sampler (:func:`bayes_talk.gp.threads.torch_threads`).
 """
@@ -41,11 +43,11 @@ import torch
 from bayes_talk import progress
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
+from bayes_talk.synthesis.joint_map import floored_precision
 
 log = logging.getLogger(__name__)
 
 LogProb = Callable[[torch.Tensor], torch.Tensor]
-METHODS = ("nuts", "emcee", "laplace", "vi")
 
 
 @dataclass
@@ -393,36 +395,51 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
 
 
 # ---------------------------------------------------------------------------- Laplace
-def laplace_gaussian(log_prob: LogProb, x_map, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Mean and covariance of the Laplace approximation at ``x_map``."""
-    x = _as_tensor(x_map).reshape(-1)
-    with torch_threads(1):
-        H = torch.autograd.functional.hessian(log_prob, x).detach().numpy()
-    P = -0.5 * (H + H.T)
-    lam, U = np.linalg.eigh(P)
-    lo = floor * max(1.0, float(np.max(np.abs(lam))))
-    n_floored = int(np.sum(lam < lo))
-    lam_c = np.maximum(lam, lo)
-    cov = (U / lam_c) @ U.T
-    return x.numpy().copy(), 0.5 * (cov + cov.T), {"min_eig_precision": float(lam.min()), "n_floored": n_floored}
+def laplace_scale(hessian: np.ndarray) -> tuple[np.ndarray, dict]:
+    """L with L Lᵀ = P⁻¹, P = −H the precision of the Laplace approximation at a mode whose
+    log-density Hessian is ``H``: L = U Λ^(−1/2) from P's eigen-decomposition, eigenvalues
+    floored at 1e-8·max|λ| and negative ones replaced by their modulus
+    (:func:`~bayes_talk.synthesis.joint_map.floored_precision`; the MAP may stop short of a
+    maximum). Also ``{"n_floored": number of eigenvalues modified}``."""
+    lam, U, n_mod = floored_precision(hessian)
+    return U / np.sqrt(lam), {"n_floored": n_mod}
 
 
-def run_laplace(log_prob: LogProb, x_map, n_draws: int = 200, seed: int = 0) -> Draws:
-    """``n_draws`` iid draws of the Laplace approximation (one chain)."""
+def run_laplace(log_prob: LogProb | None, x_map, n_draws: int = 200, seed: int | np.random.Generator = 0, *,
+                hessian: np.ndarray | None = None, scale: np.ndarray | None = None) -> Draws:
+    """``n_draws`` iid draws x = x_MAP + L z, z ~ N(0, I), of the Laplace approximation
+    N(x_MAP, P⁻¹), P = −∇² ln p(x_MAP) (one chain; the one Laplace of the package: the
+    synthesis posterior's ``method="laplace"`` runs it too).
+
+    The Hessian is ``hessian`` when given (the synthesis density's closed form), else torch
+    autograd of ``log_prob`` at ``x_map``; ``scale`` (L of :func:`laplace_scale`) skips its
+    eigen-decomposition when the caller has it. ``seed``: an int or a numpy Generator to draw
+    z from. ``stats``: ``mean``, ``cov`` (L Lᵀ), ``z`` (the standard-normal draws, for
+    importance weights), ``n_floored`` (eigenvalues of P floored or negated)."""
     t0 = time.perf_counter()
-    mean, cov, info = laplace_gaussian(log_prob, x_map)
-    L = np.linalg.cholesky(cov + 1e-14 * np.eye(len(mean)) * max(1.0, float(np.trace(cov))))
-    z = np.random.default_rng(seed).standard_normal((n_draws, len(mean)))
-    s = mean[None, :] + z @ L.T
-    info.update(mean=mean, cov=cov)
+    x = np.asarray(x_map, dtype=np.float64).reshape(-1)
+    if scale is None:
+        if hessian is None:
+            if log_prob is None:
+                raise ValueError("run_laplace: give log_prob, hessian or scale")
+            with torch_threads(1):
+                hessian = torch.autograd.functional.hessian(log_prob, _as_tensor(x)).detach().numpy()
+        scale, info = laplace_scale(hessian)
+    else:
+        info = {}
+    if scale.shape != (x.size, x.size):
+        raise ValueError(f"run_laplace: scale has shape {scale.shape}, expected ({x.size}, {x.size})")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    z = rng.standard_normal((int(n_draws), x.size))
+    s = x[None] + z @ scale.T
+    info.update(mean=x.copy(), cov=scale @ scale.T, z=z)
     return Draws("laplace", s[None], info, time.perf_counter() - t0)
 
 
 __all__ = [
-    "METHODS",
     "Draws",
     "batch_log_prob",
-    "laplace_gaussian",
+    "laplace_scale",
     "run_emcee",
     "run_laplace",
     "run_nuts",

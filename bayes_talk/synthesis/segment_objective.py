@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
-from bayes_talk.gp import fused
+from bayes_talk import settings
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.predictive_fused import (
     predictive_loglik,
@@ -90,7 +90,7 @@ class _NumpyGP:
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
-        if fused.ENABLED:
+        if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             mu, s = np.empty((Xs.shape[0], self.A.shape[1])), np.empty(Xs.shape[0])
             predictive_mean_var(self.X, self.A, self.Lc, self.mean, self.alpha, self.gamma, self.beta, Xs, mu, s)
@@ -102,7 +102,7 @@ class _NumpyGP:
 
     def mean_vjp(self, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_tm ∂μ_m(x_t)/∂x_t for each row (T×d): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
-        if fused.ENABLED:
+        if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             out = np.empty(Xs.shape)
             predictive_mean_vjp(self.X, self.A, self.alpha, self.gamma, Xs, np.ascontiguousarray(G, dtype=np.float64), out)
@@ -118,7 +118,7 @@ class _NumpyGP:
         triangular solves): :meth:`UtteranceDensity.batch` stacks them. Computed by the
         compiled loop of :mod:`bayes_talk.gp.predictive_fused` unless ``BAYES_TALK_FUSED=0``
         (then by :meth:`loglik_numpy`, the reference)."""
-        if not fused.ENABLED:
+        if not settings.get("fused"):
             return self.loglik_numpy(Y, Xs, extra_var, rowwise)
         Y = np.ascontiguousarray(Y, dtype=np.float64)
         Xs = np.ascontiguousarray(Xs, dtype=np.float64)
@@ -367,7 +367,7 @@ def maximise_segment(
         mu, cov = first
         first_p = (np.asarray(mu), np.linalg.inv(cov), float(np.linalg.slogdet(cov)[1]))
 
-    if fused.ENABLED:
+    if settings.get("fused"):
         objective = compiled_segment_objective(Y, obs, dynamics, first_p, smooth)
     else:
         def objective(X):

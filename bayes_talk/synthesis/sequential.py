@@ -63,7 +63,8 @@ def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) 
     return filtfilt(b, a, Z, axis=0)
 
 
-def _check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels) -> np.ndarray:
+def check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels) -> np.ndarray:
+    """``mfcc`` as float64 (T, D_y), checked against ``model`` and the frame ``labels``."""
     mfcc = np.asarray(mfcc, dtype=np.float64)
     Dy = model.dims_[0]
     if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
@@ -97,7 +98,7 @@ def synthesize(
     smoothness = DEFAULT_SMOOTHNESS if smoothness is True else "off" if smoothness is False else smoothness
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
-    mfcc = _check_inputs(model, mfcc, labels)
+    mfcc = check_inputs(model, mfcc, labels)
     with torch_threads(1):
         return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter, audio_view)
 

@@ -12,12 +12,12 @@ import numpy as np
 import torch
 
 from bayes_talk.synthesis.joint import UtteranceDensity
-from bayes_talk.synthesis.joint_map import MapResult, _floored_precision
+from bayes_talk.synthesis.joint_map import MapResult, floored_precision
 
 
 def whitening(mp: MapResult) -> tuple[np.ndarray, np.ndarray]:
     """L with L Lᵀ = (−∇² ln p)⁻¹ at the mode (eigenvalues floored) and its inverse L⁻¹."""
-    lam, U, _ = _floored_precision(mp.hessian)
+    lam, U, _ = floored_precision(mp.hessian)
     return U / np.sqrt(lam), (U * np.sqrt(lam)).T
 
 

@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from bayes_talk.data.corpus import load_corpus
-from bayes_talk.evaluation.protocols import get_protocol, run_protocol
+from bayes_talk.evaluation.harness import run_protocol
+from bayes_talk.evaluation.protocols import get_protocol
 
 k = int(sys.argv[1]); out = sys.argv[2]
 methods = sys.argv[3].split(",") if len(sys.argv) > 3 else ["ssgpdm-vlmm-posterior"]

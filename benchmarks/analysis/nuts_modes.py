@@ -25,9 +25,9 @@ from bayes_talk.data.corpus import load_corpus
 from bayes_talk.files import write_json
 from bayes_talk.pipeline import load_trained
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.joint_density import LOG_2PI
 from bayes_talk.synthesis.joint_map import maximise_utterance
 from bayes_talk.synthesis.posterior import sample_synthesis, visual_predictive
+from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
 def terms(dens: UtteranceDensity, x: np.ndarray) -> dict:

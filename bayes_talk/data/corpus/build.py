@@ -9,27 +9,27 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.corpus.format import (
-    _CACHE_NAME,
-    _MANIFEST,
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
+    CACHE_NAME,
     FORMAT_NAME,
     FORMAT_VERSION,
     FPS,
-    _prototype_frames,
-    _write_json,
+    MANIFEST,
     load_npz,
+    prototype_frames,
     renderer_settings,
 )
 from bayes_talk.data.corpus.workers import (
-    _n_workers,
-    _run_tasks,
-    _utterance_task,
+    resolve_workers,
+    run_tasks,
+    utterance_task,
 )
 from bayes_talk.data.phones import PHONES
 from bayes_talk.executor import Executor
 from bayes_talk.executor import single_thread as _single_thread_blas
+from bayes_talk.files import write_json
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ def _check_out_dir(out_dir: Path, force: bool) -> set[str]:
             f"{out_dir}: directory is not empty; refusing to build a corpus into it "
             "(pass --force to overwrite the corpus files there)"
         )
-    old = out_dir / _MANIFEST
+    old = out_dir / MANIFEST
     try:
         m = json.loads(old.read_text(encoding="utf-8"))
         if m.get("format") == FORMAT_NAME:
@@ -178,7 +178,7 @@ def build_corpus(
         from bayes_talk.data.articulatory import require_vtl
 
         require_vtl()
-    workers = _n_workers(n_workers, int(n_utterances))
+    workers = resolve_workers(n_workers, int(n_utterances))
     if int(image_size) < 32:
         raise ValueError(f"image_size: expected >= 32 pixels, found {image_size}")
     texts = load_sentences(sentences, int(n_utterances))
@@ -205,7 +205,7 @@ class _CreatedFiles:
     def remove(self) -> None:
         import shutil
 
-        if not self.out_dir.exists() or (self.out_dir / _MANIFEST).exists():
+        if not self.out_dir.exists() or (self.out_dir / MANIFEST).exists():
             return
         if not self.existed:
             shutil.rmtree(self.out_dir, ignore_errors=True)
@@ -230,7 +230,7 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
 
     udir = out_dir / "utterances"
     udir.mkdir(parents=True, exist_ok=True)
-    old_manifest = out_dir / _MANIFEST
+    old_manifest = out_dir / MANIFEST
     if old_manifest.exists():  # an incomplete rebuild must not look complete
         old_manifest.unlink()
 
@@ -245,7 +245,7 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
              for i, r in enumerate(requests)]
     # every utterance end to end (fresh espeak process, face, frames, files) in a worker:
     # one worker renders while the other waits for its speech
-    results = _run_tasks(_utterance_task, "utterance", tasks, workers, executor, scheduler)
+    results = run_tasks(utterance_task, "utterance", tasks, workers, executor, scheduler)
     written: list[str] = []
     seqs_meta: list[dict] = []
     all_labels: list[list[str]] = []
@@ -266,7 +266,7 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
         log.info("utterance %s: %d frames", res["name"], res["n_frames"])
 
     # AAM from prototype frames
-    protos = _prototype_frames(all_labels, np.random.default_rng([int(seed), 2**31]),
+    protos = prototype_frames(all_labels, np.random.default_rng([int(seed), 2**31]),
                                int(aam_frames_per_phone))
     imgs, lms = [], []
     for s in sorted({s for s, _ in protos}):
@@ -306,13 +306,13 @@ def _build(out_dir: Path, texts: list[str], seed: int, voice: str, image_size: i
                 "n_params": int(aam.n_params), "frames_per_phone": int(aam_frames_per_phone),
                 "prototypes": [[seqs_meta[s]["name"], int(t)] for s, t in protos]},
         "sequences": seqs_meta,
-        "files": sorted(written + [_MANIFEST]),
+        "files": sorted(written + [MANIFEST]),
     }
-    for stale in sorted(previous - set(manifest["files"]) - {_CACHE_NAME}):
+    for stale in sorted(previous - set(manifest["files"]) - {CACHE_NAME}):
         p = out_dir / stale
         if p.is_file() and ".." not in Path(stale).parts:
             p.unlink()
-    _write_json(out_dir / _MANIFEST, manifest)
+    write_json(out_dir / MANIFEST, manifest, sort_keys=True)
     return out_dir
 
 

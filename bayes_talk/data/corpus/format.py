@@ -9,16 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.checks import LABEL_TOLERANCE_S
 from bayes_talk.data.phones import PHONES
-from bayes_talk.files import sha256_file, write_json, write_npz
+from bayes_talk.files import write_npz
 
 FORMAT_NAME = "bayes_talk-corpus"
 #: 2: frames rendered with camera area integration and optics (render.RENDER_SUPERSAMPLE,
 #: render.CAMERA_PSF_PX, recorded in the manifest's "renderer"); 1: point-sampled
 #: frames. The file layout is the same, so both are read.
 FORMAT_VERSION = 2
-_READABLE_VERSIONS = (1, 2)
+READABLE_VERSIONS = (1, 2)
 FPS = 25.0
 AAM_FRAMES_PER_PHONE = 4
 AAM_VARIANCE = 0.99
@@ -29,15 +28,14 @@ AAM_TEXTURE_INSET = 1.0
 #: the command line's default (no ``--workers``): 2 worker processes from this many
 #: utterances on, else none (a worker's start-up, ~1-3 s of imports, outweighs the gain
 #: on small jobs); library calls default to none (``n_workers=None``)
-_MIN_ITEMS_FOR_WORKERS = 16
+MIN_ITEMS_FOR_WORKERS = 16
 #: bump when the derived features (MFCC settings, label rule, AAM projection) change
 FEATURE_VERSION = 1
-_CACHE_NAME = "features.npz"
-_MANIFEST = "manifest.json"
+CACHE_NAME = "features.npz"
+MANIFEST = "manifest.json"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-_LABEL_TOL_S = LABEL_TOLERANCE_S  # one tolerance for the corpus and synthesis (bayes_talk.data.checks)
-_VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".webm")
-_IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".webm")
+IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 # ---------------------------------------------------------------------------------------
@@ -63,13 +61,6 @@ def load_npz(path: str | Path, keys: tuple[str, ...] = ()) -> dict[str, np.ndarr
     return out
 
 
-def _write_json(path: Path, obj: dict) -> None:
-    write_json(path, obj, sort_keys=True)
-
-
-_sha256 = sha256_file
-
-
 def renderer_settings(format_version: int) -> dict:
     """How the frames of a built corpus of ``format_version`` were rendered: keyword
     arguments of :func:`~bayes_talk.data.render.render_frames` (a version-1 manifest has
@@ -82,7 +73,7 @@ def renderer_settings(format_version: int) -> dict:
 
 
 
-def _prototype_frames(labels: list[list[str]], rng: np.random.Generator,
+def prototype_frames(labels: list[list[str]], rng: np.random.Generator,
                       per_phone: int) -> list[tuple[int, int]]:
     """(sequence, frame) pairs: up to ``per_phone`` random frames of each phone present."""
     by_phone: dict[str, list[tuple[int, int]]] = {}

@@ -1,6 +1,6 @@
 """Corpus layouts on disk: the built corpus's manifest entries and the user corpus
 (``NAME.wav`` + ``NAME.lab``/``.TextGrid`` + frames, video or features; docs/data.md),
-each read into :class:`_Item` records and checked; frames, images and videos read."""
+each read into :class:`CorpusItem` records and checked; frames, images and videos read."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.data.checks import check_audio_vs_labels
 from bayes_talk.data.corpus.format import (
-    _IMAGE_EXT,
-    _LABEL_TOL_S,
-    _MANIFEST,
-    _READABLE_VERSIONS,
-    _VIDEO_EXT,
     FPS,
+    IMAGE_EXT,
+    MANIFEST,
+    READABLE_VERSIONS,
+    VIDEO_EXT,
     load_npz,
 )
 from bayes_talk.data.labels import read_labels
@@ -22,7 +22,7 @@ from bayes_talk.features.mfcc import frame_count, load_wav, samples_per_frame
 
 
 @dataclass
-class _Item:
+class CorpusItem:
     """One utterance's inputs before featurisation."""
 
     name: str
@@ -37,22 +37,18 @@ class _Item:
     inputs: list[Path] = field(default_factory=list)
 
 
-def _check_audio_vs_labels(wav: Path, lab: Path, n_samples: int, sr: int, intervals) -> None:
-    dur = n_samples / sr
-    end = intervals[-1][1]
-    if abs(end - dur) > _LABEL_TOL_S + 1e-9:
-        raise ValueError(
-            f"{lab}: labels end at {end:.4f} s but {wav} lasts {dur:.4f} s "
-            f"({n_samples} samples at {sr} Hz); expected agreement within {_LABEL_TOL_S:.3f} s"
-        )
+def check_item_audio(wav: Path, lab: Path, n_samples: int, sr: int, intervals) -> None:
+    """The labels of ``lab`` end where the audio of ``wav`` ends (:func:`~bayes_talk.data.checks.check_audio_vs_labels`)."""
+    check_audio_vs_labels(wav, lab, n_samples / sr, intervals[-1][1], detail=f"{n_samples} samples at {sr} Hz")
 
 
-def _built_items(root: Path, m: dict) -> tuple[list[_Item], int]:
-    if m.get("format_version") not in _READABLE_VERSIONS:
-        raise ValueError(f"{root / _MANIFEST}: format_version {m.get('format_version')!r}, "
-                         f"expected one of {list(_READABLE_VERSIONS)}")
+def built_items(root: Path, m: dict) -> tuple[list[CorpusItem], int]:
+    """The utterances of a built corpus's manifest ``m`` (files checked) and its audio rate."""
+    if m.get("format_version") not in READABLE_VERSIONS:
+        raise ValueError(f"{root / MANIFEST}: format_version {m.get('format_version')!r}, "
+                         f"expected one of {list(READABLE_VERSIONS)}")
     if float(m.get("fps", -1)) != FPS:
-        raise ValueError(f"{root / _MANIFEST}: fps {m.get('fps')!r}, expected {FPS}")
+        raise ValueError(f"{root / MANIFEST}: fps {m.get('fps')!r}, expected {FPS}")
     rate = int(m["audio_rate"])
     items = []
     for sm in m["sequences"]:
@@ -61,11 +57,11 @@ def _built_items(root: Path, m: dict) -> tuple[list[_Item], int]:
         if sr != rate:
             raise ValueError(f"{wav}: sample rate {sr} Hz, expected {rate} Hz (manifest audio_rate)")
         intervals = read_labels(lab)
-        _check_audio_vs_labels(wav, lab, y.size, sr, intervals)
+        check_item_audio(wav, lab, y.size, sr, intervals)
         T = frame_count(y.size, sr, FPS)
         if T != int(sm["n_frames"]):
             raise ValueError(f"{wav}: {T} frames of audio, manifest says {sm['n_frames']}")
-        item = _Item(sm["name"], wav, lab, T, intervals, visual=root / sm["frames"],
+        item = CorpusItem(sm["name"], wav, lab, T, intervals, visual=root / sm["frames"],
                      landmarks=root / sm["landmarks"],
                      meta={k: sm[k] for k in ("text", "voice", "rate", "pitch") if k in sm})
         item.inputs = [wav, lab, item.visual, item.landmarks]
@@ -73,12 +69,13 @@ def _built_items(root: Path, m: dict) -> tuple[list[_Item], int]:
     return items, rate
 
 
-def _read_images(folder: Path) -> np.ndarray:
+def read_images(folder: Path) -> np.ndarray:
+    """The image files of ``folder`` in name order, as grey frames (T, H, W) uint8."""
     import imageio.v3 as iio
 
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_EXT)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
     if not files:
-        raise ValueError(f"{folder}: no image files ({', '.join(_IMAGE_EXT)})")
+        raise ValueError(f"{folder}: no image files ({', '.join(IMAGE_EXT)})")
     out = []
     for f in files:
         try:
@@ -103,7 +100,8 @@ def _to_gray(im: np.ndarray, where: Path) -> np.ndarray:
     return np.clip(im, 0, 255).astype(np.uint8)
 
 
-def _read_video(path: Path) -> np.ndarray:
+def read_video(path: Path) -> np.ndarray:
+    """The frames of the video ``path`` as grey frames (T, H, W) uint8 (ValueError unless at :data:`FPS`)."""
     import imageio_ffmpeg
 
     try:
@@ -121,7 +119,7 @@ def _read_video(path: Path) -> np.ndarray:
     return np.stack(frames)
 
 
-def _label_file(root: Path, wav: Path) -> Path:
+def label_file_for(root: Path, wav: Path) -> Path:
     """The label file beside a user corpus's ``NAME.wav``: ``NAME.lab`` or ``NAME.TextGrid``."""
     name = wav.stem
     labs = [p for p in (root / f"{name}.lab", root / f"{name}.TextGrid",
@@ -131,16 +129,17 @@ def _label_file(root: Path, wav: Path) -> Path:
     return labs[0]
 
 
-def _user_items(root: Path) -> tuple[list[_Item], int]:
+def user_items(root: Path) -> tuple[list[CorpusItem], int]:
+    """The utterances of a user corpus (``NAME.wav`` + labels + frames/video/features; docs/data.md) and its audio rate."""
     wavs = sorted(root.glob("*.wav"))
     if not wavs:
         raise ValueError(f"{root}: no manifest.json and no *.wav files; not a corpus directory "
                          "(see docs/data.md for the user-corpus layout)")
-    items: list[_Item] = []
+    items: list[CorpusItem] = []
     rate = None
     for wav in wavs:
         name = wav.stem
-        lab = _label_file(root, wav)
+        lab = label_file_for(root, wav)
         y, sr = load_wav(wav)
         samples_per_frame(sr, FPS)
         if rate is None:
@@ -148,12 +147,12 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
         elif sr != rate:
             raise ValueError(f"{wav}: sample rate {sr} Hz, expected {rate} Hz like {wavs[0]}")
         intervals = read_labels(lab)
-        _check_audio_vs_labels(wav, lab, y.size, sr, intervals)
+        check_item_audio(wav, lab, y.size, sr, intervals)
         T = frame_count(y.size, sr, FPS)
-        item = _Item(name, wav, lab, T, intervals, meta={})
+        item = CorpusItem(name, wav, lab, T, intervals, meta={})
         feat = root / f"{name}.visual.npy"
         lmk = root / f"{name}.landmarks.npy"
-        vids = [root / f"{name}{e}" for e in _VIDEO_EXT if (root / f"{name}{e}").exists()]
+        vids = [root / f"{name}{e}" for e in VIDEO_EXT if (root / f"{name}{e}").exists()]
         if feat.exists():
             item.features = feat
         elif (root / name).is_dir() or vids:
@@ -175,7 +174,7 @@ def _user_items(root: Path) -> tuple[list[_Item], int]:
     return items, int(rate)
 
 
-def _load_visual(item: _Item) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+def load_visual(item: CorpusItem) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """(frames, landmarks, features) of one item, checked for frame-count agreement.
 
     The sequence length is the audio frame count T; visual data may hold T or T+1 frames
@@ -201,7 +200,7 @@ def _load_visual(item: _Item) -> tuple[np.ndarray | None, np.ndarray | None, np.
         frames = load_npz(item.visual, ("frames",))["frames"]
         lm = load_npz(item.landmarks, ("landmarks",))["landmarks"]
     else:
-        frames = _read_images(item.visual) if item.visual.is_dir() else _read_video(item.visual)
+        frames = read_images(item.visual) if item.visual.is_dir() else read_video(item.visual)
         try:
             lm = np.load(item.landmarks, allow_pickle=False)
         except Exception as exc:

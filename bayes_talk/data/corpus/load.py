@@ -12,26 +12,25 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.corpus.format import (
-    _CACHE_NAME,
-    _MANIFEST,
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
+    CACHE_NAME,
     FEATURE_VERSION,
     FORMAT_NAME,
     FPS,
-    _prototype_frames,
-    _sha256,
+    MANIFEST,
     load_npz,
+    prototype_frames,
     renderer_settings,
     save_npz,
 )
-from bayes_talk.data.corpus.layouts import _built_items, _Item, _load_visual, _user_items
+from bayes_talk.data.corpus.layouts import CorpusItem, built_items, load_visual, user_items
 from bayes_talk.data.corpus.workers import (
-    _AAM_CACHE,
-    _features_task,
-    _n_workers,
-    _run_tasks,
+    AAM_CACHE,
+    features_task,
+    resolve_workers,
+    run_tasks,
 )
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
@@ -39,6 +38,7 @@ from bayes_talk.data.utterance import Utterance
 from bayes_talk.executor import Executor
 from bayes_talk.executor import single_thread as _single_thread_blas
 from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
+from bayes_talk.files import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -88,15 +88,15 @@ class Corpus:
 
 
 
-def _cache_key(items: list[_Item], extra: list[Path], mode: str) -> str:
+def _cache_key(items: list[CorpusItem], extra: list[Path], mode: str) -> str:
     h = hashlib.sha256()
     h.update(f"{FORMAT_NAME}/features v{FEATURE_VERSION}/{mode}/fps={FPS}".encode())
     for it in items:
         h.update(f"|{it.name}|{it.n_frames}".encode())
         for p in it.inputs:
-            h.update(f"|{p.name}:{_sha256(p)}".encode())
+            h.update(f"|{p.name}:{sha256_file(p)}".encode())
     for p in extra:
-        h.update(f"|{p.name}:{_sha256(p)}".encode())
+        h.update(f"|{p.name}:{sha256_file(p)}".encode())
     return h.hexdigest()
 
 
@@ -121,15 +121,15 @@ def _read_cache(path: Path, key: str, names: list[str]) -> dict | None:
     return out
 
 
-def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed: int):
+def _fit_user_aam(root: Path, items: list[CorpusItem], labels: list[list[str]], seed: int):
     from bayes_talk.features.aam import AAM
 
-    protos = _prototype_frames(labels, np.random.default_rng([int(seed), 2**31]),
+    protos = prototype_frames(labels, np.random.default_rng([int(seed), 2**31]),
                                AAM_FRAMES_PER_PHONE)
     imgs, lms = [], []
     for s in sorted({s for s, _ in protos}):
         ts = [t for ss, t in protos if ss == s]
-        fr, lm, _ = _load_visual(items[s])
+        fr, lm, _ = load_visual(items[s])
         imgs.append(fr[ts])
         lms.append(lm[ts])
     with _single_thread_blas():
@@ -137,7 +137,7 @@ def _fit_user_aam(root: Path, items: list[_Item], labels: list[list[str]], seed:
                        texture_inset=AAM_TEXTURE_INSET)
 
 
-def _check_projectable(root: Path, kind: str, manifest: dict, items: list[_Item], aam,
+def _check_projectable(root: Path, kind: str, manifest: dict, items: list[CorpusItem], aam,
                        aam_path: Path) -> None:
     """Refuse (ValueError naming both) frames that ``aam`` cannot project: another image
     size or landmark count than the AAM was learned on."""
@@ -197,7 +197,7 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     foreign_aam = aam
     if not root.is_dir():
         raise ValueError(f"{root}: corpus directory not found")
-    mpath = root / _MANIFEST
+    mpath = root / MANIFEST
     manifest: dict = {}
     if mpath.exists():
         try:
@@ -207,10 +207,10 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
         if manifest.get("format") != FORMAT_NAME:
             raise ValueError(f"{mpath}: format {manifest.get('format')!r}, expected {FORMAT_NAME!r}")
         kind = "built"
-        items, rate = _built_items(root, manifest)
+        items, rate = built_items(root, manifest)
     else:
         kind = "user"
-        items, rate = _user_items(root)
+        items, rate = user_items(root)
 
     labels = [frame_labels(it.intervals, it.n_frames, FPS) for it in items]
     aam = None
@@ -249,9 +249,9 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                                      f"make {root} writable or give a fitted AAM with aam=") from exc
             aam_files = sorted(p for p in root.iterdir() if p.name.startswith("aam") and p.is_file())
     key = _cache_key(items, aam_files, kind)
-    cpath = root / _CACHE_NAME
+    cpath = root / CACHE_NAME
     if aam_files and aam_files[0].parent.resolve() != root.resolve():  # a foreign AAM
-        cpath = root / f"features-{_sha256(aam_files[0])[:12]}.npz"
+        cpath = root / f"features-{sha256_file(aam_files[0])[:12]}.npz"
     if fmax is not None:  # the issue-12 front end: its own key (None keeps the older caches valid)
         key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
     if floor_dbfs is not None:  # the issue-27 front end: its own key
@@ -266,8 +266,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "features": None if it.features is None else str(it.features),
                   "aam": None if aam is None else str(aam_path), "fmax": fmax, "floor_dbfs": floor_dbfs} for it in items]
         if aam is not None:
-            _AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
-        results = _run_tasks(_features_task, "features", tasks, _n_workers(n_workers, len(items)),
+            AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
+        results = run_tasks(features_task, "features", tasks, resolve_workers(n_workers, len(items)),
                              executor, scheduler)
         cached = {}
         for it, labs, (_, arr) in zip(items, labels, results):

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.corpus.format import (
-    _MIN_ITEMS_FOR_WORKERS,
     FORMAT_VERSION,
     FPS,
+    MIN_ITEMS_FOR_WORKERS,
     renderer_settings,
     save_npz,
 )
-from bayes_talk.data.corpus.layouts import _Item, _load_visual
+from bayes_talk.data.corpus.layouts import CorpusItem, load_visual
 from bayes_talk.data.labels import frame_labels, write_lab
 from bayes_talk.executor import Executor, executor_for
 from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, frame_count, load_wav, mfcc
@@ -24,12 +24,12 @@ from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, frame_count, load_wav,
 
 def suggested_workers(n_tasks: int) -> int:
     """What the command line uses without ``--workers``: 2 processes from
-    ``_MIN_ITEMS_FOR_WORKERS`` tasks on, else 1 (a worker's start-up, ~1-3 s of imports,
+    ``MIN_ITEMS_FOR_WORKERS`` tasks on, else 1 (a worker's start-up, ~1-3 s of imports,
     outweighs the gain on small jobs). Library calls never choose processes themselves."""
-    return 2 if int(n_tasks) >= _MIN_ITEMS_FOR_WORKERS else 1
+    return 2 if int(n_tasks) >= MIN_ITEMS_FOR_WORKERS else 1
 
 
-def _n_workers(n_workers: int | None, n_tasks: int) -> int:
+def resolve_workers(n_workers: int | None, n_tasks: int) -> int:
     """``n_workers`` checked; None: 1 (this process). A library call starts worker processes
     only when its caller asks for them: spawned workers re-import the caller's main module,
     which a plain script without the ``if __name__ == "__main__":`` guard cannot survive."""
@@ -40,7 +40,7 @@ def _n_workers(n_workers: int | None, n_tasks: int) -> int:
     return int(n_workers)
 
 
-def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict], n_workers: int,
+def run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dict], n_workers: int,
                executor: Executor | str | None = None,
                scheduler: str | None = None) -> list[tuple[dict, dict[str, np.ndarray]]]:
     """``[fn(t) for t in tasks]`` by ``executor`` (an :class:`~bayes_talk.executor.Executor`,
@@ -55,7 +55,7 @@ def _run_tasks(fn: Callable[[dict], tuple[dict, dict]], op: str, tasks: list[dic
 _PROGRESS = {"utterance": "building utterances", "features": "featurising"}
 
 
-def _utterance_task(a: dict) -> tuple[dict, dict]:
+def utterance_task(a: dict) -> tuple[dict, dict]:
     """Synthesise utterance ``a["index"]``, drive and render the face, write its files.
 
     ``a["speech"]``: "espeak" (espeak-ng's audio; the face from the phones) or "vtl"
@@ -65,7 +65,7 @@ def _utterance_task(a: dict) -> tuple[dict, dict]:
     from bayes_talk.data.face import face_landmarks
     from bayes_talk.data.render import render_frames
     from bayes_talk.data.speech import SpeechRequest, write_wav
-    from bayes_talk.data.speech import _worker as synthesize_fresh
+    from bayes_talk.data.speech import synthesize_in_subprocess as synthesize_fresh
 
     out_dir, i, seed, image_size = Path(a["out_dir"]), int(a["index"]), int(a["seed"]), int(a["image_size"])
     res = synthesize_fresh(SpeechRequest(**a["request"]))
@@ -100,33 +100,34 @@ def _utterance_task(a: dict) -> tuple[dict, dict]:
     return head, {}
 
 
-_AAM_CACHE: dict[str, tuple[bytes, object]] = {}
+AAM_CACHE: dict[str, tuple[bytes, object]] = {}
 
 
-def _cached_aam(path: str):
+def cached_aam(path: str):
+    """The AAM saved at ``path``, loaded once per process (reloaded when its JSON changes)."""
     from bayes_talk.features.aam import AAM
 
     stamp = Path(path).with_suffix(".json").read_bytes()
-    hit = _AAM_CACHE.get(path)
+    hit = AAM_CACHE.get(path)
     if hit is None or hit[0] != stamp:
         hit = (stamp, AAM.load(path))
-        _AAM_CACHE[path] = hit
+        AAM_CACHE[path] = hit
     return hit[1]
 
 
-def _features_task(a: dict) -> tuple[dict, dict]:
+def features_task(a: dict) -> tuple[dict, dict]:
     """MFCC and visual features (AAM parameters) of one item."""
-    it = _Item(a["name"], Path(a["wav"]), Path(a["labels"]), int(a["n_frames"]), [],
+    it = CorpusItem(a["name"], Path(a["wav"]), Path(a["labels"]), int(a["n_frames"]), [],
                visual=None if a["visual"] is None else Path(a["visual"]),
                landmarks=None if a["landmarks"] is None else Path(a["landmarks"]),
                features=None if a["features"] is None else Path(a["features"]))
     y, sr = load_wav(it.wav)
     mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ),
               floor_dbfs=a.get("floor_dbfs", FLOOR_DBFS))
-    frames, lm, feats = _load_visual(it)
+    frames, lm, feats = load_visual(it)
     if feats is not None:
         vis = feats
     else:
-        vis = np.asarray(_cached_aam(a["aam"]).project(frames, lm), np.float64)
+        vis = np.asarray(cached_aam(a["aam"]).project(frames, lm), np.float64)
     return {}, {"mfcc": mf, "visual": vis}
 
