@@ -136,3 +136,36 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy)
     for c in range(2):
         lp = [nc(nc.to_eps(x))[0] for x in r1.latent_draws[c]]
         np.testing.assert_allclose(lp, r1.sample_stats["lp"][c], rtol=1e-9)
+
+
+def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
+    """``method="pg-nuts"`` (the ``synth --posterior pg-nuts`` sampler) is NUTS in non-centred
+    coordinates with a particle Gibbs sweep after every iteration: the same draws as
+    ``method="nuts"`` with those sampler keywords, its settings in the diagnostics, the AAM
+    diagnostics computed; whitened coordinates are refused."""
+    model, u = toy
+    T = 6
+    kw = {"n_draws": 8, "warmup": 4, "chains": 2, "seed": 1, "map_restarts": 0, "log_warnings": False}
+    r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"pg_particles": 8}, **kw)
+    ref = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts",
+                           sampler_kw={"coords": "noncentred", "pg_every": 1, "pg_particles": 8}, **kw)
+    assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
+    assert np.array_equal(r.latent_draws, ref.latent_draws)
+    d = r.diagnostics
+    assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
+    assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
+    with pytest.raises(ValueError, match="non-centred"):
+        sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
+
+
+def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
+    from bayes_talk.cli import build_parser
+    from bayes_talk.pipeline import _sampler_args, synth
+
+    a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "pg-nuts",
+                                   "--pg-particles", "32"])
+    assert (a.posterior, a.pg_particles) == ("pg-nuts", 32)
+    assert _sampler_args({"chains": None, "pg_particles": a.pg_particles}) == {"sampler_kw": {"pg_particles": 32}}
+    with pytest.raises(ValueError, match="--pg-particles applies to --posterior pg-nuts, not 'nuts'"):
+        synth(tmp_path / "no-model", "x.wav", None, tmp_path / "out", posterior="nuts",
+              sampler_options={"pg_particles": 32})

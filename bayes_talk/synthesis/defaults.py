@@ -13,9 +13,13 @@ from __future__ import annotations
 #: modes the chains reached are searched for and turned into jumps; part of ``warmup``)
 NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10,
                  "jump_attempts": 2, "pilot": 150}
-#: draws kept by default, pooled over chains (NUTS: chains × draws_per_chain)
+#: particle Gibbs ∘ NUTS ∘ mode jumps (``--posterior pg-nuts``): NUTS in the non-centred
+#: coordinates with the NUTS defaults above, and a conditional-SMC sweep with ancestor sampling
+#: (this many particles) after every ``pg_every``-th iteration
+PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64}
+#: draws kept by default, pooled over chains (NUTS, pg-nuts: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
-                 "emcee": 320, "vi": 64}
+                 "pg-nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], "emcee": 320, "vi": 64}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
@@ -26,8 +30,8 @@ EMCEE_WARMUP = 500
 def draws_help() -> str:
     """The default draws of each sampler as the CLI's ``--draws`` help states them."""
     n = NUTS_DEFAULTS
-    return (f"default: laplace {DEFAULT_DRAWS['laplace']}, nuts {n['chains']} x {n['draws_per_chain']}, "
+    return (f"default: laplace {DEFAULT_DRAWS['laplace']}, nuts and pg-nuts {n['chains']} x {n['draws_per_chain']}, "
             f"emcee {DEFAULT_DRAWS['emcee']}, vi {DEFAULT_DRAWS['vi']}")
 
 
-__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "VI_DEFAULTS", "draws_help"]
+__all__ = ["DEFAULT_DRAWS", "EMCEE_WARMUP", "NUTS_DEFAULTS", "PG_NUTS_DEFAULTS", "VI_DEFAULTS", "draws_help"]

@@ -30,7 +30,7 @@ MAP_DTOL = 1e-6
 #: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
 #: held-out utterance restarts found one 27 nats above the first, docs/uncertainty.md), and
 #: the samplers run in coordinates whitened at the best mode found
-MAP_RESTARTS = {"map": 0, "laplace": 0, "nuts": 6, "emcee": 6, "vi": 0}
+MAP_RESTARTS = {"map": 0, "laplace": 0, "nuts": 6, "pg-nuts": 6, "emcee": 6, "vi": 0}
 MAP_RESTART_ROUNDS = 3
 
 

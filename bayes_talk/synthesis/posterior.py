@@ -1,6 +1,7 @@
-"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS, emcee and VI (DESIGN.md §6).
+"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS, particle Gibbs ∘ NUTS, emcee
+and VI (DESIGN.md §6).
 
-All five read one density, the whole-utterance synthesis model of
+All six read one density, the whole-utterance synthesis model of
 :mod:`bayes_talk.synthesis.joint` (every segment's latents jointly: entry distributions,
 each state's dynamics, the audio GP, the smoothness factors across state changes, and
 adjacent blocks of one state model linked by its dynamics), through its closed-form numpy
@@ -28,6 +29,16 @@ their trained MAP values.
    150 warm-up iterations are a pilot: the MAP is then maximised from each chain's state,
    the highest mode found becomes the whitening point, and the jumps are rebuilt from all
    modes found (:func:`~bayes_talk.synthesis.mode_search.nuts_with_mode_search`).
+3b. **pg-nuts**: particle Gibbs ∘ NUTS ∘ mode jumps (issue 24): NUTS (the defaults above) in the
+   non-centred coordinates, the standardised dynamics innovations ε
+   (:func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`: the stiffness of the fixed
+   dynamics noise leaves the geometry), the mode-jumping moves, and after every iteration one
+   conditional-SMC sweep with ancestor sampling over the frames
+   (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles;
+   :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
+   invariant, so the composition does (tests/test_composition_invariance.py, on separated
+   modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
+   "pg_every": 1}``; no pilot mode search.
 4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
    run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
@@ -57,7 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP, PG_NUTS_DEFAULTS
 from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
@@ -97,7 +108,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-POSTERIOR_METHODS = ("map", "laplace", "nuts", "emcee", "vi")
+POSTERIOR_METHODS = ("map", "laplace", "nuts", "pg-nuts", "emcee", "vi")
 #: coordinates NUTS moves in: X = X_MAP + L z (whitened at the mode, with the pilot mode
 #: search) or the standardised dynamics innovations ε (:mod:`bayes_talk.synthesis.noncentred`)
 NUTS_COORDS = ("whitened", "noncentred")
@@ -148,7 +159,8 @@ def sample_synthesis(
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
-        laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
+        laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
+        pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64)).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -232,9 +244,18 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
                      "sampler_seconds": float(draws.seconds)})
     else:
-        if method == "nuts":
+        if method in ("nuts", "pg-nuts"):
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
+            if method == "pg-nuts":
+                if skw.get("coords", "noncentred") != "noncentred":
+                    raise ValueError(f"pg-nuts samples in the non-centred coordinates; got sampler_kw['coords'] = "
+                                     f"{skw['coords']!r} (use method='nuts' for the whitened ones)")
+                skw = {"coords": "noncentred", **PG_NUTS_DEFAULTS, **skw}
+                if int(skw["pg_every"]) < 1 or int(skw["pg_particles"]) < 2:
+                    raise ValueError(f"pg-nuts needs pg_every >= 1 and pg_particles >= 2, got "
+                                     f"{skw['pg_every']} and {skw['pg_particles']}")
+                diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]))
             coords = skw.pop("coords", "whitened")
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
@@ -268,7 +289,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
     zm, zv = visual_predictive(plan, Xs)
-    if method in ("nuts", "emcee"):
+    if method in ("nuts", "pg-nuts", "emcee"):
         # what users consume: the AAM parameters' means at the draws, per frame, beside the latents
         diag.update(frame_diagnostics(zm, "aam_"))
         diag.update({k: v for k, v in frame_diagnostics(Xs).items() if k.endswith("_per_frame")})
@@ -366,6 +387,8 @@ def _convergence_warnings(method: str, diag: dict) -> list[str]:
                          "the approximation; --posterior nuts explores more but may not converge either",
               "nuts": "run more draws/warm-up (or raise the target acceptance for divergences); chains "
                       "in different modes of a multimodal posterior will not agree",
+              "pg-nuts": "run more draws/warm-up or more particles (pg_particles); on the toy 78-frame "
+                         "utterance neither particle Gibbs alone nor NUTS reached R-hat 1.01 (docs/uncertainty.md)",
               "emcee": "run it longer (max_steps) or use --posterior nuts",
               "vi": "the Gaussian q fitted within one mode is a poor importance proposal here (the "
                     "posterior is multimodal and non-Gaussian); more steps will not change that"}.get(method, "")
