@@ -51,6 +51,10 @@ def main() -> None:
     ap.add_argument("--pg-particles", type=int, default=64, help="particles of the particle Gibbs sweeps (coords pg)")
     ap.add_argument("--pg-h", default="0.05",
                     help="comma-separated bandwidths of the proposal's training-latent kernels (coords pg)")
+    ap.add_argument("--pg-lookahead", action="store_true",
+                    help="weigh the proposal's centres at a dynamics run's first frame by the run's audio (coords pg)")
+    ap.add_argument("--pg-map-centre", action="store_true",
+                    help="add the joint MAP's latent of each frame to the proposal's centres (coords pg)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "noncentred_toy78.json")
     args = ap.parse_args()
     model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
@@ -107,7 +111,9 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     plan = make_plan(model, mfcc, labels)
     h = tuple(float(v) for v in args.pg_h.split(","))
     out = run_particle_gibbs(UtteranceDensity(plan), plan, lap.latent_draws[0, :chains], n_draws=args.draws or 200,
-                             warmup=args.warmup or 100, seed=args.seed, n_particles=args.pg_particles, h=h)
+                             warmup=args.warmup or 100, seed=args.seed, n_particles=args.pg_particles, h=h,
+                             lookahead=args.pg_lookahead,
+                             extra_centres=lap.map_latents[None] if args.pg_map_centre else None)
     S = out["samples"]
     zm, _ = visual_predictive(plan, S)
     lat = chain_diagnostics(S.reshape(S.shape[0], S.shape[1], -1))
@@ -115,7 +121,8 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     rate = out["frame_update_rate"]
     return {"wall_seconds": time.perf_counter() - t0, "sampler_seconds": out["seconds"],
             "latents": {k: float(lat[k]) for k in KEYS}, "aam_mean": {k: float(aam[k]) for k in KEYS},
-            "n_particles": args.pg_particles, "bandwidths": list(h), "sweeps_per_chain": int(S.shape[1]),
+            "n_particles": args.pg_particles, "bandwidths": list(h), "lookahead": args.pg_lookahead,
+            "map_centre": args.pg_map_centre, "sweeps_per_chain": int(S.shape[1]),
             "n_chains": int(S.shape[0]), "frames_never_updated": int(np.sum(rate.mean(0) == 0)),
             "frame_update_rate_min": float(rate.min()), "frame_update_rate_mean": float(rate.mean()),
             "frame_update_rate_per_frame": rate.mean(0).tolist(), "lp_mean_per_chain": out["lp"].mean(1).tolist(),

@@ -200,3 +200,26 @@ def test_multi_bandwidth_proposal_samples_from_the_density_it_reports(toy):
     np.testing.assert_allclose(lq1[:5], ref, rtol=1e-9)
     with pytest.raises(ValueError, match="bandwidths h > 0"):
         MixtureProposal(ff, plan, h=(0.01, 0.0))
+
+
+def test_lookahead_proposal_with_map_centres_is_a_normalised_density_of_its_draws(toy):
+    """With lookahead weights and the MAP as an extra centre, at a frame starting a dynamics
+    run: E_q[e(x)/q(x)] = 1 for e the entry density (e/q ≤ 1/ρ: the check fails if ln q and
+    the draws disagree), the MAP's latent is the last centre, and the lookahead moves weight
+    towards the centres whose continuation explains the run's audio (the weights differ)."""
+    model, u = toy
+    T = 20
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    t = next(t for t in range(1, T - 1) if t in ff.entry and t not in ff.dyn_gp and t + 1 in ff.dyn_gp)
+    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), lookahead=True, extra_centres=x_map[None])
+    plain = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05))
+    np.testing.assert_array_equal(q.centres[t][-1], x_map[t])
+    assert abs(logsumexp(q.logw[t])) < 1e-9 and not np.allclose(q.logw[t][:-1], plain.logw[t], atol=1e-3)
+    N = 20000
+    X, lq = q.sample_logq(t, np.repeat(x_map[t - 1:t], N, 0), N, np.random.default_rng(2))
+    w = np.exp(ff.entry_logpdf(t, X) - lq)
+    assert w.max() <= 2 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    with pytest.raises(ValueError, match="extra_centres"):
+        MixtureProposal(ff, plan, extra_centres=x_map)
