@@ -15,8 +15,12 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
                  "jump_attempts": 2, "pilot": 150}
 #: particle Gibbs ∘ NUTS ∘ mode jumps (``--posterior pg-nuts``): NUTS in the non-centred
 #: coordinates with the NUTS defaults above, and a conditional-SMC sweep with ancestor sampling
-#: (this many particles) after every ``pg_every``-th iteration
-PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64}
+#: (``pg_particles`` particles) after every ``pg_every``-th iteration, its proposal's kernels
+#: of bandwidths ``pg_h`` around the training latents and, with ``pg_mode_centres``, around the
+#: joint MAP and its restarts' modes (short toy runs: frames never updated 5 → 0,
+#: docs/uncertainty.md); ``pg_lookahead`` (weights by the audio of a dynamics run) measured no gain
+PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": False,
+                    "pg_mode_centres": True}
 #: draws kept by default, pooled over chains (NUTS, pg-nuts: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],
                  "pg-nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], "emcee": 320, "vi": 64}

@@ -34,7 +34,8 @@ their trained MAP values.
    (:func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`: the stiffness of the fixed
    dynamics noise leaves the geometry), the mode-jumping moves, and after every iteration one
    conditional-SMC sweep with ancestor sampling over the frames
-   (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles;
+   (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
+   kernels of three bandwidths around the training latents and the joint MAP's modes;
    :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
    invariant, so the composition does (tests/test_composition_invariance.py, on separated
    modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
@@ -160,7 +161,9 @@ def sample_synthesis(
         ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
-        pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64)).
+        pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (False), ``pg_mode_centres`` (True);
+        :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -255,7 +258,9 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 if int(skw["pg_every"]) < 1 or int(skw["pg_particles"]) < 2:
                     raise ValueError(f"pg-nuts needs pg_every >= 1 and pg_particles >= 2, got "
                                      f"{skw['pg_every']} and {skw['pg_particles']}")
-                diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]))
+                diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
+                            pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
+                            pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]))
             coords = skw.pop("coords", "whitened")
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
