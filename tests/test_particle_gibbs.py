@@ -149,12 +149,13 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"pg_particles": 8}, **kw)
     ref = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts",
                            sampler_kw={"coords": "noncentred", "pg_every": 1, "pg_particles": 8,
-                                       "pg_h": (0.005, 0.02, 0.05), "pg_mode_centres": True}, **kw)
+                                       "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
+                                       "pg_mode_centres": True}, **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
     d = r.diagnostics
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
-    assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], False, True)
+    assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
     assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
     with pytest.raises(ValueError, match="non-centred"):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)

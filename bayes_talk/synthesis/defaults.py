@@ -17,9 +17,10 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: coordinates with the NUTS defaults above, and a conditional-SMC sweep with ancestor sampling
 #: (``pg_particles`` particles) after every ``pg_every``-th iteration, its proposal's kernels
 #: of bandwidths ``pg_h`` around the training latents and, with ``pg_mode_centres``, around the
-#: joint MAP and its restarts' modes (short toy runs: frames never updated 5 → 0,
-#: docs/uncertainty.md); ``pg_lookahead`` (weights by the audio of a dynamics run) measured no gain
-PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": False,
+#: joint MAP and its restarts' modes, weighted with ``pg_lookahead`` by the audio of a dynamics
+#: run's continuation (short toy runs: frames never updated 5 → 0 only with both;
+#: docs/uncertainty.md "The proposal at the modes")
+PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
                     "pg_mode_centres": True}
 #: draws kept by default, pooled over chains (NUTS, pg-nuts: chains × draws_per_chain)
 DEFAULT_DRAWS = {"map": 1, "laplace": 64, "nuts": NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"],

@@ -35,7 +35,8 @@ their trained MAP values.
    dynamics noise leaves the geometry), the mode-jumping moves, and after every iteration one
    conditional-SMC sweep with ancestor sampling over the frames
    (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
-   kernels of three bandwidths around the training latents and the joint MAP's modes;
+   kernels of three bandwidths around the training latents and the joint MAP's modes, with
+   lookahead weights;
    :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
    invariant, so the composition does (tests/test_composition_invariance.py, on separated
    modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
@@ -162,7 +163,7 @@ def sample_synthesis(
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (False), ``pg_mode_centres`` (True);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
