@@ -138,7 +138,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                     transcript=args.transcript, align_method=args.align_method, truth=args.truth,
                     calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None,
                     sampler_options={"chains": args.chains, "warmup": args.warmup,
-                                     "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth})
+                                     "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
+                                     "pg_particles": args.pg_particles})
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -215,7 +216,7 @@ outputs in --out (docs/outputs.md):
   posterior.nc     ArviZ InferenceData (az.from_netcdf; az.summary)
   bands.png        the first AAM parameters over time: mean, 50 %/90 % bands (+ --truth)
   uncertainty.mp4  mean face | per-pixel standard deviation of rendered draws (unless --no-video)
-  diagnostics.json with --posterior laplace|nuts|emcee|vi
+  diagnostics.json with --posterior laplace|nuts|pg-nuts|emcee|vi
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -354,6 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
         EMCEE_WARMUP,
         INFERENCE,
         NUTS_DEFAULTS,
+        PG_NUTS_DEFAULTS,
         draws_help,
     )
 
@@ -454,6 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"NUTS target acceptance statistic of the step-size adaptation "
                         f"(default {NUTS_DEFAULTS['target_accept']})")
     s.add_argument("--max-tree-depth", type=_positive_int, default=None, help=f"NUTS max tree depth (default {NUTS_DEFAULTS['max_tree_depth']})")
+    s.add_argument("--pg-particles", type=_positive_int, default=None,
+                   help=f"pg-nuts: particles of each particle Gibbs sweep (default {PG_NUTS_DEFAULTS['pg_particles']})")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "

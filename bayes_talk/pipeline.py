@@ -330,7 +330,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
     posterior: for a switching model, the whole-utterance synthesis posterior by "laplace"
-    (the default), "nuts", "emcee" or "vi" (docs/uncertainty.md): the trajectory and variance are
+    (the default), "nuts", "pg-nuts" (particle Gibbs ∘ NUTS ∘ mode jumps), "emcee" or "vi"
+    (docs/uncertainty.md "Which sampler"): the trajectory and variance are
     the posterior mixture's mean and variance, and ``bands.npz`` (central 50 % and 90 %
     bands: lower50, upper50, lower90, upper90) and ``diagnostics.json`` (MAP convergence,
     R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
@@ -369,6 +370,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     from bayes_talk.video import write_video
 
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
+    if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
+        raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
     tm = load_trained(model_dir)
     if posterior is None:
         posterior = "map" if tm.kind == "sgplvm" else DEFAULT_METHOD
@@ -441,7 +444,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             # more draws help the samplers, not an approximation's k̂ (laplace, vi)
             log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
                         "unreliable%s", posterior, "; ".join(problems),
-                        "; raise --draws or --warmup" if posterior in ("nuts", "emcee") else "")
+                        "; raise --draws or --warmup" if posterior in ("nuts", "pg-nuts", "emcee") else "")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
                                                 "trajectory_holds": _trajectory_description(res, lowpass_hz),
@@ -496,9 +499,9 @@ def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav
 
 def _sampler_args(options: dict | None) -> dict:
     """``sample_synthesis`` keywords from synth's sampler options (``chains``, ``warmup``,
-    ``target_accept``, ``max_tree_depth``; None entries keep the library defaults)."""
+    ``target_accept``, ``max_tree_depth``, ``pg_particles``; None entries keep the library defaults)."""
     opts = {k: v for k, v in (options or {}).items() if v is not None}
-    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth"}
+    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles"}
     if unknown:
         raise ValueError(f"unknown sampler options {sorted(unknown)}")
     kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}

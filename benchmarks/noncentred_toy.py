@@ -10,6 +10,10 @@ the diagnostics of the latents and of the AAM-parameter means μ_Z(x) at every d
 
     PYTHONPATH=. python benchmarks/noncentred_toy.py [--coords whitened,noncentred] \
         [--out benchmarks/results/noncentred_toy78.json]
+
+``--coords pg-nuts``: ``sample_synthesis(method="pg-nuts")`` (particle Gibbs ∘ NUTS ∘ mode
+jumps, its defaults; ``--pg-particles``). ``--coords pg``: particle Gibbs alone from Laplace draws (``--pg-particles``, ``--pg-h`` the
+proposal's kernel bandwidths), with the per-frame update rate and the frames never updated.
 """
 from __future__ import annotations
 
@@ -19,6 +23,8 @@ import os
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -44,6 +50,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=None, help="chains in this many processes (default: in-process)")
     ap.add_argument("--pg-particles", type=int, default=64, help="particles of the particle Gibbs sweeps (coords pg)")
+    ap.add_argument("--pg-h", default="0.05",
+                    help="comma-separated bandwidths of the proposal's training-latent kernels (coords pg)")
+    ap.add_argument("--pg-lookahead", action="store_true",
+                    help="weigh the proposal's centres at a dynamics run's first frame by the run's audio (coords pg)")
+    ap.add_argument("--pg-map-centre", action="store_true",
+                    help="add the joint MAP's latent of each frame to the proposal's centres (coords pg)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "noncentred_toy78.json")
     args = ap.parse_args()
     model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
@@ -61,10 +73,11 @@ def main() -> None:
             _write(res, args.out)
             continue
         t0 = time.perf_counter()
-        skw = {"coords": coords}
+        method = "pg-nuts" if coords == "pg-nuts" else "nuts"   # pg-nuts: its own defaults (non-centred)
+        skw = {"pg_particles": args.pg_particles} if method == "pg-nuts" else {"coords": coords}
         if args.workers:
             skw["workers"] = args.workers
-        r = sample_synthesis(model, mfcc, labels, method="nuts", seed=args.seed, sampler_kw=skw, log_warnings=False,
+        r = sample_synthesis(model, mfcc, labels, method=method, seed=args.seed, sampler_kw=skw, log_warnings=False,
                              **kw)
         wall = time.perf_counter() - t0
         lat = chain_diagnostics(r.latent_draws.reshape(r.latent_draws.shape[0], r.latent_draws.shape[1], -1))
@@ -75,7 +88,8 @@ def main() -> None:
             "aam_mean": {k: float(aam[k]) for k in KEYS},
             **{k: d.get(k) for k in ("divergences", "ebfmi_min", "step_size", "n_steps_mean", "tree_depth_mean",
                                      "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
-                                     "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws")}}
+                                     "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
+                                     "pg_h", "pg_mode_centres", "pg_particles")}}
         print(coords, json.dumps(res["runs"][coords]), flush=True)
         _write(res, args.out)
 
@@ -98,8 +112,11 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     lap = sample_synthesis(model, mfcc, labels, method="laplace", n_draws=max(8, chains), seed=args.seed,
                            log_warnings=False)
     plan = make_plan(model, mfcc, labels)
+    h = tuple(float(v) for v in args.pg_h.split(","))
     out = run_particle_gibbs(UtteranceDensity(plan), plan, lap.latent_draws[0, :chains], n_draws=args.draws or 200,
-                             warmup=args.warmup or 100, seed=args.seed, n_particles=args.pg_particles)
+                             warmup=args.warmup or 100, seed=args.seed, n_particles=args.pg_particles, h=h,
+                             lookahead=args.pg_lookahead,
+                             extra_centres=lap.map_latents[None] if args.pg_map_centre else None)
     S = out["samples"]
     zm, _ = visual_predictive(plan, S)
     lat = chain_diagnostics(S.reshape(S.shape[0], S.shape[1], -1))
@@ -107,9 +124,12 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     rate = out["frame_update_rate"]
     return {"wall_seconds": time.perf_counter() - t0, "sampler_seconds": out["seconds"],
             "latents": {k: float(lat[k]) for k in KEYS}, "aam_mean": {k: float(aam[k]) for k in KEYS},
-            "n_particles": args.pg_particles, "sweeps_per_chain": int(S.shape[1]), "n_chains": int(S.shape[0]),
+            "n_particles": args.pg_particles, "bandwidths": list(h), "lookahead": args.pg_lookahead,
+            "map_centre": args.pg_map_centre, "sweeps_per_chain": int(S.shape[1]),
+            "n_chains": int(S.shape[0]), "frames_never_updated": int(np.sum(rate.mean(0) == 0)),
             "frame_update_rate_min": float(rate.min()), "frame_update_rate_mean": float(rate.mean()),
-            "frame_update_rate_per_frame": rate.mean(0).tolist(), "lp_mean_per_chain": out["lp"].mean(1).tolist()}
+            "frame_update_rate_per_frame": rate.mean(0).tolist(), "lp_mean_per_chain": out["lp"].mean(1).tolist(),
+            "map_log_density": float(lap.diagnostics["map_log_density"])}
 
 
 if __name__ == "__main__":

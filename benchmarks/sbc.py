@@ -8,12 +8,19 @@ audio, ranks the true latents among ``--rank-draws`` thinned posterior draws, an
 rank uniformity per latent coordinate (χ², Holm-corrected, family-wise α = 0.05).
 
 Samplers: ``nuts`` (``--nuts-chains`` chains, ``--nuts-warmup`` warm-up, ``--nuts-draws``
-draws per chain), ``laplace`` (200 draws), ``emcee`` (library defaults), and the control
-``laplace-halved`` (Laplace with its covariance halved: SBC must reject it).
+draws per chain), ``laplace`` (200 draws), ``emcee`` (library defaults), and the controls
+``laplace-halved`` (Laplace with its covariance halved) and ``laplace-0.85sd`` (Laplace with
+its spread 0.85×, i.e. covariance × 0.7225: the positive control of issue 24, which SBC must
+reject). Besides the χ²-Holm verdict (``passed``), every sampler gets the combined verdict of
+:func:`bayes_talk.synthesis.sbc_power.combined_verdict` (χ² Holm, the pooled dispersion test
+and the bias test at α/3 each: ``verdict``), and ``ranked_draws_le_ess`` says whether the
+``--rank-draws`` ranked draws were at most the smallest bulk ESS of every simulation (MCMC
+draws are thinned evenly from the pooled chains; Talts et al. §4.1). Power of these tests:
+``benchmarks/sbc_power.py``.
 
     PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
-        [--start 10] [--frames 4] [--sims 50] [--nuts-sims N] [--emcee-sims N] [--rank-draws 19]
-        [--methods nuts,laplace,laplace-halved,emcee] [--out benchmarks/results/sbc.json]
+        [--start 10] [--frames 4] [--sims 200] [--nuts-sims N] [--emcee-sims N] [--rank-draws 19]
+        [--methods nuts,laplace,laplace-halved,laplace-0.85sd,emcee] [--out benchmarks/results/sbc.json]
 
 Without ``--model``: a toy switching model (tests/toydata.py, the test configuration) and
 the labels of a toy utterance. Writes JSON after each sampler (atomic replace).
@@ -34,6 +41,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
+from bayes_talk.synthesis.sbc_power import combined_verdict
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -65,14 +73,14 @@ def main() -> None:
     ap.add_argument("--utterance", default=None)
     ap.add_argument("--start", type=int, default=10)
     ap.add_argument("--frames", type=int, default=4)
-    ap.add_argument("--sims", type=int, default=50)
+    ap.add_argument("--sims", type=int, default=200)
     ap.add_argument("--nuts-sims", type=int, default=None, help="simulations for NUTS (default --sims)")
     ap.add_argument("--emcee-sims", type=int, default=None, help="simulations for emcee (default --sims)")
     ap.add_argument("--rank-draws", type=int, default=19)
     ap.add_argument("--nuts-chains", type=int, default=2)
     ap.add_argument("--nuts-warmup", type=int, default=200)
     ap.add_argument("--nuts-draws", type=int, default=100, help="NUTS draws per chain")
-    ap.add_argument("--methods", default="nuts,laplace,laplace-halved,emcee")
+    ap.add_argument("--methods", default="nuts,laplace,laplace-halved,laplace-0.85sd,emcee")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "sbc.json")
     args = ap.parse_args()
@@ -100,6 +108,7 @@ def main() -> None:
                                           warmup=args.nuts_warmup),
         "laplace": lambda: sampler_posterior("laplace", n_draws=200),
         "laplace-halved": lambda: scaled_laplace(0.5, n_draws=200),
+        "laplace-0.85sd": lambda: scaled_laplace(0.85 ** 2, n_draws=200),
         "emcee": lambda: sampler_posterior("emcee"),
     }
     for method in args.methods.split(","):
@@ -111,6 +120,9 @@ def main() -> None:
         load0 = os.getloadavg()[0]
         r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed)
         out = r.to_dict()
+        out["verdict"] = combined_verdict(r.ranks, r.n_draws, r.p_adjusted)
+        if "worst_ess_bulk_min" in r.info and method in ("nuts", "emcee"):
+            out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
         res["samplers"][method] = out
         print(json.dumps({k: v for k, v in out.items() if k != "p_values"}, default=str), flush=True)

@@ -136,3 +136,93 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy)
     for c in range(2):
         lp = [nc(nc.to_eps(x))[0] for x in r1.latent_draws[c]]
         np.testing.assert_allclose(lp, r1.sample_stats["lp"][c], rtol=1e-9)
+
+
+def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
+    """``method="pg-nuts"`` (the ``synth --posterior pg-nuts`` sampler) is NUTS in non-centred
+    coordinates with a particle Gibbs sweep after every iteration: the same draws as
+    ``method="nuts"`` with those sampler keywords, its settings in the diagnostics, the AAM
+    diagnostics computed; whitened coordinates are refused."""
+    model, u = toy
+    T = 6
+    kw = {"n_draws": 8, "warmup": 4, "chains": 2, "seed": 1, "map_restarts": 0, "log_warnings": False}
+    r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"pg_particles": 8}, **kw)
+    ref = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts",
+                           sampler_kw={"coords": "noncentred", "pg_every": 1, "pg_particles": 8,
+                                       "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
+                                       "pg_mode_centres": True}, **kw)
+    assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
+    assert np.array_equal(r.latent_draws, ref.latent_draws)
+    d = r.diagnostics
+    assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
+    assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
+    assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
+    with pytest.raises(ValueError, match="non-centred"):
+        sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
+
+
+def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
+    from bayes_talk.cli import build_parser
+    from bayes_talk.pipeline import _sampler_args, synth
+
+    a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "pg-nuts",
+                                   "--pg-particles", "32"])
+    assert (a.posterior, a.pg_particles) == ("pg-nuts", 32)
+    assert _sampler_args({"chains": None, "pg_particles": a.pg_particles}) == {"sampler_kw": {"pg_particles": 32}}
+    with pytest.raises(ValueError, match="--pg-particles applies to --posterior pg-nuts, not 'nuts'"):
+        synth(tmp_path / "no-model", "x.wav", None, tmp_path / "out", posterior="nuts",
+              sampler_options={"pg_particles": 32})
+
+
+def test_multi_bandwidth_proposal_samples_from_the_density_it_reports(toy):
+    """With bandwidths (0.005, 0.02, 0.05) the proposal's draws and its ln q agree: for
+    q' the one-bandwidth (0.05) proposal, E_q[q'/q] = 1 (q'/q ≤ 3: a low-variance check that
+    fails if ln q misses a term or the draws come from another mixture); ln q' by the
+    one-bandwidth path equals the formula written out."""
+    model, u = toy
+    T = 12
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05))
+    q1 = MixtureProposal(ff, plan, rho=0.5, h=0.05)
+    rng = np.random.default_rng(0)
+    t = next(t for t in range(1, T) if t in ff.smooth)      # a block start: entry and smoothness weights
+    N = 20000
+    Xprev = np.repeat(x_map[t - 1:t], N, 0)
+    X, lq = q.sample_logq(t, Xprev, N, rng)
+    _, lq1 = q1.sample_logq(t, Xprev, N, rng, X)
+    w = np.exp(lq1 - lq)
+    assert w.max() <= 3 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    # the one-bandwidth density written out: ρ entry + (1 − ρ) Σ_j π_j N(x; X_j, h² I)
+    lw = q1._weights(t, Xprev[:5], 5)
+    C = q1.centres[t]
+    r2 = ((X[:5, None, :] - C[None]) ** 2).sum(-1)
+    kern = np.exp(lw - 0.5 * r2 / 0.05**2).sum(1) / (2 * np.pi * 0.05**2) ** 1.5
+    ref = np.log(0.5 * np.exp(ff.entry_logpdf(t, X[:5])) + 0.5 * kern)
+    np.testing.assert_allclose(lq1[:5], ref, rtol=1e-9)
+    with pytest.raises(ValueError, match="bandwidths h > 0"):
+        MixtureProposal(ff, plan, h=(0.01, 0.0))
+
+
+def test_lookahead_proposal_with_map_centres_is_a_normalised_density_of_its_draws(toy):
+    """With lookahead weights and the MAP as an extra centre, at a frame starting a dynamics
+    run: E_q[e(x)/q(x)] = 1 for e the entry density (e/q ≤ 1/ρ: the check fails if ln q and
+    the draws disagree), the MAP's latent is the last centre, and the lookahead moves weight
+    towards the centres whose continuation explains the run's audio (the weights differ)."""
+    model, u = toy
+    T = 20
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    t = next(t for t in range(1, T - 1) if t in ff.entry and t not in ff.dyn_gp and t + 1 in ff.dyn_gp)
+    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), lookahead=True, extra_centres=x_map[None])
+    plain = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05))
+    np.testing.assert_array_equal(q.centres[t][-1], x_map[t])
+    assert abs(logsumexp(q.logw[t])) < 1e-9 and not np.allclose(q.logw[t][:-1], plain.logw[t], atol=1e-3)
+    N = 20000
+    X, lq = q.sample_logq(t, np.repeat(x_map[t - 1:t], N, 0), N, np.random.default_rng(2))
+    w = np.exp(ff.entry_logpdf(t, X) - lq)
+    assert w.max() <= 2 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    with pytest.raises(ValueError, match="extra_centres"):
+        MixtureProposal(ff, plan, extra_centres=x_map)

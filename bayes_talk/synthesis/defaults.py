@@ -21,6 +21,15 @@ from dataclasses import dataclass, field
 #: modes the chains reached are searched for and turned into jumps; part of ``warmup``)
 NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_accept": 0.8, "max_tree_depth": 10,
                  "jump_attempts": 2, "pilot": 150}
+#: particle Gibbs ∘ NUTS ∘ mode jumps (``--posterior pg-nuts``): NUTS in the non-centred
+#: coordinates with the NUTS defaults above, and a conditional-SMC sweep with ancestor sampling
+#: (``pg_particles`` particles) after every ``pg_every``-th iteration, its proposal's kernels
+#: of bandwidths ``pg_h`` around the training latents and, with ``pg_mode_centres``, around the
+#: joint MAP and its restarts' modes, weighted with ``pg_lookahead`` by the audio of a dynamics
+#: run's continuation (short toy runs: frames never updated 5 → 0 only with both;
+#: docs/uncertainty.md "The proposal at the modes")
+PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
+                    "pg_mode_centres": True}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
@@ -81,6 +90,15 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
                "modes of a multimodal posterior will not agree",
         options={**NUTS_DEFAULTS, "coords": "whitened"}),
     InferenceMethod(
+        "pg-nuts", "particle Gibbs (conditional SMC with ancestor sampling) composed with NUTS in the "
+                   "non-centred coordinates and the mode jumps",
+        "bayes_talk.synthesis.noncentred:nuts_noncentred",
+        draws=NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], map_restarts=6,
+        diagnostics=("rhat_ess", "divergences_bfmi"),
+        advice="run more draws/warm-up or more particles (pg_particles); on the toy 78-frame utterance neither "
+               "particle Gibbs alone nor NUTS reached R-hat 1.01 (docs/uncertainty.md)",
+        options={**NUTS_DEFAULTS, **PG_NUTS_DEFAULTS, "coords": "noncentred"}),
+    InferenceMethod(
         "emcee", "emcee's ensemble (differential-evolution moves) in whitened coordinates",
         "bayes_talk.synthesis.samplers:run_emcee", draws=320, map_restarts=6,
         diagnostics=("rhat_ess", "autocorrelation"),
@@ -127,4 +145,4 @@ def markdown_table() -> str:
 
 
 __all__ = ["DEFAULT_DRAWS", "DEFAULT_METHOD", "DIAGNOSTICS", "EMCEE_WARMUP", "INFERENCE", "NUTS_DEFAULTS",
-           "VI_DEFAULTS", "InferenceMethod", "check_method", "draws_help", "markdown_table"]
+           "PG_NUTS_DEFAULTS", "VI_DEFAULTS", "InferenceMethod", "check_method", "draws_help", "markdown_table"]

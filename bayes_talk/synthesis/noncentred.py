@@ -227,7 +227,10 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     in ε: the Metropolis move keeps p_ε invariant). No pilot mode search. ``skw["pg_every"]``
     = k > 0 adds a particle Gibbs sweep (``skw["pg_particles"]`` particles, default 64;
     :class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`) after every k-th
-    iteration: particle Gibbs ∘ NUTS ∘ mode jumps. ``run``: the NUTS
+    iteration: particle Gibbs ∘ NUTS ∘ mode jumps. Its proposal: kernel bandwidths
+    ``skw["pg_h"]`` (default 0.05), lookahead weights ``skw["pg_lookahead"]`` (default False),
+    and with ``skw["pg_mode_centres"]`` (default False) the joint MAP and the modes of its
+    restarts as extra centres (:class:`~bayes_talk.synthesis.particle_gibbs.MixtureProposal`). ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
@@ -244,10 +247,15 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     jumps = np.array([nc.to_eps(x_map + dl).reshape(-1) - e_map for dl in deltas]).reshape(-1, T * d)
     pg_every = int(skw.pop("pg_every", 0))
     pg_particles = int(skw.pop("pg_particles", 64))
+    pg_h = skw.pop("pg_h", 0.05)
+    pg_lookahead = bool(skw.pop("pg_lookahead", False))
+    pg_mode_centres = bool(skw.pop("pg_mode_centres", False))
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
         from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 
-        skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, nc.to_x, nc.to_eps, pg_particles)
+        extra = (np.stack([np.reshape(m.latents, (T, d)) for m in [mp, *modes]]) if pg_mode_centres else None)
+        skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, nc.to_x, nc.to_eps, pg_particles, h=pg_h,
+                                              lookahead=pg_lookahead, extra_centres=extra)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(nc.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,

@@ -1,6 +1,7 @@
-"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS, emcee and VI (DESIGN.md §6).
+"""The synthesis posterior of a whole utterance: MAP, Laplace, NUTS, particle Gibbs ∘ NUTS, emcee
+and VI (DESIGN.md §6).
 
-All five read one density, the whole-utterance synthesis model of
+All six read one density, the whole-utterance synthesis model of
 :mod:`bayes_talk.synthesis.joint` (every segment's latents jointly: entry distributions,
 each state's dynamics, the audio GP, the smoothness factors across state changes, and
 adjacent blocks of one state model linked by its dynamics), through its closed-form numpy
@@ -28,6 +29,18 @@ their trained MAP values.
    150 warm-up iterations are a pilot: the MAP is then maximised from each chain's state,
    the highest mode found becomes the whitening point, and the jumps are rebuilt from all
    modes found (:func:`~bayes_talk.synthesis.mode_search.nuts_with_mode_search`).
+3b. **pg-nuts**: particle Gibbs ∘ NUTS ∘ mode jumps (issue 24): NUTS (the defaults above) in the
+   non-centred coordinates, the standardised dynamics innovations ε
+   (:func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`: the stiffness of the fixed
+   dynamics noise leaves the geometry), the mode-jumping moves, and after every iteration one
+   conditional-SMC sweep with ancestor sampling over the frames
+   (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
+   kernels of three bandwidths around the training latents and the joint MAP's modes, with
+   lookahead weights;
+   :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
+   invariant, so the composition does (tests/test_composition_invariance.py, on separated
+   modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
+   "pg_every": 1}``; no pilot mode search.
 4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
    run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
@@ -57,7 +70,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, EMCEE_WARMUP, INFERENCE, check_method
+from bayes_talk.synthesis.defaults import (
+    DEFAULT_DRAWS,
+    EMCEE_WARMUP,
+    INFERENCE,
+    PG_NUTS_DEFAULTS,
+    check_method,
+)
 from bayes_talk.synthesis.diagnostics import (
     chain_diagnostics,
     convergence_problems,
@@ -139,7 +158,10 @@ def sample_synthesis(
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
         ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
-        laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``).
+        laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
+        pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True);
+        :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -224,9 +246,20 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                      "vi_elbo_end": st["elbo_end"], "n_gradients": st["n_gradients"],
                      "sampler_seconds": float(draws.seconds)})
     else:
-        if method == "nuts":
+        if method in ("nuts", "pg-nuts"):
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
+            if method == "pg-nuts":
+                if skw.get("coords", "noncentred") != "noncentred":
+                    raise ValueError(f"pg-nuts samples in the non-centred coordinates; got sampler_kw['coords'] = "
+                                     f"{skw['coords']!r} (use method='nuts' for the whitened ones)")
+                skw = {"coords": "noncentred", **PG_NUTS_DEFAULTS, **skw}
+                if int(skw["pg_every"]) < 1 or int(skw["pg_particles"]) < 2:
+                    raise ValueError(f"pg-nuts needs pg_every >= 1 and pg_particles >= 2, got "
+                                     f"{skw['pg_every']} and {skw['pg_particles']}")
+                diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
+                            pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
+                            pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
