@@ -12,7 +12,7 @@ draws per chain), ``laplace`` (200 draws), ``emcee`` (library defaults), and the
 ``laplace-halved`` (Laplace with its covariance halved) and ``laplace-0.85sd`` (Laplace with
 its spread 0.85×, i.e. covariance × 0.7225: the positive control of issue 24, which SBC must
 reject). Besides the χ²-Holm verdict (``passed``), every sampler gets the combined verdict of
-:func:`bayes_talk.synthesis.sbc_power.combined_verdict` (χ² Holm, the pooled dispersion test
+:func:`bayes_talk.evaluation.sbc_power.combined_verdict` (χ² Holm, the pooled dispersion test
 and the bias test at α/3 each: ``verdict``), and ``ranked_draws_le_ess`` says whether the
 ``--rank-draws`` ranked draws were at most the smallest bulk ESS of every simulation (MCMC
 draws are thinned evenly from the pooled chains; Talts et al. §4.1). Power of these tests:
@@ -41,7 +41,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
-from bayes_talk.synthesis.sbc_power import combined_verdict
+from bayes_talk.evaluation.sbc_power import combined_verdict
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 

@@ -7,14 +7,14 @@ autocorrelation ``--rho`` whose stationary law is the posterior with its standar
 multiplied by ``scale`` (1: exact; 0.85: the control). Variants:
 
 * ``exact`` and ``control-0.85`` - thinned to ``--rank-draws`` (L) evenly spaced draws of the
-  pooled chains (:func:`bayes_talk.synthesis.sbc_power.thin_to_ess`), whose smallest bulk ESS is
+  pooled chains (:func:`bayes_talk.evaluation.sbc_power.thin_to_ess`), whose smallest bulk ESS is
   recorded for every ``--ess-every``-th simulation (ESS via ArviZ costs ~50 ms) to check L ≤ ESS;
 * ``exact-consecutive`` - the last L consecutive draws of chain 1 (L > ESS: Talts et al. §4.1).
 
 Each repeat runs :func:`bayes_talk.evaluation.sbc.run_sbc` (the loop ``synthesis_sbc`` uses) with
 ``--sims`` simulations and counts three verdicts: the χ² test with Holm at α = 0.05 (the
 criterion of ``SBCResult.passed``), the dispersion test alone at α = 0.05, and the combined
-verdict (:func:`bayes_talk.synthesis.sbc_power.combined_verdict`, α/3 each).
+verdict (:func:`bayes_talk.evaluation.sbc_power.combined_verdict`, α/3 each).
 
     PYTHONPATH=. python benchmarks/sbc_power.py [--sims 200] [--repeats 20] [--coords 24]
         [--rank-draws 19] [--out benchmarks/results/sbc_power_gaussian.json]
@@ -35,7 +35,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.evaluation.sbc import ALPHA, run_sbc
-from bayes_talk.synthesis.sbc_power import combined_verdict, dispersion_test, thin_to_ess
+from bayes_talk.evaluation.sbc_power import combined_verdict, dispersion_test, thin_to_ess
 
 S2 = 0.5
 

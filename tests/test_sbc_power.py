@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bayes_talk.evaluation.sbc import run_sbc
-from bayes_talk.synthesis.sbc_power import (
+from bayes_talk.evaluation.sbc_power import (
     bias_test,
     combined_verdict,
     dispersion_test,
