@@ -36,6 +36,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.evaluation.sbc import ALPHA, run_sbc
 from bayes_talk.evaluation.sbc_power import combined_verdict, dispersion_test, thin_to_ess
+from bayes_talk.files import write_json
 
 S2 = 0.5
 
@@ -115,9 +116,7 @@ def main() -> None:
         res["variants"][variant] = out
         print(variant, json.dumps(out), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=1))
-    tmp.replace(args.out)
+    write_json(args.out, res)
 
 
 if __name__ == "__main__":

@@ -143,12 +143,7 @@ class PooledResult(SynthesisResult):
 
     def predictive_draws(self, per_component: int = 1, seed: int | None = None) -> np.ndarray:
         """C·S·per_component independent draws of (4), shaped (C, S·per_component, T, D)."""
-        if int(per_component) < 1:
-            raise ValueError(f"per_component must be >= 1, got {per_component}")
-        C, S = self.draw_mean.shape[:2]
-        k = int(per_component)
-        y = self.sample(C * S * k, seed=self.seed + 2 if seed is None else seed)
-        return y.reshape(C, S * k, self.n_frames, self.n_dims)
+        return self.independent_draws(per_component, seed)
 
     def shift(self, delta: np.ndarray) -> PooledResult:
         """P and the Gaussian moved together by delta (T, D); weights and variances kept."""

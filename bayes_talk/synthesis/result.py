@@ -294,6 +294,17 @@ class SynthesisResult:
         m, v = np.repeat(self.draw_mean, k, axis=1), np.repeat(self.draw_var, k, axis=1)
         return m + np.sqrt(v) * rng.standard_normal(m.shape)
 
+    def independent_draws(self, per_component: int = 1, seed: int | None = None) -> np.ndarray:
+        """C·S·per_component independent draws of :meth:`sample`'s distribution, shaped like
+        :meth:`predictive_draws`' (C, S·per_component, T, D) — for results whose
+        distribution is no longer the components' mixture (recalibrated, pooled)."""
+        if int(per_component) < 1:
+            raise ValueError(f"per_component must be >= 1, got {per_component}")
+        C, S = self.draw_mean.shape[:2]
+        k = int(per_component)
+        y = self.sample(C * S * k, seed=self.seed + 2 if seed is None else seed)
+        return y.reshape(C, S * k, self.n_frames, self.n_dims)
+
     @property
     def draws(self) -> np.ndarray:
         """One posterior-predictive draw per component, (C, S, T, D) (:meth:`predictive_draws`)."""
