@@ -21,6 +21,8 @@ needs_vtl = pytest.mark.skipif(
 
 #: Short sentences with bilabials and /uw/ (about 1 s of speech each: the build stays cheap).
 SENTENCES = ["Bob saw the moon.", "Pam knew a blue boot.", "A big map."]
+#: Rounded vowels besides /uw/ (the face model's rounded set, bayes_talk.data.face).
+_ROUNDED = frozenset(("uh", "ow", "ao", "oy"))
 
 
 def _files(d: Path) -> dict[str, bytes]:
@@ -204,10 +206,13 @@ def test_lips_close_on_bilabials_and_round_on_uw(corpus):
                 lp_uw.append(lp.mean())
             elif p in VOWELS:
                 ld_vow.append(ld.mean())
-                lp_other.append(lp.mean())
+                if p not in _ROUNDED:   # /ow ao uh oy/ round too (per-token offsets sd 0.2 cm)
+                    lp_other.append(lp.mean())
     assert len(ld_bil) >= 4 and len(lp_uw) >= 2
     assert max(ld_bil) <= 0.0, ld_bil            # lips meet (LD <= 0 is contact) in every closure
-    assert min(ld_vow) > 0.3, ld_vow             # and are apart in vowels
+    # and are apart in vowels: >= 1 mm (a closure is <= 0.4 mm; a hypo-articulated token at
+    # the version-2 sizes may have a third of the score's 0.5-0.9 cm)
+    assert min(ld_vow) > 0.1, ld_vow
     assert min(lp_uw) > max(lp_other) + 0.2, (lp_uw, lp_other)
 
 
