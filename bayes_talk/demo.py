@@ -4,7 +4,7 @@
    :data:`DEMO_SPEECH` (:func:`demo_speech`), and say which generator the corpus has;
 2. hold out the last utterances, train the default model of ``train`` on the rest (the
    switching SGPDM with right-context phone states and ±2 frames of audio, ``DEMO_MODEL``)
-   and fit its band calibration (mean shrinkage, scale, level map) on 20 % of the training
+   and fit its band calibration (mean shrinkage, scale, level map, pool) on 20 % of the training
    utterances;
 3. synthesise the held-out sentences from their audio and phone labels: the default, what
    ``synth`` writes (the whole-utterance synthesis posterior, Laplace, calibrated, its mean
