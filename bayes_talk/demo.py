@@ -110,7 +110,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     t1 = time.time()
     with executor_for(None, workers) as ex:
         cal = fit_band_calibration(model, train, method="laplace", seed=seed, executor=ex)
-    print(f"[demo] fitted the band calibration (mean shrinkage, scale, level map) on "
+    print(f"[demo] fitted the band calibration (mean shrinkage, scale, level map, pool) on "
           f"{cal.n_utterances} held-out training utterances in {time.time() - t1:.0f} s", flush=True)
 
     truth = [s.aam for s in test]
