@@ -419,7 +419,7 @@ def test_outputs_are_documented_and_the_recipe_gives_the_landmarks(model_dir, co
     from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
 
     nuts = f"nuts {NUTS_DEFAULTS['chains']} x {NUTS_DEFAULTS['draws_per_chain']}"
-    assert "--draws DRAWS" in text and f"(default: laplace 64, {nuts}, emcee 320, vi 64)" in flat
+    assert "--draws DRAWS" in text and f"(default: laplace 64, {nuts}, pg-{nuts}, emcee 320, vi 64)" in flat
     assert f"NUTS chains (default {NUTS_DEFAULTS['chains']})" in flat
     assert f"NUTS warm-up iterations per chain (default {NUTS_DEFAULTS['warmup']})" in flat
     wav, lab = _utt(corpus_dir)

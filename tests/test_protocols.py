@@ -405,7 +405,13 @@ def test_harness_reports_calibration_and_calibrated_and_raw_posterior(gp_run):
     assert a.shape == (traj.truth.shape[1],) and np.all((a >= 0) & (a <= 1))
     np.testing.assert_allclose(pred.result.mean, a * pred.raw.mean, atol=1e-10)
     shrunk = dataclasses.replace(pred.raw, draw_mean=pred.raw.draw_mean * a)
-    np.testing.assert_allclose(pred.result.mixture.var, shrunk.var * np.asarray(bc["scale"]) ** 2, rtol=1e-8)
+    # stage 3 pools the level-mapped result with N(mean, control_var) by the weights pool_weight
+    assert len(bc["pool_weight"]) == traj.truth.shape[1]
+    np.testing.assert_array_equal(pred.result.pool_weight, bc["pool_weight"])
+    staged = pred.result.base
+    np.testing.assert_allclose(staged.mixture.var, shrunk.var * np.asarray(bc["scale"]) ** 2, rtol=1e-8)
+    w = np.asarray(bc["pool_weight"])
+    np.testing.assert_allclose(pred.result.var, (1 - w) * staged.var + w * np.asarray(bc["control_var"]), rtol=1e-10)
     np.testing.assert_allclose(pred.result.cdf(pred.result.interval(0.9)[1]), 0.95, atol=1e-8)
     assert len(bc["level_raw"]) == traj.truth.shape[1]
     assert "## Calibration" in res["markdown_sections"][0] and "ssgpdm-vlmm-posterior (raw)" in \

@@ -128,7 +128,7 @@ def check_method(name: str) -> InferenceMethod:
 def draws_help() -> str:
     """The default draws of each sampler as the CLI's ``--draws`` help states them."""
     n = NUTS_DEFAULTS
-    parts = [f"{m.name} {n['chains']} x {n['draws_per_chain']}" if m.name == "nuts" else f"{m.name} {m.draws}"
+    parts = [f"{m.name} {n['chains']} x {n['draws_per_chain']}" if m.name in ("nuts", "pg-nuts") else f"{m.name} {m.draws}"
              for m in INFERENCE.values() if m.name != "map"]
     return "default: " + ", ".join(parts)
 
