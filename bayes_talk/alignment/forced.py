@@ -27,7 +27,7 @@ from bayes_talk.alignment.viterbi import viterbi_chain
 __all__ = ["MAX_ALIGNMENT_COST", "force_align"]
 
 #: alignment cost (nats per frame) above which a transcript is refused. Measured with the
-#: models trained on /work/data/v1/train250 (20 utterances each, docs/alignment.md): true
+#: models trained on data/v1/train250 (20 utterances each, docs/alignment.md): true
 #: transcripts cost 2.7-8.0 (training voice, heldout40) and 6.7-24.5 (voice en+f3, rate 215,
 #: pitch 70); the same audio with its sentence said twice in the transcript 52.6-74.8 and
 #: 64.7-98.4; three times or more does not fit in the frames at all. Another sentence of
