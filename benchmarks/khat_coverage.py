@@ -1,0 +1,116 @@
+"""Does the warning's k̂ predict where the calibrated bands fail? (issue 27, "warnings that mean something").
+
+A default ``synth`` warns when the Laplace posterior's PSIS k̂ lies above the largest k̂ of
+the held-out utterances its band calibration was fitted on
+(:meth:`bayes_talk.synthesis.band_calibration.BandCalibration.domain`). A warning means
+something only if the calibrated bands of the utterances it flags are worse than those of
+the utterances it lets through. This script measures that on held-out utterances, through
+``pipeline.synth`` exactly as ``bayes-talk synth`` runs it (no video):
+
+* per utterance: frames, k̂, whether it warned, the calibrated 50 % / 90 % coverage of the
+  held-out face (``bands.npz`` against the utterance's AAM parameters projected on the
+  model's AAM, the space of ``trajectory.npy``) and the squared error of the mean in units
+  of the parameter's variance (NMSE-like);
+* over utterances: the Spearman correlation of k̂ with the 90 % coverage error
+  |cov90 − 0.9| and with the coverage itself, and the pooled coverage of the flagged and
+  of the unflagged utterances (frames × parameters pooled).
+
+    python benchmarks/khat_coverage.py --model-dir MODEL --test data/dev40 --first 10 --n-test 20 \\
+        --json benchmarks/results/khat_coverage.json
+
+``MODEL`` is a ``bayes-talk train`` output (with its band calibration).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import spearmanr
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from bayes_talk.data.corpus import load_corpus
+from bayes_talk.files import write_json
+from bayes_talk.pipeline import synth
+
+
+def _inside(truth: np.ndarray, bands, level: int) -> np.ndarray:
+    """(T, D) booleans: the truth inside the central ``level`` % band."""
+    lo, hi = bands[f"lower{level}"], bands[f"upper{level}"]
+    if lo.shape != truth.shape:
+        raise ValueError(f"bands.npz lower{level} has shape {lo.shape}, the held-out face {truth.shape}")
+    return (truth >= lo) & (truth <= hi)
+
+
+def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path) -> dict:
+    """Per-utterance k̂, warning and calibrated coverage, and their association (module docstring)."""
+    corpus = {u.name: u for u in load_corpus(test, aam=model_dir / "aam.npz")}
+    var = np.vstack([u.aam for u in corpus.values()]).var(0)
+    wavs = sorted((test / "utterances").glob("*.wav"))[first:first + n_test]
+    rows, hits = [], {True: {50: [], 90: []}, False: {50: [], 90: []}}
+    for wav in wavs:
+        t0 = time.perf_counter()
+        out = work / wav.stem
+        synth(model_dir, wav, wav.with_suffix(".lab"), out, video=False)
+        diag = json.loads((out / "diagnostics.json").read_text())
+        truth = corpus[wav.stem].aam
+        mean = np.load(out / "trajectory.npy")
+        with np.load(out / "bands.npz") as b:
+            inside = {lv: _inside(truth, b, lv) for lv in (50, 90)}
+        flagged = bool(diag.get("problems"))
+        for lv in (50, 90):
+            hits[flagged][lv].append(inside[lv].ravel())
+        inner = diag.get("diagnostics", {})
+        rows.append({"utterance": wav.stem, "frames": int(len(truth)), "khat": inner.get("khat"),
+                     "warned": flagged, "warnings": diag.get("problems", []),
+                     "coverage_50": float(inside[50].mean()), "coverage_90": float(inside[90].mean()),
+                     "nmse": float((((mean - truth) ** 2) / var).mean()),
+                     "seconds": round(time.perf_counter() - t0, 1)})
+        r = rows[-1]
+        print(f"{wav.stem}: k̂ {r['khat']:.2f} warned {flagged} cov50 {r['coverage_50']:.3f} "
+              f"cov90 {r['coverage_90']:.3f} nmse {r['nmse']:.3f}", flush=True)
+    k = np.array([r["khat"] for r in rows], float)
+    c90 = np.array([r["coverage_90"] for r in rows])
+    nmse = np.array([r["nmse"] for r in rows])
+
+    def rho(a, b):
+        s = spearmanr(a, b)
+        return {"rho": float(s.statistic), "p": float(s.pvalue)}
+
+    pooled = {("flagged" if f else "unflagged"): {
+        "n_utterances": len(hits[f][90]),
+        **{f"coverage_{lv}": (float(np.concatenate(hits[f][lv]).mean()) if hits[f][lv] else None)
+           for lv in (50, 90)}} for f in (True, False)}
+    return {"n_utterances": len(rows), "first": first,
+            "spearman_khat_vs_abs_cov90_error": rho(k, np.abs(c90 - 0.9)),
+            "spearman_khat_vs_cov90": rho(k, c90), "spearman_khat_vs_nmse": rho(k, nmse),
+            "spearman_khat_vs_frames": rho(k, [r["frames"] for r in rows]),
+            "pooled_coverage": pooled, "per_utterance": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--model-dir", required=True, help="a bayes-talk train output")
+    ap.add_argument("--test", required=True, help="held-out corpus directory")
+    ap.add_argument("--first", type=int, default=0, help="index of the first held-out utterance")
+    ap.add_argument("--n-test", type=int, default=20, help="number of held-out utterances")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/khat_coverage.json"))
+    a = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bt_khat_") as tmp:
+        r = measure(Path(a.model_dir), Path(a.test), a.first, a.n_test, Path(tmp))
+    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name,
+             command="python benchmarks/khat_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:]))
+    write_json(a.json, r)
+    print(json.dumps({k: v for k, v in r.items() if k != "per_utterance"}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
