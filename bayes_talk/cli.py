@@ -517,7 +517,14 @@ def _log_to_stderr(level: int, fmt: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the process exit status."""
+    """Run the command line; returns the process exit status (143 on SIGTERM, 130 on Ctrl-C)."""
+    from bayes_talk.executor import sigterm_as_interrupt
+
+    with sigterm_as_interrupt():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     verbose, quiet = getattr(args, "verbose", False), getattr(args, "quiet", False)
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
@@ -536,8 +543,13 @@ def main(argv: list[str] | None = None) -> int:
     from bayes_talk.memory import release_large_blocks
 
     release_large_blocks()  # freed N×N matrices go back to the system (bayes_talk.memory)
+    from bayes_talk.executor import Terminated
+
     try:
         return int(args.func(args) or 0)
+    except Terminated:  # before KeyboardInterrupt, its base class
+        print("bayes-talk: error: terminated (SIGTERM)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("bayes-talk: error: interrupted", file=sys.stderr)
         return 130

@@ -45,8 +45,10 @@ __all__ = [
     "Executor",
     "LocalExecutor",
     "ProcessExecutor",
+    "Terminated",
     "executor_for",
     "make_executor",
+    "sigterm_as_interrupt",
     "single_thread",
 ]
 
@@ -108,6 +110,36 @@ def _init_process_worker() -> None:
 
     os.environ.update(BLAS_ENV)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received (``kill``, a job scheduler's stop), raised in the main thread by
+    :func:`sigterm_as_interrupt`. A KeyboardInterrupt, so a running process pool is stopped
+    as on Ctrl-C (:meth:`ProcessExecutor.map` terminates its workers) instead of being left
+    running without a parent, as Python's default SIGTERM handling (exit at once, no
+    clean-up) leaves it."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread; the previous
+    handler is restored on exit. Outside the main thread (where ``signal.signal`` cannot
+    be called) it does nothing. ``bayes-talk`` runs every command inside it."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class Executor:

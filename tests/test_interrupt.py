@@ -1,4 +1,4 @@
-"""Ctrl-C (issue 28): ``train`` stops with the interrupted status and leaves the old model as
+"""Ctrl-C (issue 28) and SIGTERM: ``train`` stops with the interrupted status and leaves the old model as
 it was; a process pool does not wait for its workers' running tasks (they ignore SIGINT, the
 parent handles it) but terminates them.
 
@@ -87,6 +87,54 @@ def test_ctrl_c_stops_a_pool_whose_workers_run_tasks_that_would_take_an_hour(tmp
     assert out.strip() == "interrupted"
     assert "Traceback" not in err, err[-2000:]
     assert not [w for w in workers if w.is_running() and w.status() != "zombie"]
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_pool_and_its_workers_instead_of_orphaning_them(tmp_path):
+    """``kill PID`` (SIGTERM to the parent only, as a job scheduler sends it): inside
+    ``sigterm_as_interrupt`` (every ``bayes-talk`` command runs there) the parent exits with
+    143 and takes its workers with it. Without the handler Python exits at once and the
+    workers, busy with an hour-long task, keep running without a parent."""
+    script = tmp_path / "pool.py"
+    script.write_text("import sys, time\n"
+                      "from bayes_talk.executor import ProcessExecutor, Terminated, sigterm_as_interrupt\n"
+                      "if __name__ == '__main__':\n"
+                      "    try:\n"
+                      "        with sigterm_as_interrupt(), ProcessExecutor(2) as ex:\n"
+                      "            ex.map(time.sleep, [3600, 3600, 3600])\n"
+                      "    except Terminated:\n"
+                      "        print('terminated', flush=True)\n"
+                      "        raise SystemExit(143)\n", encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    workers = []
+    try:
+        workers = _wait_for_workers(proc, 2)
+        time.sleep(1.0)                         # the tasks are in time.sleep now
+        os.kill(proc.pid, signal.SIGTERM)       # the parent only, not its process group
+        # orphaned workers would hold the output pipes open: wait for the exit, not for EOF
+        proc.wait(timeout=300)
+        alive = [w for w in workers if w.is_running() and w.status() != "zombie"]
+        out, err = proc.communicate(timeout=60) if not alive else ("", "")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        for w in workers:                       # a failed run must not leave hour-long sleepers
+            if w.is_running():
+                w.kill()
+    assert proc.returncode == 143, (proc.returncode, err[-2000:])
+    assert not alive, f"{len(alive)} worker processes left running without their parent"
+    assert out.strip() == "terminated"
+    assert "Traceback" not in err, err[-2000:]
+
+
+def test_sigterm_handler_is_restored_after_the_block():
+    from bayes_talk.executor import sigterm_as_interrupt
+
+    before = signal.getsignal(signal.SIGTERM)
+    with sigterm_as_interrupt():
+        assert signal.getsignal(signal.SIGTERM) is not before
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 def _digest(directory: Path) -> dict[str, str]:
