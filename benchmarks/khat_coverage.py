@@ -7,7 +7,7 @@ something only if the calibrated bands of the utterances it flags are worse than
 the utterances it lets through. This script measures that on held-out utterances, through
 ``pipeline.synth`` exactly as ``bayes-talk synth`` runs it (no video):
 
-* per utterance: frames, k̂, whether it warned, the calibrated 50 % / 90 % coverage of the
+* per utterance: frames, k̂, the MAP's log density per frame, whether it warned, the calibrated 50 % / 90 % coverage of the
   held-out face (``bands.npz`` against the utterance's AAM parameters projected on the
   model's AAM, the space of ``trajectory.npy``) and the squared error of the mean in units
   of the parameter's variance (NMSE-like);
@@ -18,7 +18,9 @@ the utterances it lets through. This script measures that on held-out utterances
     python benchmarks/khat_coverage.py --model-dir MODEL --test data/dev40 --first 10 --n-test 20 \\
         --json benchmarks/results/khat_coverage.json
 
-``MODEL`` is a ``bayes-talk train`` output (with its band calibration).
+``MODEL`` is a ``bayes-talk train`` output (with its band calibration). ``--snr-db S`` adds
+white noise (seeded) at S dB below the utterance's RMS before synthesis: a recording unlike
+the training audio, to see which statistic moves when the bands do fail.
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import soundfile as sf
 from scipy.stats import spearmanr
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,16 +51,27 @@ def _inside(truth: np.ndarray, bands, level: int) -> np.ndarray:
     return (truth >= lo) & (truth <= hi)
 
 
-def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path) -> dict:
+def _noisy(wav: Path, snr_db: float, rng, out: Path) -> Path:
+    """``wav`` with white noise ``snr_db`` dB below its RMS, written to ``out``."""
+    y, sr = sf.read(str(wav), dtype="float64")
+    noise = rng.standard_normal(y.shape) * np.sqrt(np.mean(y ** 2)) * 10 ** (-snr_db / 20)
+    sf.write(str(out), (y + noise).astype(np.float32), sr, subtype="FLOAT")
+    return out
+
+
+def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path,
+            snr_db: float | None = None, seed: int = 0) -> dict:
     """Per-utterance k̂, warning and calibrated coverage, and their association (module docstring)."""
     corpus = {u.name: u for u in load_corpus(test, aam=model_dir / "aam.npz")}
     var = np.vstack([u.aam for u in corpus.values()]).var(0)
     wavs = sorted((test / "utterances").glob("*.wav"))[first:first + n_test]
     rows, hits = [], {True: {50: [], 90: []}, False: {50: [], 90: []}}
+    rng = np.random.default_rng(seed)
     for wav in wavs:
         t0 = time.perf_counter()
         out = work / wav.stem
-        synth(model_dir, wav, wav.with_suffix(".lab"), out, video=False)
+        audio = wav if snr_db is None else _noisy(wav, snr_db, rng, work / f"{wav.stem}_noisy.wav")
+        synth(model_dir, audio, wav.with_suffix(".lab"), out, video=False)
         diag = json.loads((out / "diagnostics.json").read_text())
         truth = corpus[wav.stem].aam
         mean = np.load(out / "trajectory.npy")
@@ -67,13 +81,15 @@ def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path) ->
         for lv in (50, 90):
             hits[flagged][lv].append(inside[lv].ravel())
         inner = diag.get("diagnostics", {})
+        lp = inner.get("map_log_density")
         rows.append({"utterance": wav.stem, "frames": int(len(truth)), "khat": inner.get("khat"),
+                     "map_log_density_per_frame": None if lp is None else lp / len(truth),
                      "warned": flagged, "warnings": diag.get("problems", []),
                      "coverage_50": float(inside[50].mean()), "coverage_90": float(inside[90].mean()),
                      "nmse": float((((mean - truth) ** 2) / var).mean()),
                      "seconds": round(time.perf_counter() - t0, 1)})
         r = rows[-1]
-        print(f"{wav.stem}: k̂ {r['khat']:.2f} warned {flagged} cov50 {r['coverage_50']:.3f} "
+        print(f"{wav.stem}: k̂ {r['khat']:.2f} lp/T {r['map_log_density_per_frame']:.1f} warned {flagged} cov50 {r['coverage_50']:.3f} "
               f"cov90 {r['coverage_90']:.3f} nmse {r['nmse']:.3f}", flush=True)
     k = np.array([r["khat"] for r in rows], float)
     c90 = np.array([r["coverage_90"] for r in rows])
@@ -87,7 +103,7 @@ def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path) ->
         "n_utterances": len(hits[f][90]),
         **{f"coverage_{lv}": (float(np.concatenate(hits[f][lv]).mean()) if hits[f][lv] else None)
            for lv in (50, 90)}} for f in (True, False)}
-    return {"n_utterances": len(rows), "first": first,
+    return {"n_utterances": len(rows), "first": first, "snr_db": snr_db,
             "spearman_khat_vs_abs_cov90_error": rho(k, np.abs(c90 - 0.9)),
             "spearman_khat_vs_cov90": rho(k, c90), "spearman_khat_vs_nmse": rho(k, nmse),
             "spearman_khat_vs_frames": rho(k, [r["frames"] for r in rows]),
@@ -101,10 +117,12 @@ def main(argv=None) -> int:
     ap.add_argument("--test", required=True, help="held-out corpus directory")
     ap.add_argument("--first", type=int, default=0, help="index of the first held-out utterance")
     ap.add_argument("--n-test", type=int, default=20, help="number of held-out utterances")
+    ap.add_argument("--snr-db", type=float, default=None, help="add white noise this many dB below the RMS")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the added noise")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/khat_coverage.json"))
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bt_khat_") as tmp:
-        r = measure(Path(a.model_dir), Path(a.test), a.first, a.n_test, Path(tmp))
+        r = measure(Path(a.model_dir), Path(a.test), a.first, a.n_test, Path(tmp), a.snr_db, a.seed)
     r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name,
              command="python benchmarks/khat_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:]))
     write_json(a.json, r)

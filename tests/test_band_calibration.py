@@ -243,17 +243,18 @@ def test_control_survives_save_and_load_and_old_files_have_none(fitted, tmp_path
         old.control_result(res[0])
 
 
-def test_calibrated_warning_is_the_validated_domain_not_the_raw_khat(fitted):
-    """The raw Laplace result warns on k̂ > 0.7; the calibrated one warns only when its k̂
-    lies beyond the largest k̂ of the calibration's held-out syntheses (or any other check
-    fails), and records the check in its diagnostics."""
+def test_calibrated_warning_records_khat_but_gates_only_on_the_other_checks(fitted):
+    """The raw Laplace result warns on k̂ > 0.7; the calibrated one records its k̂ beside the
+    largest k̂ of the calibration's held-out syntheses but warns only when another check
+    fails or the k̂ is not finite (k̂ was measured not to predict the calibrated coverage:
+    BandCalibration.domain), and records the check in its diagnostics."""
     from dataclasses import replace
 
     from bayes_talk.synthesis.diagnostics import sampler_warning
 
     cal, res, _ = fitted
     cal = replace(cal, info={**cal.info, "held_out_diagnostics": {"khat": [1.2, 2.9, None, 2.1]}})
-    assert cal.validated_khat == 2.9
+    assert cal.calibration_khat_max == 2.9
 
     def raw(k, **extra):
         diag = {"khat": k, **extra}
@@ -261,18 +262,18 @@ def test_calibrated_warning_is_the_validated_domain_not_the_raw_khat(fitted):
                        warnings=["synthesis MAP did not converge: (kept)",
                                  *sampler_warning("laplace", [f"PSIS k̂ {k} > 0.7"])])
 
-    inside = cal.apply(raw(2.5))
-    assert inside.warnings == ["synthesis MAP did not converge: (kept)"]
-    dom = inside.diagnostics["band_calibration"]["domain"]
-    assert dom["inside"] and dom["khat"] == 2.5 and dom["khat_validated_max"] == 2.9
-    outside = cal.apply(raw(3.4))
-    assert len(outside.warnings) == 2 and "k̂ 3.4 > 2.9" in outside.warnings[1]
-    assert not outside.diagnostics["band_calibration"]["domain"]["inside"]
+    for k in (2.5, 3.4):       # inside and beyond the calibration's own k̂: no k̂ warning
+        out = cal.apply(raw(k))
+        assert out.warnings == ["synthesis MAP did not converge: (kept)"]
+        dom = out.diagnostics["band_calibration"]["domain"]
+        assert dom["inside"] and dom["khat"] == k and dom["khat_calibration_max"] == 2.9
+    broken = cal.apply(raw(float("inf")))
+    assert len(broken.warnings) == 2 and "not finite" in broken.warnings[1]
+    assert not broken.diagnostics["band_calibration"]["domain"]["inside"]
     assert "R-hat" in cal.apply(raw(1.0, rhat_max=1.2)).warnings[1]   # other checks stand
-    # a calibration without held-out k̂ (an older file) keeps the 0.7 threshold
-    old = replace(cal, info={})
-    assert old.validated_khat is None and len(old.apply(raw(0.9)).warnings) == 2
-    assert old.apply(raw(0.5)).warnings == ["synthesis MAP did not converge: (kept)"]
+    old = replace(cal, info={})                                        # an older file: no held-out k̂
+    assert old.calibration_khat_max is None
+    assert old.apply(raw(0.9)).warnings == ["synthesis MAP did not converge: (kept)"]
 
 
 class _PickledPool:

@@ -111,7 +111,6 @@ import numpy as np
 
 from bayes_talk.files import write_json
 from bayes_talk.synthesis.diagnostics import (
-    KHAT_MAX,
     convergence_problems,
     is_sampler_warning,
     sampler_warning,
@@ -332,40 +331,39 @@ class BandCalibration:
         return self.control.apply(_constant_band(result, self.control_var))
 
     @property
-    def validated_khat(self) -> float | None:
+    def calibration_khat_max(self) -> float | None:
         """The largest PSIS k̂ among the held-out syntheses the calibration was fitted on
-        (``info["held_out_diagnostics"]``), or None when none was recorded."""
+        (``info["held_out_diagnostics"]``), or None when none was recorded. Reported beside
+        a new utterance's k̂; not a gate (:meth:`domain`)."""
         ks = [k for k in self.info.get("held_out_diagnostics", {}).get("khat", []) if k is not None]
         return max(ks) if ks else None
 
     def domain(self, result: SynthesisResult) -> dict[str, Any]:
-        """Whether the calibrated predictive of ``result`` is inside the domain where its
-        coverage was measured — the criterion of its convergence warning (docs/uncertainty.md
-        "When synth warns").
+        """Whether the calibrated predictive of ``result`` can be trusted — the criterion of
+        its convergence warning (docs/uncertainty.md "When synth warns").
 
         A calibrated band's coverage rests on the held-out utterances it was fitted on, not
         on the approximation being exact: the Laplace (or VI) k̂ of the whole-utterance
-        posterior is above 0.7 on almost every utterance (the posterior is multimodal),
-        and the calibration was measured on exactly such posteriors. So the k̂ check of the
-        raw result is replaced by: k̂ at most :attr:`validated_khat`, the largest k̂ among
-        those held-out utterances (k̂ ≤ 0.7 when none was recorded). Every other check of
-        :func:`~bayes_talk.synthesis.diagnostics.convergence_problems` (R-hat, ESS,
-        divergences, E-BFMI of the samplers) stands. Returns the k̂, the bound, whether it
-        holds, and the warning ([] when inside)."""
+        posterior is above 0.7 on every utterance (0.9–3.5 measured; the posterior is
+        multimodal), and the calibration was fitted on exactly such posteriors. Measured on
+        held-out sentences (``benchmarks/khat_coverage.py``,
+        ``benchmarks/results/khat_coverage_dev_s11.json``), the k̂ does not predict where the
+        calibrated bands fail: Spearman ρ −0.05 between k̂ and |coverage₉₀ − 0.9| over 24
+        utterances; the 5 whose k̂ exceeded every held-out training k̂ covered 0.891 at 90 %,
+        the other 19 0.894; with white noise at 0 dB SNR k̂ rose to 2.7–3.5 and coverage
+        stayed 0.85–0.92. So the k̂ is recorded (with :attr:`calibration_khat_max` beside
+        it) but gates the calibrated result only when it is not finite (a numerical
+        breakdown); every other check of
+        :func:`~bayes_talk.synthesis.diagnostics.convergence_problems` (MAP convergence,
+        R-hat, ESS, divergences, E-BFMI of the samplers) stands. The raw result
+        (``calibrated=False``) keeps the k̂ ≤ 0.7 check. Returns the k̂, the calibration's
+        largest k̂, whether the result is trusted, and the warning ([] when it is)."""
         d = dict(result.diagnostics)
         k = d.pop("khat", None)
         fails = convergence_problems(d)
-        bound = self.validated_khat
-        inside = True
-        if k is not None:
-            limit = KHAT_MAX if bound is None else max(bound, KHAT_MAX)
-            inside = bool(np.isfinite(k) and k <= limit)
-            if not inside:
-                fails.append(f"PSIS k̂ {k:.3g} > {limit:.3g}, " + (
-                    f"the largest of the {self.n_utterances} held-out utterances its calibration was "
-                    "fitted on, so its calibrated bands are not validated this far from Gaussian"
-                    if bound is not None else "and its calibration recorded no held-out k̂"))
-        return {"khat": k, "khat_validated_max": bound, "inside": inside and not fails,
+        if k is not None and not np.isfinite(k):
+            fails.append(f"PSIS k̂ {k} is not finite (the importance weights broke down numerically)")
+        return {"khat": k, "khat_calibration_max": self.calibration_khat_max, "inside": not fails,
                 "warning": sampler_warning(result.method, fails)}
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
