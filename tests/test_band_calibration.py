@@ -412,3 +412,19 @@ def test_pool_weights_survive_save_and_load_and_version_4_files_have_none(tmp_pa
     d["pool_weight"] = [0.5, 1.5]
     with pytest.raises(ValueError, match=r"weights must lie in \[0, 1\]"):
         BandCalibration.from_dict(d)
+
+
+def test_held_out_record_keeps_each_utterances_map_log_density_per_frame(fitted):
+    """The calibration's record of its held-out syntheses keeps the MAP log density per frame
+    (the reference a domain check on how well the model explains new audio needs)."""
+    from dataclasses import replace
+
+    from bayes_talk.synthesis.band_calibration import _synthesis_record
+
+    _, res, _ = fitted
+    rs = [replace(res[0], diagnostics={"map_converged": True, "khat": 2.0, "map_log_density": -6.0 * res[0].n_frames}),
+          replace(res[1], diagnostics={"map_converged": False, "map_log_density": float("nan")}),
+          replace(res[2], diagnostics={})]
+    rec = _synthesis_record(rs)
+    assert rec["map_log_density_per_frame"] == [pytest.approx(-6.0), None, None]
+    assert rec["khat"] == [2.0, None, None] and rec["map_converged"] == [True, False, None]

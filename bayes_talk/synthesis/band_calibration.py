@@ -472,8 +472,10 @@ def _fit_pool(calibrated: Sequence[SynthesisResult], truths: Sequence[np.ndarray
 def _synthesis_record(results: Sequence[SynthesisResult]) -> dict[str, Any]:
     """What the held-out syntheses said about themselves (their warnings are not logged while
     the calibration is fitted, so they are kept here): per utterance the MAP's convergence,
-    the PSIS k̂ (Laplace) or the largest R-hat (samplers) where reported, and the number of
-    results that carried a convergence warning."""
+    the PSIS k̂ (Laplace) or the largest R-hat (samplers) where reported, the MAP's log
+    density per frame (how well the model explains the utterance: a reference for a domain
+    check, docs/uncertainty.md "When synth warns"), and the number of results that carried a
+    convergence warning."""
     def num(d: dict, key: str) -> float | None:
         v = d.get(key)
         return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
@@ -481,6 +483,9 @@ def _synthesis_record(results: Sequence[SynthesisResult]) -> dict[str, Any]:
     diags = [r.diagnostics for r in results]
     return {"map_converged": [bool(d["map_converged"]) if "map_converged" in d else None for d in diags],
             "khat": [num(d, "khat") for d in diags], "rhat_max": [num(d, "rhat_max") for d in diags],
+            "map_log_density_per_frame": [None if num(d, "map_log_density") is None
+                                          else num(d, "map_log_density") / r.n_frames
+                                          for d, r in zip(diags, results)],
             "n_with_warnings": int(sum(bool(r.warnings) for r in results)), "n": len(results)}
 
 
