@@ -428,3 +428,23 @@ def test_held_out_record_keeps_each_utterances_map_log_density_per_frame(fitted)
     rec = _synthesis_record(rs)
     assert rec["map_log_density_per_frame"] == [pytest.approx(-6.0), None, None]
     assert rec["khat"] == [2.0, None, None] and rec["map_converged"] == [True, False, None]
+
+
+def test_audio_fit_is_the_conformal_rank_of_the_map_log_density_per_frame(fitted):
+    """domain() reports ℓ = MAP log density / T and its conformal p-value among the held-out
+    ℓ_i: (1 + #{ℓ_i ≤ ℓ}) / (n + 1); None without a reference; never a warning by itself."""
+    from dataclasses import replace
+
+    cal, res, _ = fitted
+    r = res[0]
+    T = r.n_frames
+    cal = replace(cal, info={**cal.info, "held_out_diagnostics": {
+        "khat": [1.0], "map_log_density_per_frame": [-60.0, -62.0, None, -58.0, -64.0]}})
+    for ell, p in ((-70.0, 1 / 5), (-61.0, 3 / 5), (-50.0, 5 / 5), (-62.0, 3 / 5)):
+        dom = cal.domain(replace(r, diagnostics={"map_log_density": ell * T}, warnings=[]))
+        assert dom["map_log_density_per_frame"] == pytest.approx(ell)
+        assert dom["audio_fit_p"] == pytest.approx(p)
+        assert dom["inside"] and dom["warning"] == []
+    old = replace(cal, info={})
+    assert old.domain(replace(r, diagnostics={"map_log_density": -70.0 * T}))["audio_fit_p"] is None
+    assert cal.domain(replace(r, diagnostics={}))["map_log_density_per_frame"] is None

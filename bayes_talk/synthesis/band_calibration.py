@@ -363,8 +363,26 @@ class BandCalibration:
         fails = convergence_problems(d)
         if k is not None and not np.isfinite(k):
             fails.append(f"PSIS k̂ {k} is not finite (the importance weights broke down numerically)")
-        return {"khat": k, "khat_calibration_max": self.calibration_khat_max, "inside": not fails,
-                "warning": sampler_warning(result.method, fails)}
+        return {"khat": k, "khat_calibration_max": self.calibration_khat_max, **self.audio_fit(result),
+                "inside": not fails, "warning": sampler_warning(result.method, fails)}
+
+    def audio_fit(self, result: SynthesisResult) -> dict[str, Any]:
+        """How well the model explains this utterance against the held-out utterances the
+        calibration was fitted on — recorded, not gated (docs/uncertainty.md "When synth
+        warns": to be validated before it gates).
+
+        ``map_log_density_per_frame`` ℓ = ln p(X̂, audio) / T at the MAP, and the conformal
+        p-value p = (1 + #{i : ℓ_i ≤ ℓ}) / (n + 1) of ℓ among the n held-out ℓ_i
+        (``info["held_out_diagnostics"]["map_log_density_per_frame"]``, recorded since
+        session 11): small when the utterance is explained worse than (nearly) every
+        utterance whose coverage the calibration measured; under exchangeable utterances
+        P(p ≤ α) ≤ α. None where either is missing."""
+        lp = result.diagnostics.get("map_log_density")
+        ell = float(lp) / result.n_frames if isinstance(lp, (int, float)) and math.isfinite(lp) else None
+        ref = [v for v in self.info.get("held_out_diagnostics", {}).get("map_log_density_per_frame", [])
+               if v is not None]
+        p = None if ell is None or not ref else (1 + sum(v <= ell for v in ref)) / (len(ref) + 1)
+        return {"map_log_density_per_frame": ell, "audio_fit_p": p}
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
         """The calibrated result: (0) and (1) applied to every component, then the level map (a
