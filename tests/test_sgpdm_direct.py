@@ -134,3 +134,16 @@ def test_switching_model_fits_the_same_states_by_both_paths():
         np.testing.assert_allclose(n.X_, m.X_, rtol=0, atol=1e-5 * np.abs(m.X_).max(), err_msg=str(k))
         for h, v in m.hyper_.items():
             np.testing.assert_allclose(np.asarray(n.hyper_[h]), np.asarray(v), rtol=1e-5, err_msg=f"{k} {h}")
+
+
+def test_a_subclass_with_its_own_log_joint_keeps_the_torch_path(monkeypatch):
+    """The sparse SGPDM overrides the log joint (an inducing-point bound): the direct
+    objective, which is the exact SGPDM's, must never evaluate it."""
+    from bayes_talk.models.sparse_sgpdm import SparseSGPDM
+
+    calls = []
+    orig = SGPDMObjective.__call__
+    monkeypatch.setattr(SGPDMObjective, "__call__", lambda self, x: calls.append(1) or orig(self, x))
+    audio, video = _toy(30)
+    SparseSGPDM(latent_dim=2, n_inducing=8, max_iter=4).fit({"audio": audio, "visual": video})
+    assert calls == []
