@@ -14,6 +14,12 @@ switch          environment variable          default      effect
                                                            instead of the compiled loops of
                                                            :mod:`bayes_talk.gp.fused` and
                                                            :mod:`bayes_talk.gp.predictive_fused`
+``direct_fit``  ``BAYES_TALK_DIRECT_FIT``     ``1``        ``0``: SGPDM MAP fits through torch autograd
+                                                           and ``torch.optim.LBFGS`` (the reference)
+                                                           instead of the hand-written gradient of
+                                                           :mod:`bayes_talk.models.sgpdm_objective`
+                                                           and the NumPy port of that L-BFGS
+                                                           (:mod:`bayes_talk.gp.lbfgs`)
 ``lapack``      ``BAYES_TALK_LAPACK``         torch-mkl    ``scipy``: scipy's LAPACK for the
                                                            in-place Cholesky routines of
                                                            :mod:`bayes_talk.gp.lapack`
@@ -73,6 +79,7 @@ class Switch:
 #: every switch of the package (module docstring)
 SWITCHES: dict[str, Switch] = {
     "fused": Switch("BAYES_TALK_FUSED", True, _flag),
+    "direct_fit": Switch("BAYES_TALK_DIRECT_FIT", True, _flag),
     "lapack": Switch("BAYES_TALK_LAPACK", "torch-mkl", _lapack),
     "potri_threads": Switch("BAYES_TALK_POTRI_THREADS", 1, _threads),
     "malloc": Switch("BAYES_TALK_MALLOC", True, _flag),

@@ -16,6 +16,9 @@ Everything below is measured in one run, on the same machine load:
     * ours_direct: the same, by the model's default path since issue 29 (the same site
                   log-densities summed without the trace, equal bit for bit:
                   ``sgpdm_program.sgpdm_log_joint``).
+    * ours_np:    the same objective and gradient as the fit evaluates them since issue 29's
+                  direct fit: ``models.sgpdm_objective.SGPDMObjective`` on the flat
+                  parameters (hand-written gradient, NumPy, no autograd).
     * ours_raw:   ``bayes_talk.gp.terms.observation_loglik(Y, X, α, γ, β, w)`` with X and
                   log α, log γ, log β requiring grad, plus backward (no Pyro overhead).
     * ours_raw_torch: the same term through the torch path (``train_cov`` + the Cholesky
@@ -28,7 +31,8 @@ Everything below is measured in one run, on the same machine load:
                   and the dynamics), so its floor is about 3 × floor_ours.
 (b) sgpdm_full: the two-view SGPDM with dynamics (views D = 20 + 30,
     ``SGPDM(latent_dim=8, max_iter=1)``, default fixed dynamics): one log joint +
-    gradient (the default, direct path; ``sgpdm_full_pyro`` through the trace); reported
+    gradient (autograd of the direct log joint; ``sgpdm_full_pyro`` through the trace;
+    ``sgpdm_full_np`` the fit's NumPy objective and gradient); reported
     as a ratio to the same GPy figure.
 
 Every timing is the median of ``--repeats`` calls after one warm-up; the
@@ -125,6 +129,9 @@ class Ours:
         loss.backward()
         return float(loss.detach())
 
+    def np_eval(self) -> float:
+        return _np_objective(self)
+
     def raw_eval(self) -> float:
         from bayes_talk.gp.terms import observation_loglik
 
@@ -200,6 +207,23 @@ class Full:
         with log_joint_path("pyro"):
             return self.eval()
 
+    def np_eval(self) -> float:
+        return _np_objective(self)
+
+
+def _np_objective(ours) -> float:
+    """One evaluation of the fit's NumPy objective and gradient at ``ours.m``'s parameters."""
+    from bayes_talk.models.sgpdm_objective import SGPDMObjective
+
+    if not hasattr(ours, "_np"):
+        m = ours.m
+        ours._np = SGPDMObjective({v: Y.numpy() for v, Y in m._Y.items()}, m.seq_lengths_, m.config,
+                                  {k: tuple(t.shape) for k, t in m._log.items()},
+                                  {k: t.detach().numpy() for k, t in m._fixed.items()}, m._learned_thetas())
+        ours._np_x = torch.cat([t.detach().reshape(-1) for t in ours.free]).numpy()
+    f, _ = ours._np(ours._np_x)
+    return float(f)
+
 
 # ---------------------------------------------------------------------------- timing
 def timed(fn) -> tuple[float, float]:
@@ -239,8 +263,8 @@ def lapack_floors(K: np.ndarray) -> dict:
     return {"floor_ours": ours, "floor_gpy": gpy}
 
 
-RATIO_KEYS = ("ours_pyro", "ours_direct", "ours_raw", "ours_raw_torch", "sgpdm_full", "sgpdm_full_pyro",
-              "floor_ours", "floor_gpy")
+RATIO_KEYS = ("ours_pyro", "ours_direct", "ours_np", "ours_raw", "ours_raw_torch", "sgpdm_full", "sgpdm_full_pyro",
+              "sgpdm_full_np", "floor_ours", "floor_gpy")
 
 
 def bench_size(N: int, repeats: int) -> dict:
@@ -249,8 +273,9 @@ def bench_size(N: int, repeats: int) -> dict:
     gpy = Gpy(ours)
     full = Full(N)
     setup = time.perf_counter() - t0
-    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_direct": ours.direct_eval, "ours_raw": ours.raw_eval,
-           "ours_raw_torch": ours.raw_torch_eval, "sgpdm_full": full.eval, "sgpdm_full_pyro": full.pyro_eval}
+    fns = {"gpy": gpy.eval, "ours_pyro": ours.pyro_eval, "ours_direct": ours.direct_eval, "ours_np": ours.np_eval,
+           "ours_raw": ours.raw_eval, "ours_raw_torch": ours.raw_torch_eval, "sgpdm_full": full.eval,
+           "sgpdm_full_pyro": full.pyro_eval, "sgpdm_full_np": full.np_eval}
     self_timed = lapack_floors(ours.kernel_matrix())
     for f in [*fns.values(), *self_timed.values()]:  # warm-up
         f()
@@ -471,6 +496,7 @@ def main(argv=None) -> int:
               f"{q['ours_raw_torch']:>9.2f} {q['floor_ours']:>9.2f} {q['floor_gpy']:>12.2f}", flush=True)
         c = r["cpu_ratio_to_gpy"]
         print(f"{'':>5} CPU-time ratios: pyro/gpy {c['ours_pyro']:.2f}  direct/gpy {c['ours_direct']:.2f}  "
+              f"np/gpy {c['ours_np']:.2f}  full_np/gpy {c['sgpdm_full_np']:.2f}  "
               f"raw/gpy {c['ours_raw']:.2f}  "
               f"full/gpy {c['sgpdm_full']:.2f}  torch/gpy {c['ours_raw_torch']:.2f}  "
               f"floor/gpy {c['floor_ours']:.2f}  gpyfloor/gpy {c['floor_gpy']:.2f}", flush=True)

@@ -118,24 +118,33 @@ def instrument(timer: PhaseTimer, per_state: list[dict]) -> None:
         _wrap(SGPDM, attr, timer, "state_init")
     _wrap(SGPDM, "_finalise", timer, "state_finalise")
 
+    from bayes_talk.models.sgpdm_objective import SGPDMObjective
+
     opt = SGPDM._optimise
     lj = SGPDM.log_joint
+    direct = SGPDMObjective.__call__
+    n_eval = [0]  # objective evaluations: torch log joints and direct (NumPy) evaluations alike
 
     def counted_log_joint(self):
-        self._n_eval = getattr(self, "_n_eval", 0) + 1
+        n_eval[0] += 1
         return lj(self)
 
+    def counted_direct(self, x):
+        n_eval[0] += 1
+        return direct(self, x)
+
     SGPDM.log_joint = counted_log_joint
+    SGPDMObjective.__call__ = counted_direct
 
     @functools.wraps(opt)
     def timed_opt(self, *a, **k):
-        self._n_eval = 0
+        n0 = n_eval[0]
         t0 = time.perf_counter()
         with timer.phase("state_lbfgs"):
             out = opt(self, *a, **k)
         per_state.append({"section": timer.section, "N": int(sum(self.seq_lengths_)),
                           "n_seq": len(self.seq_lengths_), "lbfgs_s": time.perf_counter() - t0,
-                          "n_eval": int(self._n_eval), "n_iter": int(self.history.n_iter)})
+                          "n_eval": int(n_eval[0] - n0), "n_iter": int(self.history.n_iter)})
         return out
 
     SGPDM._optimise = timed_opt

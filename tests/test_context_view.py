@@ -114,3 +114,24 @@ def test_context_mean_makes_the_view_the_visual_mean_function(data, tmp_path):
     assert back.config.context_mean is True
     np.testing.assert_allclose(back.synthesize(s.mfcc, s.labels).mean, seq.mean, atol=1e-10)
     assert plain.synthesize(s.mfcc, s.labels).mean_function is None
+
+
+def test_out_of_fold_ridge_equals_sklearns_cross_val_predict():
+    """ridge_out_of_fold (the Gram matrices of the folds from the whole one, issue 29) gives
+    sklearn's ``cross_val_predict(Ridge(alpha))`` for every penalty, to rounding, on one-hot
+    and offset continuous columns (the centring must be the fold's, not the data's)."""
+    from sklearn.linear_model import Ridge
+    from sklearn.model_selection import GroupKFold, cross_val_predict
+
+    from bayes_talk.features.context_view import ALPHAS, ridge_out_of_fold
+
+    rng = np.random.default_rng(3)
+    n = 1200
+    X = np.hstack([rng.integers(0, 2, size=(n, 30)).astype(float), rng.normal(size=(n, 20)) + 3.0])
+    Z = X @ rng.normal(size=(50, 4)) * 0.1 + rng.normal(size=(n, 4)) + 5.0
+    groups = np.repeat(np.arange(40), n // 40)
+    cv = GroupKFold(n_splits=5)
+    tests = [t for _, t in cv.split(X, Z, groups)]
+    for a, got in zip(ALPHAS, ridge_out_of_fold(X, Z, tests, ALPHAS)):
+        want = cross_val_predict(Ridge(alpha=a), X, Z, groups=groups, cv=cv)
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * np.abs(want).max(), err_msg=f"alpha {a}")

@@ -282,6 +282,28 @@ def rbf_matrix_normal(X: torch.Tensor, alpha, gamma, beta, V: torch.Tensor) -> t
     return _RBFMatrixNormal.apply(X, alpha, gamma, beta, V, state)
 
 
+def rbf_matrix_normal_grad(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
+    """ℓ above and its whole gradient in NumPy, without autograd (issue 29: the direct
+    objective of :mod:`bayes_talk.models.sgpdm_objective`): ``(ℓ, ∂ℓ/∂X, ∂ℓ/∂α, ∂ℓ/∂γ,
+    ∂ℓ/∂β, ∂ℓ/∂V)`` by the same passes and formulas as :func:`rbf_matrix_normal` and its
+    backward (so the same numbers), or None when K cannot be factorised without jitter.
+    X (N×d) and V (N×D): float64 arrays; α, γ, β: floats."""
+    Xn = np.ascontiguousarray(X, dtype=np.float64)
+    A = np.array(V, dtype=np.float64, order="F", copy=True)
+    N, D = A.shape
+    buf = _Buffer(Xn, a, gm, 1.0 / b)
+    if not buf.factor():
+        return None
+    L = buf.m
+    logdet = 2.0 * np.log(np.diagonal(L)).sum()
+    if potrs_lower(L, A) != 0:
+        return None
+    ll = -0.5 * D * logdet - 0.5 * float((V * A).sum()) - 0.5 * N * D * LOG_2PI
+    acc, sums = _gradient(Xn, buf.inverse(), np.ascontiguousarray(A), a, N_CHUNKS)
+    s_g, s_r2, tr = sums.sum(0)
+    return ll, acc.sum(0) * (-2.0 * gm), s_g / a, -s_r2, -tr / (b * b), -A
+
+
 def fused_ok(*tensors) -> bool:
     """Whether the fused path applies: switched on (:mod:`bayes_talk.settings` ``fused``),
     float64 CPU tensors (or plain numbers)."""

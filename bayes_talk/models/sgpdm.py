@@ -2,8 +2,10 @@
 
 The settings and the Pyro program are in :mod:`bayes_talk.models.sgpdm_program`,
 inference of latents for new observations in :mod:`bayes_talk.synthesis.latents`.
-Persistence (:meth:`SGPDM.state` / :meth:`SGPDM.from_state`) is here, with the class whose
-fitted attributes it writes and restores.
+The module is above ~500 lines because persistence (:meth:`SGPDM.state` /
+:meth:`SGPDM.from_state`) is here, with the class whose fitted attributes it writes and
+restores; the direct fit's objective and optimiser are in
+:mod:`bayes_talk.models.sgpdm_objective` and :mod:`bayes_talk.gp.lbfgs`.
 
 deena2010 §2.1.1 (eq. 1–7), deena2009 §2; conventions pinned in DESIGN.md §3.
 
@@ -52,6 +54,8 @@ from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
+from bayes_talk.models.sgpdm_objective import SGPDMObjective, fit_direct
+from bayes_talk.models.sgpdm_objective import supports as objective_supports
 from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
 from bayes_talk.models.sgpdm_program import sgpdm_log_joint as program_log_joint
@@ -289,6 +293,11 @@ class SGPDM:
         if monitor is not None and (monitor_every < 1 or patience < 1):
             raise ValueError(f"monitor_every and patience must be >= 1, got {monitor_every} and {patience}")
         step_iter = min(monitor_every if monitor is not None else 20, max(1, cfg.max_iter))
+        # the direct objective is this class's log joint: a subclass with its own keeps torch's path
+        own_objective = type(self).log_joint is SGPDM.log_joint and type(self)._free_tensors is SGPDM._free_tensors
+        if monitor is None and self.backconstraint is None and own_objective and objective_supports(cfg):
+            self._optimise_direct(step_iter)
+            return
         free = self._free_tensors()
         opt = torch.optim.LBFGS(free, lr=1.0, max_iter=step_iter, history_size=50, line_search_fn="strong_wolfe")
 
@@ -331,6 +340,17 @@ class SGPDM:
         log.info("SGPDM fit: log joint %.6g -> %.6g in %d steps%s", self.history.log_joint[0],
                  self.history.log_joint[-1], len(self.history.log_joint) - 1,
                  "" if monitor is None else f"; kept step {self.history.best_step} (monitor {best:.6g})")
+
+    def _optimise_direct(self, step_iter: int) -> None:
+        """:meth:`_optimise` without a monitor through the hand-written gradient and the NumPy
+        port of torch's L-BFGS (:func:`~bayes_talk.models.sgpdm_objective.fit_direct`; the
+        same path to rounding, issue 29)."""
+        obj = SGPDMObjective({v: Y.numpy() for v, Y in self._Y.items()}, self.seq_lengths_, self.config,
+                             {k: tuple(t.shape) for k, t in self._log.items()},
+                             {k: t.detach().numpy() for k, t in self._fixed.items()}, self._learned_thetas())
+        self.history = fit_direct(obj, self._free_tensors(), self.log_joint, self.config, step_iter)
+        log.info("SGPDM fit: log joint %.6g -> %.6g in %d steps", self.history.log_joint[0],
+                 self.history.log_joint[-1], len(self.history.log_joint) - 1)
 
     def _check_collapse(self) -> None:
         """Warn when the latents have shrunk to the scale of the dynamics noise (the MAP
