@@ -49,6 +49,15 @@ class Estimator(BaseEstimator):
 
     #: method-family name in :data:`bayes_talk.estimators.registry.ESTIMATORS`
     name: ClassVar[str] = ""
+    #: a floor or ceiling of an evaluation (``zero``, ``oracle``), not a method: its mean is
+    #: the target methods are measured against, so ``evaluate`` never post-filters it
+    reference: ClassVar[bool] = False
+
+    @classmethod
+    def has_distribution(cls) -> bool:
+        """Whether :meth:`predict_dist` gives a predictive distribution (False: a point
+        predictor, whose ``predict_dist`` raises NotImplementedError)."""
+        return hasattr(cls, "predict_var") or cls.predict_dist is not Estimator.predict_dist
 
     def fit(self, train: list[Utterance]) -> Self:
         """Learn from training utterances (with ``aam``); returns ``self``."""

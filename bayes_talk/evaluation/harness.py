@@ -51,9 +51,10 @@ from bayes_talk.evaluation.scoring import (
 )
 from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, make_splits
 from bayes_talk.evaluation.systems import (
-    METHODS,
+    calibrated_method,
     fit_band_calibration,
     fit_family,
+    get_method,
     group_by_family,
     log_likelihood,
     predict,
@@ -140,10 +141,11 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
             model_cache[(fam, split.index)] = model
         train_s[fam] = time.perf_counter() - t0
         calib_s[fam] = 0.0
+        cal_method = calibrated_method(fam_methods)
         if (cfg.band_calibration is not None and getattr(model, "band_calibration_", None) is None
-                and any("posterior" in METHODS[n].options for n in fam_methods)):
+                and cal_method is not None):
             t0 = time.perf_counter()
-            fit_band_calibration(fam, model, job.train, cfg, executor=executor,
+            fit_band_calibration(model, job.train, cfg, cal_method, executor=executor,
                                  progress=None if say is None else
                                  (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
             calib_s[fam] = time.perf_counter() - t0
@@ -168,7 +170,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                     traj.predictions[name] = pred
             rows_all[name] = rows
             cal = getattr(model, "band_calibration_", None)
-            if cal is not None and "posterior" in METHODS[name].options:
+            if cal is not None and "posterior" in get_method(name).options:
                 band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
                                **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
@@ -260,7 +262,7 @@ def run_protocol(
                 band_cal[name].append(out.band_calibration[name])
     result_methods: dict[str, Any] = {}
     for name in names:
-        m = METHODS[name]
+        m = get_method(name)
         rows = per_utt[name]
         entry: dict[str, Any] = {"label": m.label, "family": m.family, "has_variance": m.has_variance}
         for k in rows[0]:
