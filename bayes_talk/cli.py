@@ -114,12 +114,12 @@ def _add_track_parsers(csub) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from bayes_talk.pipeline import DEFAULT_CALIBRATION, train
+    from bayes_talk.pipeline import DEFAULT_CALIBRATION, calibrates_bands, train
 
     if args.no_calibrate_bands and args.calibrate_bands is not None:
         raise ValueError("give --calibrate-bands or --no-calibrate-bands, not both")
     cal = args.calibrate_bands
-    if cal is None and not args.no_calibrate_bands and args.model != "sgplvm":
+    if cal is None and not args.no_calibrate_bands and calibrates_bands(args.model):
         cal = DEFAULT_CALIBRATION
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,

@@ -17,6 +17,7 @@ the AAM offset), the model's own JSON + NPZ files, and a copy of the corpus AAM
 """
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import os
@@ -27,18 +28,21 @@ import numpy as np
 
 from bayes_talk.bundle import DESCRIPTOR, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION
 from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
 from bayes_talk.files import check_format, write_json, write_npy, write_npz
 from bayes_talk.synthesis.defaults import DEFAULT_METHOD, check_method
 
 log = logging.getLogger(__name__)
 
-MODEL_KINDS = ("ssgpdm-vlmm", "ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean",
-               "sgplvm")
-#: the model ``train`` fits unless told otherwise: right-context phone states with an audio
-#: context of ±2 frames whose visual GPs have the phonetic-context view as their mean function
-#: (estimators.registry.FAMILY_DEFAULTS; docs/switching.md), the best model on our development
-#: sentences (docs/results.md "Session 9"); "ssgpdm-vlmm" is deena2010's
-DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
+
+def model_kinds() -> tuple[str, ...]:
+    """The families ``train`` fits and ``synth`` runs: every registered estimator with a
+    predictive distribution that is a method, not an evaluation's floor or ceiling."""
+    return tuple(name for name, (cls, _) in ESTIMATORS.items() if cls.has_distribution() and not cls.reference)
+
+
+#: :func:`model_kinds` when this module was imported (``train --model`` choices)
+MODEL_KINDS = model_kinds()
 #: fraction of the training utterances ``train`` holds out for the band calibration by default
 DEFAULT_CALIBRATION = 0.2
 _DEFAULT = object()
@@ -73,11 +77,9 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
 
 def new_model(kind: str, **overrides):
     """An untrained model of the given kind (see :data:`MODEL_KINDS`)."""
-    from bayes_talk.estimators.registry import make_estimator
-
-    if kind in MODEL_KINDS:
+    if kind in model_kinds():
         return make_estimator(kind, **overrides)
-    raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
+    raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(model_kinds())}")
 
 
 def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, scheduler: str | None = None):
@@ -86,11 +88,10 @@ def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, sc
     or this process when ``workers`` is 1, the default; ``scheduler``: a running dask scheduler), with a
     progress bar of states done / total on a terminal (bayes_talk.progress). The model
     does not depend on the executor."""
-    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.executor import executor_for
     from bayes_talk.progress import ProgressMapper
 
-    if not isinstance(model, SwitchingSGPDM):
+    if "executor" not in inspect.signature(model.fit).parameters:
         return model.fit(train)
     with executor_for(executor, workers, scheduler) as ex:
         return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
@@ -132,13 +133,13 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     from bayes_talk.features import mfcc as _mf
 
     out = Path(out_dir)
-    if kind not in MODEL_KINDS:
-        raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(MODEL_KINDS)}")
+    if kind not in model_kinds():
+        raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(model_kinds())}")
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
-    if calibrate_bands is not None and (kind == "sgplvm" or not 0 < calibrate_bands < 1):
-        raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a switching model, found "
-                         f"{calibrate_bands!r} for {kind} (sgplvm calibrates its variances itself)")
+    if calibrate_bands is not None and (not calibrates_bands(kind) or not 0 < calibrate_bands < 1):
+        raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a model with a whole-utterance "
+                         f"posterior (a switching model), found {calibrate_bands!r} for {kind}")
     fmax = _mf.FMAX_HZ if fmax is _DEFAULT else fmax
     floor_dbfs = _mf.FLOOR_DBFS if floor_dbfs is _DEFAULT else floor_dbfs
     from bayes_talk.executor import executor_for
@@ -153,7 +154,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         if calibrate_bands is not None:
             from bayes_talk.synthesis.band_calibration import fit_band_calibration
 
-            band_cal = fit_band_calibration(model, corpus.sequences, holdout=calibrate_bands, seed=model.config.seed,
+            band_cal = fit_band_calibration(model, corpus.sequences, holdout=calibrate_bands,
+                                            seed=model.get_params()["seed"],
                                             fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex),
                                             executor=ex)
     out.mkdir(parents=True, exist_ok=True)
@@ -162,10 +164,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
                           window_s=_mf.WINDOW_S, n_mels=_mf.N_MELS, cmvn=cmvn, fmax=fmax,
                           floor_dbfs=floor_dbfs).to_dict()
     audio["feature_statistics"] = feature_statistics([s.mfcc for s in corpus.sequences])
-    if kind == "sgplvm":
-        model.save(out / "sgpdm")
-    else:
-        model.save(out)
+    model.save(out / model.bundle_path)
     offset = aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
@@ -184,6 +183,12 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         fit_alignment(corpus.sequences).save(out)
     write_bundle_manifest(out)
     return out
+
+
+def calibrates_bands(kind: str) -> bool:
+    """Whether a model of ``kind`` takes a band calibration: it has a whole-utterance
+    posterior (bayes_talk.synthesis.band_calibration calibrates its bands)."""
+    return kind in ESTIMATORS and "posterior" in ESTIMATORS[kind][0].synthesis_options
 
 
 def select_holdout(sequences: list[Utterance], holdout: int | None = None,
@@ -249,8 +254,6 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     """Load a directory written by :func:`train`; errors name the file and the problem."""
     from bayes_talk.audio import AudioSettings
     from bayes_talk.bundle import BUNDLE_MANIFEST, verify_bundle
-    from bayes_talk.estimators.sgplvm import SGPLVM
-    from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.features.aam import AAM
 
     d = Path(model_dir)
@@ -270,7 +273,11 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
         log.warning("%s has no %s (saved before bundles were hashed): its files cannot be checked "
                     "to belong together", d, BUNDLE_MANIFEST)
     kind = desc["kind"]
-    model = SGPLVM.load(d / "sgpdm") if kind == "sgplvm" else SwitchingSGPDM.load(d)
+    if kind not in ESTIMATORS:
+        raise ValueError(f"{p}: kind {kind!r} is no registered model family (expected one of "
+                         f"{', '.join(model_kinds())})")
+    cls = ESTIMATORS[kind][0]
+    model = cls.load(d / cls.bundle_path)
     aam = AAM.load(d / "aam.npz") if desc.get("has_aam") else None
     if aam is not None and aam.n_params != len(desc["aam_offset"]):
         from bayes_talk.bundle import BundleError
@@ -373,12 +380,17 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
         raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
     tm = load_trained(model_dir)
+    choices = type(tm.model).synthesis_options
     if posterior is None:
-        posterior = "map" if tm.kind == "sgplvm" else DEFAULT_METHOD
+        posterior = DEFAULT_METHOD if "posterior" in choices else "map"
     check_method(posterior)
-    if posterior != "map" and tm.kind == "sgplvm":
-        raise ValueError(f"--posterior {posterior} needs a switching model; this model is {tm.kind!r} "
-                         "(its variances are calibrated on held-out data instead)")
+    if posterior != "map" and posterior not in choices.get("posterior", ()):
+        raise ValueError(f"--posterior {posterior} needs a model with a whole-utterance posterior (a switching "
+                         f"model); this model is {tm.kind!r}: use --posterior map")
+    if init is not None and init not in choices.get("init", ()):
+        raise ValueError(f"--init {init}: a {tm.kind} model initialises by "
+                         f"{' or '.join(choices.get('init', ())) or 'no initialiser'}")
+    options = _synthesis_options(choices, posterior, algorithm, init, n_draws, seed, sampler_options)
     _check_speech(wav, recognise=labels is None and text is None and transcript is None)
     derived = None
     if labels is None:
@@ -408,28 +420,17 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
-    if tm.kind == "sgplvm":
-        res = tm.model.synthesize(utt.mfcc, utt.labels, init=init or "back-constraint")
-        segs = []
-    else:
-        if init not in (None, "nn"):
-            raise ValueError(f"the switching model initialises by nearest neighbour; --init {init} "
-                             "applies to the sgplvm model")
-        if posterior == "map":
-            res = tm.model.synthesize(utt.mfcc, utt.labels, algorithm=algorithm)
-        else:
-            from bayes_talk.synthesis.posterior import sample_synthesis
-
-            res = sample_synthesis(tm.model, utt.mfcc, utt.labels, method=posterior, n_draws=n_draws,
-                                   seed=seed, log_warnings=False, **_sampler_args(sampler_options))
-            if calibrated and tm.calibration is not None and tm.calibration.method == posterior:
-                res = tm.calibration.apply(res)
+    res = tm.model.predict_dist(utt, **options)
+    if calibrated and tm.calibration is not None and tm.calibration.method == posterior:
+        res = tm.calibration.apply(res)
+    post_filter_hz = None
+    if tm.model.post_filter:
         from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
 
-        lowpass_hz = POST_FILTER_HZ if lowpass_hz is _DEFAULT else lowpass_hz
-        if lowpass_hz is not None:
-            res = res.shift(lowpass(res.mean, float(lowpass_hz), fps=tm.fps) - res.mean)
-        segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
+        post_filter_hz = POST_FILTER_HZ if lowpass_hz is _DEFAULT else lowpass_hz
+        if post_filter_hz is not None:
+            res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
+    segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     if derived is not None:
         from bayes_talk.data.labels import write_lab
@@ -447,7 +448,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                         "; raise --draws or --warmup" if posterior in ("nuts", "pg-nuts", "emcee") else "")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
-                                                "trajectory_holds": _trajectory_description(res, lowpass_hz),
+                                                "trajectory_holds": _trajectory_description(res, post_filter_hz),
                                                 "mean_shrinkage": _mean_shrinkage(res, tm),
                                                 "pool_weight": _pool_weight(res, tm),
                                                 "diagnostics": res.diagnostics})
@@ -456,7 +457,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         write_npy(out / names[key], arr)
         written[key] = out / names[key]
     write_json(out / names["segments"], {"segments": segs, "fps": tm.fps,
-                                         "post_filter_hz": None if tm.kind == "sgplvm" else lowpass_hz})
+                                         "post_filter_hz": post_filter_hz})
     written["segments"] = out / names["segments"]
     if tm.aam is not None:
         params = res.mean + tm.offset
@@ -495,6 +496,20 @@ def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav
         written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps,
                                                    audio_path=wav, overwrite=True)
     return written
+
+
+def _synthesis_options(choices: dict, posterior: str, algorithm: str, init: str | None, n_draws: int | None,
+                       seed: int, sampler_options: dict | None) -> dict:
+    """The keyword arguments of the model's ``predict_dist`` for synth's choices, among those
+    the model takes (``choices``, its ``synthesis_options``): "map" is the model's own path
+    (``algorithm`` where it has one), any other ``posterior`` the whole-utterance posterior
+    with its draws, seed and sampler options."""
+    opts: dict = {} if init is None else {"init": init}
+    if posterior != "map":
+        return {**opts, "posterior": posterior, "n_draws": n_draws, "seed": seed, **_sampler_args(sampler_options)}
+    if "algorithm" in choices:
+        opts["algorithm"] = algorithm
+    return opts
 
 
 def _sampler_args(options: dict | None) -> dict:

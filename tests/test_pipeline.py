@@ -260,6 +260,8 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
 class _Recorder:
     """Stands in for a model: records what it was trained on (no training cost)."""
 
+    bundle_path = ""   # saved into the model directory itself, as the switching model
+
     def __init__(self):
         self.names: list[str] = []
 

@@ -1,8 +1,10 @@
 """One vocabulary (issue 26, item 1): a method is a registered estimator, and ``evaluate``
-runs whatever the registry holds through ``fit`` / ``predict_dist`` with no branch on a
-family name. A dummy estimator registered with one line runs through the harness."""
+and ``train`` / ``synth`` run whatever the registry holds through ``fit`` / ``predict_dist``
+/ ``save`` / ``load`` with no branch on a family name. A dummy estimator registered with one
+line runs through the harness and through train + synth."""
 from __future__ import annotations
 
+import json
 from typing import ClassVar
 
 import numpy as np
@@ -99,3 +101,33 @@ def test_a_registered_dummy_estimator_runs_through_evaluate(registered):
     assert e["coverage_90"]["mean"] == pytest.approx(np.mean(cover), rel=1e-12)
     assert "calibration" in e and "band_calibration" not in e      # no posterior method: no band calibration
     np.testing.assert_array_equal(traj.predictions[registered].mean, model.predict(test[0]))
+
+
+def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_built_corpus, tmp_path):
+    from bayes_talk import pipeline
+    from bayes_talk.data.corpus import load_corpus
+
+    assert registered not in pipeline.MODEL_KINDS and registered in pipeline.model_kinds()
+    out = pipeline.train(shared_built_corpus, registered, tmp_path / "model", alignment=False, extra_var=0.25)
+    assert json.loads((out / "bayes_talk_model.json").read_text())["kind"] == registered
+    assert (out / PhoneMean.bundle_path / "estimator.json").is_file()
+    tm = pipeline.load_trained(out)
+    assert isinstance(tm.model, PhoneMean) and tm.model.extra_var == 0.25 and tm.calibration is None
+    wav = sorted((shared_built_corpus / "utterances").rglob("*.wav"))[0]
+    written = pipeline.synth(out, wav, wav.with_suffix(".lab"), tmp_path / "synth", video=False)
+    assert "diagnostics" not in written                     # its own path ("map"): no posterior
+    utt = pipeline.read_utterance(wav, wav.with_suffix(".lab"), tm.fps, sample_rate=tm.audio.sample_rate,
+                                  cmvn=tm.audio.cmvn, fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
+    want = tm.model.predict_dist(utt)
+    np.testing.assert_array_equal(np.load(written["trajectory"]), want.mean)   # no post-filter for it
+    np.testing.assert_array_equal(np.load(written["variance"]), want.var)
+    with np.load(written["bands"]) as b:
+        np.testing.assert_array_equal(b["upper90"], want.interval(0.9)[1])
+    assert json.loads(written["segments"].read_text())["post_filter_hz"] is None
+    assert np.load(written["landmarks"]).shape[0] == want.mean.shape[0]
+    corpus = load_corpus(shared_built_corpus)
+    np.testing.assert_allclose(tm.model.means_, PhoneMean().fit(corpus.sequences).means_, rtol=1e-12)
+    with pytest.raises(ValueError, match="--posterior laplace needs a model with a whole-utterance posterior"):
+        pipeline.synth(out, wav, wav.with_suffix(".lab"), tmp_path / "bad", video=False, posterior="laplace")
+    with pytest.raises(ValueError, match="calibrate_bands: expected a fraction"):
+        pipeline.train(shared_built_corpus, registered, tmp_path / "cal", alignment=False, calibrate_bands=0.2)

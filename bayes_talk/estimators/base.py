@@ -52,6 +52,14 @@ class Estimator(BaseEstimator):
     #: a floor or ceiling of an evaluation (``zero``, ``oracle``), not a method: its mean is
     #: the target methods are measured against, so ``evaluate`` never post-filters it
     reference: ClassVar[bool] = False
+    #: where :meth:`save` / :meth:`load` put the estimator in a trained-model directory
+    #: (``bayes-talk train``; bayes_talk.pipeline): a path relative to it, "" the directory itself
+    bundle_path: ClassVar[str] = "estimator"
+    #: the choice options :meth:`predict_dist` takes and their values, as ``synth`` offers
+    #: them (``algorithm``, ``init``, ``posterior``: a whole-utterance posterior); {}: none
+    synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {}
+    #: ``synth`` low-passes its mean by default (deena2010 §4.2.3's post-filter)
+    post_filter: ClassVar[bool] = False
 
     @classmethod
     def has_distribution(cls) -> bool:

@@ -28,6 +28,7 @@ class CorpusSparseSGPDM(Estimator):
     AAM parameters, one sequence per utterance); ``synthesize`` as in the module docstring."""
 
     name: ClassVar[str] = "sparse-sgpdm"
+    bundle_path: ClassVar[str] = "sparse_sgpdm"
 
     def __init__(self, latent_dim: int = 6, n_inducing: int = 200, max_iter: int = 300, seed: int = 0,
                  synth_max_iter: int = 100) -> None:

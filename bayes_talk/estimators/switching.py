@@ -11,6 +11,7 @@ estimator as its model).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
 from bayes_talk.synthesis import posterior as synthesis_posterior
+from bayes_talk.synthesis.defaults import INFERENCE
 from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
 
@@ -28,6 +30,11 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
     """Switching shared GPDM: ``fit`` on utterances, ``synthesize`` / ``predict`` /
     ``predict_dist`` from audio + labels (constructor arguments: :class:`SwitchingConfig
     <bayes_talk.models.switching.SwitchingConfig>`)."""
+
+    bundle_path: ClassVar[str] = ""
+    synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {
+        "algorithm": ("optimise", "predict"), "init": ("nn",), "posterior": tuple(INFERENCE)}
+    post_filter: ClassVar[bool] = True
 
     def _is_fitted(self) -> bool:
         return bool(self.models_)
@@ -46,7 +53,7 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
         return self.synthesize(seq.mfcc, seq.labels, **kw).mean
 
     def predict_dist(self, seq: Utterance, posterior: str | None = None, *, n_draws: int | None = None,
-                     seed: int = 0, log_warnings: bool = False, **kw) -> SynthesisResult:
+                     seed: int = 0, log_warnings: bool = False, init: str = "nn", **kw) -> SynthesisResult:
         """The predictive distribution of ``seq``'s visual features.
 
         ``posterior`` None: deena2010's sequential path (Algorithm 1, or 2 with
@@ -56,7 +63,10 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
         whole-utterance synthesis posterior,
         :func:`bayes_talk.synthesis.posterior.sample_synthesis` with ``n_draws``, ``seed``
         and ``kw``; its failed convergence checks are in ``.warnings`` (logged too with
-        ``log_warnings``)."""
+        ``log_warnings``). ``init``: the initialiser of the path, nearest neighbour ("nn"),
+        the only one of the switching model."""
+        if init != "nn":
+            raise ValueError(f"the switching model initialises by nearest neighbour ('nn'), not {init!r}")
         if posterior is None:
             return self.synthesize(seq.mfcc, seq.labels, **kw)
         self._require_fitted()
