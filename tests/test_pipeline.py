@@ -280,7 +280,9 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
         seen.append(rec.names)
         return rec
 
-    monkeypatch.setattr(pipeline, "fit_model", fake_fit)
+    from bayes_talk.pipeline import training
+
+    monkeypatch.setattr(training, "fit_model", fake_fit)
     n = len(json.loads((corpus_dir / "manifest.json").read_text())["sequences"])
     lst = tmp_path / "held.txt"
     lst.write_text("utt0003\n# a comment\n\nutt0007\n")

@@ -113,7 +113,7 @@ def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_
     assert (out / PhoneMean.bundle_path / "estimator.json").is_file()
     tm = pipeline.load_trained(out)
     assert isinstance(tm.model, PhoneMean) and tm.model.extra_var == 0.25 and tm.calibration is None
-    wav = sorted((shared_built_corpus / "utterances").rglob("*.wav"))[0]
+    wav = min((shared_built_corpus / "utterances").rglob("*.wav"))
     written = pipeline.synth(out, wav, wav.with_suffix(".lab"), tmp_path / "synth", video=False)
     assert "diagnostics" not in written                     # its own path ("map"): no posterior
     utt = pipeline.read_utterance(wav, wav.with_suffix(".lab"), tm.fps, sample_rate=tm.audio.sample_rate,

@@ -62,7 +62,7 @@ from __future__ import annotations
 import inspect
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -71,7 +71,13 @@ from bayes_talk.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.ceiling import MSE_BIAS, OracleModel
-from bayes_talk.estimators.registry import ESTIMATORS, FAMILY_DEFAULTS, Method, make_estimator, methods
+from bayes_talk.estimators.registry import (
+    ESTIMATORS,
+    FAMILY_DEFAULTS,
+    Method,
+    make_estimator,
+    methods,
+)
 from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
