@@ -24,7 +24,7 @@ from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
 
-__all__ = ["DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "METHODS", "Method", "make_estimator"]
+__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "METHODS", "Method", "make_estimator"]
 
 #: family name -> (estimator class, constructor arguments the family fixes)
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
@@ -51,17 +51,21 @@ DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
 #: an audio context window of ±2 frames (SwitchingConfig.audio_context), which with its
 #: band calibration predicted better on every metric on our held-out sentences and put its
 #: 90 % band in range (docs/results.md "Audio context in the default model, session 6")
+#: the audio context window (±frames, SwitchingConfig.audio_context) of our families with
+#: one: the one setting of it (deena2010's families keep the per-frame MFCCs, 0, the
+#: SwitchingConfig default)
+AUDIO_CONTEXT = 2
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "ssgpdm-phone-rc": {"audio_context": 2},
+    "ssgpdm-phone-rc": {"audio_context": AUDIO_CONTEXT},
     # the default's states and audio, with the phonetic-context view of labels ±8 frames
     # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
-    "ssgpdm-phone-ctx": {"audio_context": 2, "context_view": 8},
+    "ssgpdm-phone-ctx": {"audio_context": AUDIO_CONTEXT, "context_view": 8},
     # the same view as the explicit mean function of the visual mapping: the state models
     # explain the residual face (SwitchingConfig.context_mean; docs/switching.md); states with
     # fewer than 60 frames back off to their suffix (their visual noise, fitted on 12-25
     # frames, was the smallest of all states and their bands the most over-confident:
     # docs/results.md "Session 9")
-    "ssgpdm-phone-ctx-mean": {"audio_context": 2, "context_view": 8, "min_frames_per_state": 60},
+    "ssgpdm-phone-ctx-mean": {"audio_context": AUDIO_CONTEXT, "context_view": 8, "min_frames_per_state": 60},
 }
 
 

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from bayes_talk.audio import DEFAULT_CMVN
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.ceiling import add_gain_fractions, corpus_generator
@@ -325,7 +326,7 @@ def evaluate(
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
     min_utterances: int | None = None,
-    cmvn: str = "mean",
+    cmvn: str = DEFAULT_CMVN,
     labels: str | Sequence[str] | None = None,
     executor: Any = None,
     workers: int = 1,

@@ -82,6 +82,8 @@ from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import SwitchingConfig
+from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
@@ -149,7 +151,7 @@ class SystemConfig:
     ssgpdm_fallback_frames: int = _SWITCHING.fallback_frames
     synth_max_iter: int = SEGMENT_MAX_ITER
     lowpass_hz: float | None = None
-    posterior_draws: int = 64
+    posterior_draws: int = DEFAULT_DRAWS["laplace"]
     sgplvm_max_frames: int = _default(SGPLVM, "max_frames")
     sgplvm_max_iter: int = _default(SGPLVM, "max_iter")
     sgplvm_synth_max_iter: int = _default(SGPLVM.synthesize, "max_iter")
@@ -163,7 +165,7 @@ class SystemConfig:
     oracle_draws: int = 32
     #: fraction of the training utterances held out to fit the band calibration of the
     #: ``*-posterior`` methods (bayes_talk.synthesis.band_calibration); None: raw bands only
-    band_calibration: float | None = 0.2
+    band_calibration: float | None = HOLDOUT_FRACTION
     #: method ``sparse-sgpdm``: inducing inputs, L-BFGS iterations, synthesis iterations
     sparse_inducing: int = 150
     sparse_max_iter: int = 200
