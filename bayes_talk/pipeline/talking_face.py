@@ -21,6 +21,7 @@ from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
 from bayes_talk.audio import load_audio, speech_problem
 from bayes_talk.bundle import OutputSet, check_output_dir
 from bayes_talk.data.labels import write_lab
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.files import write_json, write_npy, write_npz
 from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
@@ -163,9 +164,9 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
-    res = tm.model.predict_dist(utt, **options)
-    if calibrated and tm.calibration is not None and tm.calibration.method == posterior:
-        res = tm.calibration.apply(res)
+    model = (BandCalibrated.wrap(tm.model, tm.calibration) if calibrated and tm.calibration is not None
+             else tm.model)   # calibrates a result of the calibrated method only
+    res = model.predict_dist(utt, **options)
     post_filter_hz = lowpass_hz if tm.model.post_filter else None
     if post_filter_hz is not None:
         res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
