@@ -75,3 +75,33 @@ def test_fit_is_the_estimator_fit_then_the_calibration_of_its_posterior():
     np.testing.assert_allclose(got.var, want.var, rtol=1e-10)
     path = wrapped.predict_dist(test)                    # the sequential path: not recalibrated
     np.testing.assert_allclose(path.var, by_hand.predict_dist(test).var, rtol=1e-10)
+
+
+def test_evaluate_scores_the_wrapped_model_and_caches_it_with_its_calibration(monkeypatch):
+    """The harness wraps a posterior family's model once per split (label sources reuse the
+    cached, calibrated model) and scores the calibrated predictive beside the raw one."""
+    from bayes_talk.evaluation import harness as H
+    from bayes_talk.evaluation import protocols as P
+    from bayes_talk.evaluation import systems as S
+
+    cfg = S.SystemConfig(latent_dim=2, ssgpdm_max_frames_per_state=30, ssgpdm_min_frames_per_state=50,
+                         ssgpdm_min_count=5, ssgpdm_max_iter=5, ssgpdm_fallback_frames=40, posterior_draws=8,
+                         band_calibration=0.3)
+    proto = P.Protocol(name="tiny", paper="test", scheme="holdout", headline=(("AMSE", "mse"),),
+                       default_methods=("ssgpdm-vlmm-posterior",), system=cfg, n_train=6, n_test=2)
+    calls = []
+    orig = H.fit_band_calibration
+
+    def counting(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(H, "fit_band_calibration", counting)
+    utts, cache = make_utterances(8, seed=3), {}
+    first, _ = H.run_protocol(proto, utts, ["ssgpdm-vlmm-posterior", "ssgpdm-vlmm-optimise"], model_cache=cache)
+    second, _ = H.run_protocol(proto, utts, ["ssgpdm-vlmm-posterior", "ssgpdm-vlmm-optimise"], model_cache=cache)
+    assert len(calls) == 1 and isinstance(cache[("ssgpdm-vlmm", 0)], BandCalibrated)
+    post = first["methods"]["ssgpdm-vlmm-posterior"]
+    assert "calibration_raw" in post and len(post["band_calibration"]) == 1
+    assert "calibration_raw" not in first["methods"]["ssgpdm-vlmm-optimise"]     # another method: not calibrated
+    assert second["methods"]["ssgpdm-vlmm-posterior"]["mse"] == post["mse"]

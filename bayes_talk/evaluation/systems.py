@@ -70,6 +70,7 @@ import numpy as np
 from bayes_talk.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import MSE_BIAS, OracleModel
 from bayes_talk.estimators.registry import (
     ESTIMATORS,
@@ -350,9 +351,9 @@ def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConf
                          executor=None, progress=None) -> Any:
     """Fit the band calibration of ``model``'s posterior ``method`` on held-out training
     utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
-    extra fit on the other ``1 - cfg.band_calibration`` of ``train``) and attach it to
-    ``model`` as ``band_calibration_``; the ``*-posterior`` methods then return the
-    calibrated predictive with the raw one beside it. Returns the calibration."""
+    extra fit on the other ``1 - cfg.band_calibration`` of ``train``). Returns ``model``
+    wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
+    ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
     from bayes_talk.gp.threads import torch_threads
     from bayes_talk.synthesis.band_calibration import fit_band_calibration as fit_calibration
 
@@ -361,8 +362,7 @@ def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConf
     with torch_threads(cfg.torch_threads):
         cal = fit_calibration(model, train, method=method, holdout=cfg.band_calibration,
                               n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
-    model.band_calibration_ = cal
-    return cal
+    return BandCalibrated.wrap(model, cal)
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
@@ -371,11 +371,16 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
     inference method; a point method's ``predict``."""
     if not m.has_variance:
         return Prediction(np.asarray(model.predict(seq), np.float64), None)
-    r = model.predict_dist(seq, **m.options, **{k: getattr(cfg, f) for k, f in m.settings.items()})
-    cal, raw, control = getattr(model, "band_calibration_", None), None, None
-    if cal is not None and cal.method == r.method:
-        raw, r = r, cal.apply(r)
-        control = cal.control_result(raw) if cal.control is not None else None
+    options = {**m.options, **{k: getattr(cfg, f) for k, f in m.settings.items()}}
+    raw = control = None
+    if isinstance(model, BandCalibrated):   # the raw predictive, and the control, scored beside it
+        r = model.estimator_.predict_dist(seq, **options)
+        if r.method == model.calibration_.method:
+            cal = model.calibration_
+            raw, r = r, model.calibrate(r)
+            control = cal.control_result(raw) if cal.control is not None else None
+    else:
+        r = model.predict_dist(seq, **options)
     for w in r.warnings:   # those of the predictive reported (calibrated: BandCalibration.domain)
         log.warning("%s: %s", seq.name, w)
     bias = r.diagnostics.get(MSE_BIAS) if isinstance(r.diagnostics, dict) else None
