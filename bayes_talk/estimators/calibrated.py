@@ -36,6 +36,9 @@ class BandCalibrated(Estimator):
     utterances with ``n_draws`` draws and seed ``seed``."""
 
     name: ClassVar[str] = "band-calibrated"
+    #: the wrapper's layout is the model directory's: the estimator at its own
+    #: ``bundle_path``, ``band_calibration.json`` at the top
+    bundle_path: ClassVar[str] = ""
 
     def __init__(self, estimator: Estimator, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                  n_draws: int = DEFAULT_DRAWS["laplace"], seed: int = 0) -> None:

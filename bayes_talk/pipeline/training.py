@@ -26,6 +26,7 @@ from bayes_talk.alignment import commands as alignment_commands
 from bayes_talk.bundle import DESCRIPTOR
 from bayes_talk.data import corpus as corpus_store
 from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
 from bayes_talk.executor import executor_for
 from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
@@ -120,12 +121,12 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
     audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
+    if band_cal is not None:   # saved as the wrapped estimator: the model and band_calibration.json
+        model = BandCalibrated.wrap(model, band_cal)
     model.save(out / model.bundle_path)
     offset = aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
-    if band_cal is not None:
-        band_cal.save(out)
     bundle.write_descriptor(out, {
         "kind": kind, "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
