@@ -26,15 +26,15 @@ import os
 import tempfile
 from pathlib import Path
 
-from bayes_talk.files import sha256_file, write_json
+from bayes_talk.files import check_format, sha256_file, write_json
 
-__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "check_output_dir", "sha256_file",
-           "verify_bundle", "write_bundle_manifest"]
+__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "check_output_dir", "read_descriptor",
+           "sha256_file", "verify_bundle", "write_bundle_manifest", "write_descriptor"]
 
 log = logging.getLogger(__name__)
 
 #: the descriptor of a trained-model directory (what kind of model, its front end), written by
-#: :func:`bayes_talk.pipeline.train` and read by every loader of such a directory
+#: :func:`write_descriptor` (``bayes-talk train``) and read by :func:`read_descriptor`
 DESCRIPTOR = "bayes_talk_model.json"
 DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
 DESCRIPTOR_VERSION = 1
@@ -117,6 +117,39 @@ def verify_bundle(directory: str | Path) -> dict[str, str]:
                               f"recorded in {mp.name} when the model was saved -- copied from another "
                               "model, or changed since); train the model again or restore the file")
     return files
+
+
+def write_descriptor(directory: str | Path, fields: dict) -> Path:
+    """Write the trained-model descriptor (:data:`DESCRIPTOR`) of ``directory``: ``fields``
+    (the model's kind, corpus, front end, ...) under its format name and version, and
+    ``bundle_manifest: true`` (the directory is hashed; :func:`write_bundle_manifest`)."""
+    return write_json(Path(directory) / DESCRIPTOR, {"format": DESCRIPTOR_FORMAT, "version": DESCRIPTOR_VERSION,
+                                                     **fields, "bundle_manifest": True})
+
+
+def read_descriptor(directory: str | Path) -> dict:
+    """The descriptor of a trained-model directory, after checking its format and, when it
+    was saved with one, every file against the manifest (:func:`verify_bundle`).
+    FileNotFoundError when there is none (saying when the save was interrupted); ValueError
+    naming the file when it is truncated or of another format; :class:`BundleError` when
+    the files do not belong together."""
+    d = Path(directory)
+    p = d / DESCRIPTOR
+    if not p.exists():
+        extra = (" -- its save was interrupted; train it again" if (d / "arrays.npz").exists()
+                 or (d / "sgpdm").exists() else "")
+        raise FileNotFoundError(f"{d} is not a bayes_talk model directory (no {DESCRIPTOR}){extra}")
+    try:
+        desc = json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p} is truncated or not JSON ({exc})") from None
+    check_format(desc, DESCRIPTOR_FORMAT, DESCRIPTOR_VERSION, str(p))
+    if desc.get("bundle_manifest") or (d / BUNDLE_MANIFEST).exists():
+        verify_bundle(d)
+    else:
+        log.warning("%s has no %s (saved before bundles were hashed): its files cannot be checked "
+                    "to belong together", d, BUNDLE_MANIFEST)
+    return desc
 
 
 class OutputSet:

@@ -114,12 +114,12 @@ def _add_track_parsers(csub) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from bayes_talk.pipeline import DEFAULT_CALIBRATION, train
+    from bayes_talk.pipeline import DEFAULT_CALIBRATION, calibrates_bands, train
 
     if args.no_calibrate_bands and args.calibrate_bands is not None:
         raise ValueError("give --calibrate-bands or --no-calibrate-bands, not both")
     cal = args.calibrate_bands
-    if cal is None and not args.no_calibrate_bands and args.model != "sgplvm":
+    if cal is None and not args.no_calibrate_bands and calibrates_bands(args.model):
         cal = DEFAULT_CALIBRATION
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
@@ -170,6 +170,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _add_evaluate_parser(sub) -> None:
+    from bayes_talk.audio import DEFAULT_CMVN
     from bayes_talk.evaluation.protocols import PROTOCOLS
     from bayes_talk.evaluation.systems import METHODS
 
@@ -196,7 +197,7 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--min-utterances", type=_non_negative_int, default=None,
                    help="evaluate a corpus smaller than the protocol needs (but at least this many "
                         "utterances) with the protocol's split scaled to it; the report says so")
-    e.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
+    e.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default=DEFAULT_CMVN,
                    help="per-utterance cepstral normalisation of the MFCCs (as train --cmvn)")
     e.add_argument("--workers", type=_positive_int, default=2,
                    help="processes for --executor processes/dask (a LocalCluster's size)")
@@ -392,7 +393,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_track_parsers(csub)
 
     # --- train / synth -------------------------------------------------------------------
-    from bayes_talk.pipeline import DEFAULT_MODEL, MODEL_KINDS
+    from bayes_talk.audio import DEFAULT_CMVN
+    from bayes_talk.pipeline import DEFAULT_CALIBRATION, DEFAULT_MODEL, MODEL_KINDS
+    from bayes_talk.synthesis.sequential import POST_FILTER_HZ
 
     t = sub.add_parser("train", help="train a model on a corpus directory", **_SUB_KW)
     t.add_argument("corpus_dir", help="built or user corpus directory")
@@ -407,17 +410,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="hold the corpus's last N utterances out of training (recorded in the model)")
     th.add_argument("--holdout-list", default=None, metavar="FILE",
                     help="hold out the utterances named in FILE (one name a line, e.g. utt0249)")
-    t.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default="mean",
+    t.add_argument("--cmvn", choices=("mean", "mean+var", "off"), default=DEFAULT_CMVN,
                    help="per-utterance cepstral mean (and variance) normalisation of the MFCCs, "
                         "recorded in the model and applied the same way by synth")
     t.add_argument("--no-alignment", action="store_true",
                    help="skip the aligner/phone recogniser (synth then needs --labels; docs/alignment.md)")
     _add_executor_args(t, "the per-state models and the featurisation")
-    t.add_argument("--calibrate-bands", type=float, nargs="?", const=0.2, default=None, metavar="FRACTION",
-                   help="hold out FRACTION (default 0.2) of the training utterances, train once more on the "
+    t.add_argument("--calibrate-bands", type=float, nargs="?", const=DEFAULT_CALIBRATION, default=None,
+                   metavar="FRACTION",
+                   help=f"hold out FRACTION (default {DEFAULT_CALIBRATION:g}) of the training utterances, train once "
+                        "more on the "
                         "rest and fit the per-parameter calibration of the Laplace posterior on them: mean "
                         "shrinkage, band scale, level map (saved in the model, applied by synth; "
-                        "docs/uncertainty.md). On by default (0.2) for switching models")
+                        f"docs/uncertainty.md). On by default ({DEFAULT_CALIBRATION:g}) for switching models")
     t.add_argument("--no-calibrate-bands", action="store_true",
                    help="skip the calibration (half the training time; synth then gives the raw posterior)")
     t.set_defaults(func=_cmd_train)
@@ -463,9 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
                         "drawn in bands.png and stored as observed_data in posterior.nc")
     s.add_argument("--no-video", action="store_true", help="skip the MP4s")
-    s.add_argument("--lowpass-hz", type=float, default=4.0, metavar="HZ",
+    s.add_argument("--lowpass-hz", type=float, default=POST_FILTER_HZ, metavar="HZ",
                    help="zero-phase low-pass (Hz) of a switching model's mean, bands moving with it "
-                        "(deena2010 §4.2.3; 4 Hz is the setting of the held-out figures; 0: off)")
+                        f"(deena2010 §4.2.3; {POST_FILTER_HZ:g} Hz is the setting of the held-out figures; 0: off)")
     s.add_argument("--raw-bands", action="store_true",
                    help="do not apply the model's band calibration (train --calibrate-bands)")
     s.add_argument("--force", action="store_true",

@@ -206,12 +206,13 @@ def _show_uncertainty(out: Path, r, s, corpus, offset: np.ndarray) -> dict[str, 
 
 def _add_ceiling(rows: dict, kept: dict, train: list, test: list, seed: int) -> None:
     """Add the ``zero`` and ``oracle`` rows and every kept method's gain fractions."""
-    from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel, score_with_ceiling
+    from bayes_talk.estimators.ceiling import OracleModel, ZeroModel
+    from bayes_talk.evaluation.ceiling import score_with_ceiling
 
     zero = ZeroModel().fit(train)
-    kept["zero"] = [zero.predict(s)[0] for s in test]
+    kept["zero"] = [zero.predict(s) for s in test]
     oracle = OracleModel(n_draws=DEMO_ORACLE_DRAWS, seed=seed)
-    out = [oracle.predict(s) for s in test]
+    out = [oracle.moments(s) for s in test]
     kept["oracle"] = [o[0] for o in out]
     scores = score_with_ceiling([s.aam for s in test], kept, {"oracle": [o[2] for o in out]})
     for name, sc in scores.items():

@@ -108,7 +108,6 @@ def instrument(timer: PhaseTimer, per_state: list[dict]) -> None:
     import bayes_talk.synthesis.band_calibration as bc_mod
     import bayes_talk.synthesis.posterior as post_mod
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.files import write_json
     from bayes_talk.models.sgpdm import SGPDM
     from bayes_talk.models.switching import SwitchingModel
 
@@ -166,10 +165,7 @@ def instrument(timer: PhaseTimer, per_state: list[dict]) -> None:
     for owner, attr in ((SwitchingSGPDM, "save"), (bundle_mod, "write_bundle_manifest"),
                         (bc_mod.BandCalibration, "save")):
         _wrap(owner, attr, timer, "saving")
-    import bayes_talk.pipeline as pipe_mod
-
-    _wrap(pipe_mod, "write_json", timer, "saving")
-    del write_json
+    _wrap(bundle_mod, "write_descriptor", timer, "saving")
 
 
 def main(argv: list[str] | None = None) -> dict:

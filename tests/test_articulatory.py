@@ -321,13 +321,13 @@ def test_loaded_vtl_corpus_names_its_generator(corpus):
     assert corpus_generator({"kind": "user"}) == "user"
     # the oracle follows the corpus's generator: its mean is closer to the truth than the
     # same oracle run with the phone-driven (espeak) face
-    from bayes_talk.evaluation.ceiling import OracleModel
+    from bayes_talk.estimators.ceiling import OracleModel
 
     err = {"vtl": 0.0, "espeak": 0.0}
     for u in c.sequences:
         for gen in err:
             u.meta["speech"] = gen
-            mean, var, _bias = OracleModel(n_draws=3).predict(u)
+            mean, var, _bias = OracleModel(n_draws=3).moments(u)
             assert mean.shape == u.aam.shape and np.all(var > 0)
             err[gen] += float(np.mean((mean - u.aam) ** 2))
     assert err["vtl"] < 0.8 * err["espeak"], err

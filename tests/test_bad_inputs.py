@@ -231,12 +231,12 @@ def test_aam_from_another_model_is_refused_naming_the_file(model_dir, corpus_dir
 
 def test_train_force_interrupted_while_saving_refuses_to_load(model_dir, corpus_dir, tmp_path, monkeypatch):
     import bayes_talk.bundle
-    import bayes_talk.pipeline as pl
+    from bayes_talk.pipeline import training
 
     out = tmp_path / "m"
     shutil.copytree(model_dir, out)
     trained = load_trained(model_dir).model
-    monkeypatch.setattr(pl, "fit_model", lambda model, train, workers=2, **kw: trained)
+    monkeypatch.setattr(training, "fit_model", lambda model, train, workers=2, **kw: trained)
 
     def interrupted(directory):
         raise KeyboardInterrupt

@@ -37,12 +37,12 @@ def _can_create(d: Path) -> bool:
 @pytest.fixture
 def no_model_load(monkeypatch):
     """synth must refuse before it loads the model (and so before the synthesis)."""
-    import bayes_talk.pipeline as pl
+    from bayes_talk.pipeline import talking_face
 
     def boom(*a, **k):
         raise AssertionError("the model was loaded before the output was checked")
 
-    monkeypatch.setattr(pl, "load_trained", boom)
+    monkeypatch.setattr(talking_face, "load_trained", boom)
 
 
 def test_synth_out_an_existing_file_is_refused_by_name_before_any_work(tmp_path, capsys, no_model_load):
@@ -159,24 +159,26 @@ def test_synth_refuses_to_recognise_phones_in_noise_and_warns_with_labels(tmp_pa
     import numpy as np
 
     import bayes_talk.pipeline as pl
+    from bayes_talk.pipeline import talking_face
 
     sr = 22050
     noise = _write(tmp_path / "noise.wav", 0.2 * np.random.default_rng(1).normal(size=2 * sr), sr)
     audio = SimpleNamespace(sample_rate=sr, cmvn="mean", fmax=None, floor_dbfs=None)
-    monkeypatch.setattr(pl, "load_trained", lambda d: SimpleNamespace(kind="ssgpdm-phone-rc", audio=audio,
-                                                                        fps=25.0))
+    model = pl.new_model("ssgpdm-phone-rc")   # unfitted: synth must stop before using it
+    monkeypatch.setattr(talking_face, "load_trained", lambda d: SimpleNamespace(kind="ssgpdm-phone-rc", model=model,
+                                                                        audio=audio, fps=25.0))
 
     def recogniser(*a, **k):
         raise AssertionError("the recogniser ran on noise")
 
-    monkeypatch.setattr(pl, "_derived_labels", recogniser)
+    monkeypatch.setattr(talking_face, "_derived_labels", recogniser)
     with pytest.raises(ValueError, match=r"noise\.wav: no speech found, the audio is noise-like.*--labels"):
         pl.synth(tmp_path / "model", noise, None, tmp_path / "out")
 
     def stop(*a, **k):
         raise RuntimeError("stop after the check")
 
-    monkeypatch.setattr(pl, "read_utterance", stop)
+    monkeypatch.setattr(talking_face, "read_utterance", stop)
     lab = tmp_path / "noise.lab"
     lab.write_text("0 20000000 sil\n")
     with (pytest.warns(UserWarning, match=r"no speech found, the audio is noise-like.*: the face follows the given"),

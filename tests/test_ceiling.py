@@ -11,7 +11,8 @@ from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONES
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel, add_gain_fractions, gain_fraction
+from bayes_talk.estimators.ceiling import OracleModel, ZeroModel
+from bayes_talk.evaluation.ceiling import add_gain_fractions, gain_fraction
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
 from bayes_talk.evaluation.scoring import utterance_metrics
@@ -57,7 +58,7 @@ def test_oracle_is_refused_on_a_user_corpus(built):
     s = built[0]
     user = Utterance(s.name, s.mfcc, s.aam, s.labels, meta=dict(s.meta, corpus_kind="user"))
     with pytest.raises(ValueError, match="oracle.*built by `bayes-talk corpus build`.*'user' corpus"):
-        predict("oracle", OracleModel(n_draws=2), user, SystemConfig())
+        predict("oracle", OracleModel(n_draws=2).fit(built[:2]), user, SystemConfig())
 
 
 def test_oracle_average_converges_and_its_bias_correction_removes_the_1_over_K_excess(built):
@@ -66,7 +67,7 @@ def test_oracle_average_converges_and_its_bias_correction_removes_the_1_over_K_e
     v = np.concatenate([s.aam for s in built]).var(axis=0)
     raw, corrected = {}, {}
     for K in (2, 16):
-        rows = [utterance_metrics(s.aam, Prediction(*OracleModel(n_draws=K, seed=3).predict(s)), v, None)
+        rows = [utterance_metrics(s.aam, Prediction(*OracleModel(n_draws=K, seed=3).moments(s)), v, None)
                 for s in built]
         raw[K] = np.mean([r["mse"] for r in rows])
         corrected[K] = np.mean([r["mse_corrected"] for r in rows])

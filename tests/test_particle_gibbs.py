@@ -163,7 +163,8 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
 
 def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
     from bayes_talk.cli import build_parser
-    from bayes_talk.pipeline import _sampler_args, synth
+    from bayes_talk.pipeline import synth
+    from bayes_talk.pipeline.talking_face import _sampler_args
 
     a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "pg-nuts",
                                    "--pg-particles", "32"])

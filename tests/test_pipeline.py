@@ -260,6 +260,8 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
 class _Recorder:
     """Stands in for a model: records what it was trained on (no training cost)."""
 
+    bundle_path = ""   # saved into the model directory itself, as the switching model
+
     def __init__(self):
         self.names: list[str] = []
 
@@ -278,7 +280,9 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
         seen.append(rec.names)
         return rec
 
-    monkeypatch.setattr(pipeline, "fit_model", fake_fit)
+    from bayes_talk.pipeline import training
+
+    monkeypatch.setattr(training, "fit_model", fake_fit)
     n = len(json.loads((corpus_dir / "manifest.json").read_text())["sequences"])
     lst = tmp_path / "held.txt"
     lst.write_text("utt0003\n# a comment\n\nutt0007\n")

@@ -643,7 +643,7 @@ def test_bands_are_exact_mixture_quantiles_and_cover_held_out_toy_data_near_nomi
 
 def test_synth_cli_sampler_options_reach_sample_synthesis():
     from bayes_talk.cli import build_parser
-    from bayes_talk.pipeline import _sampler_args
+    from bayes_talk.pipeline.talking_face import _sampler_args
 
     a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "nuts",
                                    "--chains", "2", "--warmup", "30", "--target-accept", "0.9",

@@ -145,7 +145,7 @@ def test_a_low_pass_post_filter_moves_the_scored_bands_with_the_mean():
     r = SynthesisResult("optimise", None, m, np.full_like(m, 0.1))
 
     class _Fixed:  # stands in for a fitted switching model
-        def synthesize(self, mfcc, labels, algorithm="optimise", max_iter=0):
+        def predict_dist(self, seq, algorithm="optimise", max_iter=0):
             return r
 
     seq = type("U", (), {"mfcc": np.zeros((T, 3)), "labels": ["a"] * T})()

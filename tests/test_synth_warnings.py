@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from bayes_talk.pipeline import _check_speech, read_utterance
+from bayes_talk.pipeline import read_utterance
+from bayes_talk.pipeline.talking_face import _check_speech
 
 
 @pytest.fixture(scope="module")

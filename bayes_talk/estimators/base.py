@@ -49,6 +49,23 @@ class Estimator(BaseEstimator):
 
     #: method-family name in :data:`bayes_talk.estimators.registry.ESTIMATORS`
     name: ClassVar[str] = ""
+    #: a floor or ceiling of an evaluation (``zero``, ``oracle``), not a method: its mean is
+    #: the target methods are measured against, so ``evaluate`` never post-filters it
+    reference: ClassVar[bool] = False
+    #: where :meth:`save` / :meth:`load` put the estimator in a trained-model directory
+    #: (``bayes-talk train``; bayes_talk.pipeline): a path relative to it, "" the directory itself
+    bundle_path: ClassVar[str] = "estimator"
+    #: the choice options :meth:`predict_dist` takes and their values, as ``synth`` offers
+    #: them (``algorithm``, ``init``, ``posterior``: a whole-utterance posterior); {}: none
+    synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {}
+    #: ``synth`` low-passes its mean by default (deena2010 §4.2.3's post-filter)
+    post_filter: ClassVar[bool] = False
+
+    @classmethod
+    def has_distribution(cls) -> bool:
+        """Whether :meth:`predict_dist` gives a predictive distribution (False: a point
+        predictor, whose ``predict_dist`` raises NotImplementedError)."""
+        return hasattr(cls, "predict_var") or cls.predict_dist is not Estimator.predict_dist
 
     def fit(self, train: list[Utterance]) -> Self:
         """Learn from training utterances (with ``aam``); returns ``self``."""

@@ -1,18 +1,30 @@
-"""The one registry of trainable method families: name -> estimator class and fixed
-constructor arguments. Used by the command line (``train --model``), the pipeline
-(:func:`bayes_talk.pipeline.new_model`) and ``evaluate`` (:mod:`bayes_talk.evaluation.systems`,
-whose methods name a family here, or ``zero`` / ``oracle``).
+"""The one registry of what ``evaluate`` and ``synth`` can run (issue 26).
+
+:data:`ESTIMATORS`: method *families*, name -> estimator class and the constructor
+arguments the family fixes: the papers' switching SGPDMs, the default model, deena2009's
+SGPLVM, every baseline, the floor and ceiling (``zero``, ``oracle``) and ``sparse-sgpdm``.
+A family is what is trained (``train --model``, :func:`bayes_talk.pipeline.new_model`; one
+training per family and split in ``evaluate``).
+
+:data:`METHODS`: the *methods* ``evaluate --methods`` compares, each a family with the
+keyword arguments of its estimator's ``predict_dist`` (e.g. deena2010's Algorithm 1 or 2,
+or the Laplace posterior, of one trained switching model). Every family that names no
+method of its own is a method too, with no options, so adding a method is one estimator
+class and one line in :data:`ESTIMATORS`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
-from bayes_talk.baselines import REGISTRY as _BASELINES
+from bayes_talk.baselines import REGISTRY as BASELINES
 from bayes_talk.estimators.base import Estimator
+from bayes_talk.estimators.ceiling import OracleModel, ZeroModel
 from bayes_talk.estimators.sgplvm import SGPLVM
+from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
 
-__all__ = ["ESTIMATORS", "FAMILY_DEFAULTS", "make_estimator"]
+__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "METHODS", "Method", "make_estimator"]
 
 #: family name -> (estimator class, constructor arguments the family fixes)
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
@@ -23,25 +35,37 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-phone-ctx": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "ssgpdm-phone-ctx-mean": (SwitchingSGPDM, {"states": "phone", "right_context": True, "context_mean": True}),
     "sgplvm": (SGPLVM, {}),
-    **{name: (cls, {}) for name, cls in _BASELINES.items()},
+    **{name: (cls, {}) for name, cls in BASELINES.items()},
+    "zero": (ZeroModel, {}),
+    "oracle": (OracleModel, {}),
+    "sparse-sgpdm": (CorpusSparseSGPDM, {}),
 }
+#: the family ``train`` fits unless told otherwise: right-context phone states with an audio
+#: context of ±2 frames whose visual GPs have the phonetic-context view as their mean function
+#: (:data:`FAMILY_DEFAULTS`; docs/switching.md), the best model on our development sentences
+#: (docs/results.md "Session 9"); "ssgpdm-vlmm" is deena2010's
+DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
 #: family name -> constructor arguments the family sets unless given (overridable, unlike the
-#: fixed ones): the former default model (``ssgpdm-phone-rc``; now bayes_talk.pipeline.DEFAULT_MODEL is
+#: fixed ones): the former default model (``ssgpdm-phone-rc``; now :data:`DEFAULT_MODEL` is
 #: ``ssgpdm-phone-ctx-mean``, which keeps the same audio) sees
 #: an audio context window of ±2 frames (SwitchingConfig.audio_context), which with its
 #: band calibration predicted better on every metric on our held-out sentences and put its
 #: 90 % band in range (docs/results.md "Audio context in the default model, session 6")
+#: the audio context window (±frames, SwitchingConfig.audio_context) of our families with
+#: one: the one setting of it (deena2010's families keep the per-frame MFCCs, 0, the
+#: SwitchingConfig default)
+AUDIO_CONTEXT = 2
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "ssgpdm-phone-rc": {"audio_context": 2},
+    "ssgpdm-phone-rc": {"audio_context": AUDIO_CONTEXT},
     # the default's states and audio, with the phonetic-context view of labels ±8 frames
     # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
-    "ssgpdm-phone-ctx": {"audio_context": 2, "context_view": 8},
+    "ssgpdm-phone-ctx": {"audio_context": AUDIO_CONTEXT, "context_view": 8},
     # the same view as the explicit mean function of the visual mapping: the state models
     # explain the residual face (SwitchingConfig.context_mean; docs/switching.md); states with
     # fewer than 60 frames back off to their suffix (their visual noise, fitted on 12-25
     # frames, was the smallest of all states and their bands the most over-confident:
     # docs/results.md "Session 9")
-    "ssgpdm-phone-ctx-mean": {"audio_context": 2, "context_view": 8, "min_frames_per_state": 60},
+    "ssgpdm-phone-ctx-mean": {"audio_context": AUDIO_CONTEXT, "context_view": 8, "min_frames_per_state": 60},
 }
 
 
@@ -55,3 +79,85 @@ def make_estimator(name: str, **params: Any) -> Estimator:
     if clash:
         raise ValueError(f"{name}: {clash} are fixed by the family name")
     return cls(**fixed, **{**FAMILY_DEFAULTS.get(name, {}), **params})
+
+
+@dataclass(frozen=True)
+class Method:
+    """One evaluated method: ``name`` (``evaluate --methods``), ``family`` (the trained
+    estimator it uses, a key of :data:`ESTIMATORS`), ``label`` (how the papers call it),
+    ``has_variance`` (its predictive variance is scored), ``options`` (keyword arguments
+    of the estimator's ``predict_dist``), ``settings`` (``predict_dist`` keyword -> the
+    evaluation setting that supplies it, a field of
+    :class:`bayes_talk.evaluation.systems.SystemConfig`)."""
+
+    name: str
+    family: str
+    label: str
+    has_variance: bool
+    options: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+
+
+#: deena2010's sequential path (Algorithm 1 "optimise" or 2 "predict")
+_ALGORITHM = {"max_iter": "synth_max_iter"}
+#: the whole-utterance posterior (DESIGN.md §6)
+_POSTERIOR = {"n_draws": "posterior_draws", "seed": "seed"}
+
+
+def _switching(name: str, family: str, label: str, how: str) -> Method:
+    if how in ("optimise", "predict"):
+        return Method(name, family, label, True, {"algorithm": how}, _ALGORITHM)
+    return Method(name, family, label, True, {"posterior": how}, _POSTERIOR)
+
+
+_NAMED: tuple[Method, ...] = (
+    _switching("ssgpdm-vlmm-optimise", "ssgpdm-vlmm", "SSGPDM-VLMM seq. optimisation", "optimise"),
+    _switching("ssgpdm-vlmm-predict", "ssgpdm-vlmm", "SSGPDM-VLMM seq. prediction", "predict"),
+    _switching("ssgpdm-phone-optimise", "ssgpdm-phone", "SSGPDM-phoneme seq. optimisation", "optimise"),
+    _switching("ssgpdm-phone-predict", "ssgpdm-phone", "SSGPDM-phoneme seq. prediction", "predict"),
+    _switching("ssgpdm-vlmm-posterior", "ssgpdm-vlmm", "SSGPDM-VLMM utterance posterior (Laplace, ours)", "laplace"),
+    _switching("ssgpdm-phone-posterior", "ssgpdm-phone", "SSGPDM-phoneme utterance posterior (Laplace, ours)",
+               "laplace"),
+    _switching("ssgpdm-vlmm-rc-posterior", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, posterior (ours)",
+               "laplace"),
+    _switching("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc",
+               "SSGPDM-phoneme + right context + audio ±2, posterior (ours)", "laplace"),
+    _switching("ssgpdm-phone-ctx-posterior", "ssgpdm-phone-ctx",
+               "SSGPDM-phoneme + right context + audio ±2 + phonetic-context view ±8, posterior (ours)", "laplace"),
+    _switching("ssgpdm-phone-ctx-mean-posterior", "ssgpdm-phone-ctx-mean",
+               "SSGPDM-phoneme + right context + audio ±2, phonetic-context view ±8 as the visual mean "
+               "function, posterior (ours)", "laplace"),
+    _switching("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation",
+               "optimise"),
+    _switching("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc",
+               "SSGPDM-phoneme + right context + audio ±2, seq. optimisation", "optimise"),
+    Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"},
+           {"max_iter": "sgplvm_synth_max_iter"}),
+    Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"},
+           {"max_iter": "sgplvm_synth_max_iter"}),
+    Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
+    Method("slds", "slds", "SLDS", False),
+    Method("dpds", "dpds", "DPDS", False),
+    Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
+    Method("context-ridge", "context-ridge", "ridge on label/MFCC context windows", True),
+    Method("context-mlp", "context-mlp", "MLP on label/MFCC context windows", True),
+    Method("zero", "zero", "zero (utterance mean, still face)", True),
+    Method("oracle", "oracle", "oracle (generator mean given the true timing)", True),
+    Method("sparse-sgpdm", "sparse-sgpdm", "one sparse SGPDM on the whole corpus (ours)", True),
+)
+
+
+def methods() -> dict[str, Method]:
+    """Every method: the named ones above, then one per registered family without a method
+    of its own (its estimator's ``predict_dist`` with no options; labelled by its class)."""
+    out = {m.name: m for m in _NAMED}
+    covered = {m.family for m in _NAMED}
+    for fam, (cls, _) in ESTIMATORS.items():
+        if fam not in covered and fam not in out:
+            out[fam] = Method(fam, fam, f"{fam} ({cls.__name__})", cls.has_distribution())
+    return out
+
+
+#: method name -> :class:`Method` (see :func:`methods`; a family registered later in
+#: :data:`ESTIMATORS` is picked up by :func:`methods`, which ``evaluate`` reads)
+METHODS: dict[str, Method] = methods()

@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from bayes_talk.synthesis.result import SynthesisResult
 
 class SGPLVM(Estimator):
     """deena2009's shared GPLVM with back-constraint and dynamics (an estimator)."""
+
+    bundle_path: ClassVar[str] = "sgpdm"
+    synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {"init": tuple(INITIALISERS)}
 
     def __init__(self, latent_dim: int = 8, max_frames: int = 1500, chunk: int = 25, max_iter: int = 200,
                  init: str = "back-constraint", seed: int = 0, validation_frames: int = 300):

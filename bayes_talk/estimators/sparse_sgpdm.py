@@ -9,10 +9,13 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from bayes_talk.errors import not_fitted
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.files import read_model_files, write_model_files
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM, SparseSGPDMConfig
 from bayes_talk.synthesis.latents import infer_latents
 from bayes_talk.synthesis.result import SynthesisResult
@@ -20,9 +23,12 @@ from bayes_talk.synthesis.result import SynthesisResult
 __all__ = ["CorpusSparseSGPDM"]
 
 
-class CorpusSparseSGPDM:
+class CorpusSparseSGPDM(Estimator):
     """One :class:`SparseSGPDM` on all training frames (views ``audio`` = MFCCs, ``visual`` =
     AAM parameters, one sequence per utterance); ``synthesize`` as in the module docstring."""
+
+    name: ClassVar[str] = "sparse-sgpdm"
+    bundle_path: ClassVar[str] = "sparse_sgpdm"
 
     def __init__(self, latent_dim: int = 6, n_inducing: int = 200, max_iter: int = 300, seed: int = 0,
                  synth_max_iter: int = 100) -> None:
@@ -42,25 +48,40 @@ class CorpusSparseSGPDM:
 
     def synthesize(self, mfcc: np.ndarray, labels=None, max_iter: int | None = None) -> SynthesisResult:
         """Visual features (the one synthesis result type, a single Gaussian per frame)."""
-        if not hasattr(self, "model_"):
-            raise not_fitted(self, "call fit(train) or load() first")
+        self._require_fitted()
         X = infer_latents(self.model_, "audio", np.asarray(mfcc, np.float64), "nn", "sequence",
                           max_iter=self.synth_max_iter if max_iter is None else max_iter)
         mu, var = self.model_.predict_view("visual", X)
         return SynthesisResult.gaussian(mu, var, X, method="sparse-sgpdm")
 
-    def predict(self, seq) -> np.ndarray:
+    def predict(self, seq: Utterance) -> np.ndarray:
         """Mean AAM trajectory of a test utterance (from its MFCCs)."""
         return self.synthesize(seq.mfcc, seq.labels).mean
 
+    def predict_dist(self, seq: Utterance) -> SynthesisResult:
+        """The visual GP predictive at the utterance's latents (:meth:`synthesize`)."""
+        return self.synthesize(seq.mfcc, seq.labels)
+
     def save(self, path: str | os.PathLike) -> Path:
-        """The sparse model's JSON + NPZ (:meth:`SparseSGPDM.save`)."""
-        return self.model_.save(path)
+        """Write ``<path>.npz`` then ``<path>.json``: the sparse model's state
+        (:meth:`SparseSGPDM.state`) plus this estimator's constructor parameters, so that
+        :meth:`load` restores every setting (as :meth:`bayes_talk.estimators.sgplvm.SGPLVM.save`)."""
+        self._require_fitted()
+        path = Path(path)
+        meta, arrays = self.model_.state()
+        meta["estimator"] = {"name": self.name, "params": self.get_params()}
+        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> CorpusSparseSGPDM:
-        """A system saved by :meth:`save`."""
-        model = SparseSGPDM.load(path)
-        obj = cls(latent_dim=model.config.latent_dim, n_inducing=model.config.n_inducing)
+        """A system saved by :meth:`save` (one saved before the estimator's settings were
+        recorded keeps its latent dimension and inducing inputs, the defaults for the rest);
+        errors name the damaged file."""
+        path = Path(path)
+        meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))
+        est = meta.get("estimator") if isinstance(meta, dict) else None
+        model = SparseSGPDM.from_state(meta, arrays)
+        obj = (cls(**est["params"]) if est is not None
+               else cls(latent_dim=model.config.latent_dim, n_inducing=model.config.n_inducing))
         obj.model_ = model
         return obj

@@ -11,12 +11,15 @@ estimator as its model).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
+from bayes_talk.synthesis import posterior as synthesis_posterior
+from bayes_talk.synthesis.defaults import INFERENCE
 from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
 
@@ -27,6 +30,11 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
     """Switching shared GPDM: ``fit`` on utterances, ``synthesize`` / ``predict`` /
     ``predict_dist`` from audio + labels (constructor arguments: :class:`SwitchingConfig
     <bayes_talk.models.switching.SwitchingConfig>`)."""
+
+    bundle_path: ClassVar[str] = ""
+    synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {
+        "algorithm": ("optimise", "predict"), "init": ("nn",), "posterior": tuple(INFERENCE)}
+    post_filter: ClassVar[bool] = True
 
     def _is_fitted(self) -> bool:
         return bool(self.models_)
@@ -44,6 +52,23 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
         """Mean AAM trajectory for a test utterance (uses its mfcc and labels only)."""
         return self.synthesize(seq.mfcc, seq.labels, **kw).mean
 
-    def predict_dist(self, seq: Utterance, **kw) -> SynthesisResult:
-        """Algorithm 1's mean and GP predictive variance (with latents and segments)."""
-        return self.synthesize(seq.mfcc, seq.labels, **kw)
+    def predict_dist(self, seq: Utterance, posterior: str | None = None, *, n_draws: int | None = None,
+                     seed: int = 0, log_warnings: bool = False, init: str = "nn", **kw) -> SynthesisResult:
+        """The predictive distribution of ``seq``'s visual features.
+
+        ``posterior`` None: deena2010's sequential path (Algorithm 1, or 2 with
+        ``algorithm="predict"``; ``kw`` as :meth:`synthesize`), its mean and GP predictive
+        variance, with latents and segments. A method of
+        :data:`~bayes_talk.synthesis.defaults.INFERENCE` (e.g. "laplace"): the
+        whole-utterance synthesis posterior,
+        :func:`bayes_talk.synthesis.posterior.sample_synthesis` with ``n_draws``, ``seed``
+        and ``kw``; its failed convergence checks are in ``.warnings`` (logged too with
+        ``log_warnings``). ``init``: the initialiser of the path, nearest neighbour ("nn"),
+        the only one of the switching model."""
+        if init != "nn":
+            raise ValueError(f"the switching model initialises by nearest neighbour ('nn'), not {init!r}")
+        if posterior is None:
+            return self.synthesize(seq.mfcc, seq.labels, **kw)
+        self._require_fitted()
+        return synthesis_posterior.sample_synthesis(self, seq.mfcc, seq.labels, method=posterior, n_draws=n_draws,
+                                                    seed=seed, log_warnings=log_warnings, **kw)

@@ -39,7 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from bayes_talk.audio import DEFAULT_CMVN
 from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.evaluation import calibration as CAL
 from bayes_talk.evaluation.ceiling import add_gain_fractions, corpus_generator
 from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protocol
@@ -51,9 +53,10 @@ from bayes_talk.evaluation.scoring import (
 )
 from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, make_splits
 from bayes_talk.evaluation.systems import (
-    METHODS,
+    calibrated_method,
     fit_band_calibration,
     fit_family,
+    get_method,
     group_by_family,
     log_likelihood,
     predict,
@@ -136,18 +139,18 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
             model = model_cache[(fam, split.index)]
         else:
             model = fit_family(fam, job.train, cfg, executor=executor)
-        if model_cache is not None:
-            model_cache[(fam, split.index)] = model
         train_s[fam] = time.perf_counter() - t0
         calib_s[fam] = 0.0
-        if (cfg.band_calibration is not None and getattr(model, "band_calibration_", None) is None
-                and any("posterior" in METHODS[n].options for n in fam_methods)):
+        cal_method = calibrated_method(fam_methods)
+        if cfg.band_calibration is not None and not isinstance(model, BandCalibrated) and cal_method is not None:
             t0 = time.perf_counter()
-            fit_band_calibration(fam, model, job.train, cfg, executor=executor,
-                                 progress=None if say is None else
-                                 (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
+            model = fit_band_calibration(model, job.train, cfg, cal_method, executor=executor,
+                                         progress=None if say is None else
+                                         (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
             calib_s[fam] = time.perf_counter() - t0
             train_s[fam] += calib_s[fam]
+        if model_cache is not None:   # with its calibration: label sources reuse both
+            model_cache[(fam, split.index)] = model
         for name in fam_methods:
             rows = []
             cal_rows[name] = {k: [] for k in CAL.CALIBRATION_KEYS}
@@ -167,8 +170,8 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                 if traj is not None and j == 0:
                     traj.predictions[name] = pred
             rows_all[name] = rows
-            cal = getattr(model, "band_calibration_", None)
-            if cal is not None and "posterior" in METHODS[name].options:
+            cal = model.calibration_ if isinstance(model, BandCalibrated) else None
+            if cal is not None and "posterior" in get_method(name).options:
                 band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
                                **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
@@ -260,7 +263,7 @@ def run_protocol(
                 band_cal[name].append(out.band_calibration[name])
     result_methods: dict[str, Any] = {}
     for name in names:
-        m = METHODS[name]
+        m = get_method(name)
         rows = per_utt[name]
         entry: dict[str, Any] = {"label": m.label, "family": m.family, "has_variance": m.has_variance}
         for k in rows[0]:
@@ -323,7 +326,7 @@ def evaluate(
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
     min_utterances: int | None = None,
-    cmvn: str = "mean",
+    cmvn: str = DEFAULT_CMVN,
     labels: str | Sequence[str] | None = None,
     executor: Any = None,
     workers: int = 1,

@@ -1,8 +1,13 @@
-"""Registry of the systems an evaluation protocol can compare (issue #5, DESIGN.md §7, §9).
+"""How an evaluation protocol builds, trains and runs the systems it compares (issue #5,
+DESIGN.md §7, §9), every one through the estimator protocol and the registry (issue 26).
 
 Every *method* is a way of producing visual features for a test utterance; every method
-belongs to a *family*, the model that must be trained for it. Methods of one family share
-one trained model, so the harness trains each family once per split:
+belongs to a *family*, the model that must be trained for it. Both are declared once, in
+:mod:`bayes_talk.estimators.registry` (``ESTIMATORS``, ``METHODS``); this module adds the
+protocol's settings (:class:`SystemConfig`, :data:`FIT_SETTINGS`) and runs every method
+the same way: build, ``fit``, ``predict_dist(utt, **options)`` (``predict`` for a point
+method). Methods of one family share one trained model, so the harness trains each family
+once per split:
 
 ==========================  ==================  ==========================================
 method                      family              what it is
@@ -57,25 +62,43 @@ from __future__ import annotations
 import inspect
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from bayes_talk.baselines import DPDS, SLDS, VoicePuppetry
+from bayes_talk.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
 from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.estimators.ceiling import MSE_BIAS, OracleModel
+from bayes_talk.estimators.registry import (
+    ESTIMATORS,
+    FAMILY_DEFAULTS,
+    Method,
+    make_estimator,
+    methods,
+)
 from bayes_talk.estimators.sgplvm import SGPLVM
+from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
+from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import SwitchingConfig
+from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
     "FAMILIES",
+    "FIT_SETTINGS",
     "METHODS",
     "Method",
     "Prediction",
     "SystemConfig",
+    "build_family",
+    "calibrated_method",
     "fit_band_calibration",
     "fit_family",
+    "get_method",
     "group_by_family",
     "log_likelihood",
     "predict",
@@ -129,7 +152,7 @@ class SystemConfig:
     ssgpdm_fallback_frames: int = _SWITCHING.fallback_frames
     synth_max_iter: int = SEGMENT_MAX_ITER
     lowpass_hz: float | None = None
-    posterior_draws: int = 64
+    posterior_draws: int = DEFAULT_DRAWS["laplace"]
     sgplvm_max_frames: int = _default(SGPLVM, "max_frames")
     sgplvm_max_iter: int = _default(SGPLVM, "max_iter")
     sgplvm_synth_max_iter: int = _default(SGPLVM.synthesize, "max_iter")
@@ -143,7 +166,7 @@ class SystemConfig:
     oracle_draws: int = 32
     #: fraction of the training utterances held out to fit the band calibration of the
     #: ``*-posterior`` methods (bayes_talk.synthesis.band_calibration); None: raw bands only
-    band_calibration: float | None = 0.2
+    band_calibration: float | None = HOLDOUT_FRACTION
     #: method ``sparse-sgpdm``: inducing inputs, L-BFGS iterations, synthesis iterations
     sparse_inducing: int = 150
     sparse_max_iter: int = 200
@@ -172,60 +195,28 @@ class SystemConfig:
                              f"across-draw variance), got {self.oracle_draws!r}")
 
 
-@dataclass(frozen=True)
-class Method:
-    """One evaluated method: ``name`` (registry key), ``family`` (trained model it uses),
-    ``label`` (how the papers call it), ``has_variance`` (returns a predictive variance),
-    ``options`` (synthesis options of the family's model)."""
+#: every method ``evaluate`` can run when this module was imported (the registry's
+#: :func:`~bayes_talk.estimators.registry.methods`; :func:`resolve_methods` reads it afresh)
+METHODS: dict[str, Method] = methods()
 
-    name: str
-    family: str
-    label: str
-    has_variance: bool
-    options: dict = field(default_factory=dict)
+FAMILIES: tuple[str, ...] = tuple(ESTIMATORS)
 
-
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("ssgpdm-vlmm-optimise", "ssgpdm-vlmm", "SSGPDM-VLMM seq. optimisation", True,
-           {"algorithm": "optimise"}),
-    Method("ssgpdm-vlmm-predict", "ssgpdm-vlmm", "SSGPDM-VLMM seq. prediction", True,
-           {"algorithm": "predict"}),
-    Method("ssgpdm-phone-optimise", "ssgpdm-phone", "SSGPDM-phoneme seq. optimisation", True,
-           {"algorithm": "optimise"}),
-    Method("ssgpdm-phone-predict", "ssgpdm-phone", "SSGPDM-phoneme seq. prediction", True,
-           {"algorithm": "predict"}),
-    Method("ssgpdm-vlmm-posterior", "ssgpdm-vlmm", "SSGPDM-VLMM utterance posterior (Laplace, ours)", True,
-           {"posterior": "laplace"}),
-    Method("ssgpdm-phone-posterior", "ssgpdm-phone", "SSGPDM-phoneme utterance posterior (Laplace, ours)",
-           True, {"posterior": "laplace"}),
-    Method("ssgpdm-vlmm-rc-posterior", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, posterior (ours)", True,
-           {"posterior": "laplace"}),
-    Method("ssgpdm-phone-rc-posterior", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, posterior (ours)",
-           True, {"posterior": "laplace"}),
-    Method("ssgpdm-phone-ctx-posterior", "ssgpdm-phone-ctx",
-           "SSGPDM-phoneme + right context + audio ±2 + phonetic-context view ±8, posterior (ours)",
-           True, {"posterior": "laplace"}),
-    Method("ssgpdm-phone-ctx-mean-posterior", "ssgpdm-phone-ctx-mean",
-           "SSGPDM-phoneme + right context + audio ±2, phonetic-context view ±8 as the visual mean "
-           "function, posterior (ours)", True, {"posterior": "laplace"}),
-    Method("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation", True,
-           {"algorithm": "optimise"}),
-    Method("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc", "SSGPDM-phoneme + right context + audio ±2, seq. optimisation",
-           True, {"algorithm": "optimise"}),
-    Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
-    Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
-    Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
-    Method("slds", "slds", "SLDS", False),
-    Method("dpds", "dpds", "DPDS", False),
-    Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
-    Method("context-ridge", "context-ridge", "ridge on label/MFCC context windows", True),
-    Method("context-mlp", "context-mlp", "MLP on label/MFCC context windows", True),
-    Method("zero", "zero", "zero (utterance mean, still face)", True),
-    Method("oracle", "oracle", "oracle (generator mean given the true timing)", True),
-    Method("sparse-sgpdm", "sparse-sgpdm", "one sparse SGPDM on the whole corpus (ours)", True),
-)}
-
-FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(m.family for m in METHODS.values()))
+#: estimator class -> {constructor argument: the SystemConfig field that sets it}: what a
+#: protocol fixes of each kind of model (a class not listed keeps its own defaults)
+FIT_SETTINGS: dict[type, dict[str, str]] = {
+    SwitchingSGPDM: {"latent_dim": "latent_dim", "max_frames_per_state": "ssgpdm_max_frames_per_state",
+                     "min_frames_per_state": "ssgpdm_min_frames_per_state", "min_count": "ssgpdm_min_count",
+                     "max_iter": "ssgpdm_max_iter", "fallback_frames": "ssgpdm_fallback_frames", "seed": "seed"},
+    SGPLVM: {"latent_dim": "latent_dim", "max_frames": "sgplvm_max_frames", "max_iter": "sgplvm_max_iter",
+             "seed": "seed", "validation_frames": "sgplvm_validation_frames"},
+    VoicePuppetry: {"n_states": "vp_n_states", "n_iter": "vp_n_iter", "random_state": "seed"},
+    SLDS: {"n_iter": "slds_n_iter"},
+    DPDS: {"max_iter": "dpds_max_iter"},
+    ContextMLP: {"seed": "seed"},
+    OracleModel: {"n_draws": "oracle_draws", "seed": "seed"},
+    CorpusSparseSGPDM: {"latent_dim": "latent_dim", "n_inducing": "sparse_inducing", "max_iter": "sparse_max_iter",
+                        "seed": "seed", "synth_max_iter": "sparse_synth_max_iter"},
+}
 
 
 @dataclass
@@ -261,12 +252,18 @@ class Prediction:
         return res.interval(level)
 
 
+def get_method(name: str) -> Method:
+    """The method ``name`` of the registry (ValueError listing the valid names)."""
+    return methods()[resolve_methods([name])[0]]
+
+
 def resolve_methods(names: str | Iterable[str] | None, default: Sequence[str] = ()) -> list[str]:
     """Method names from a comma-separated string or an iterable (None: ``default``).
 
     Duplicates are dropped (first occurrence kept). An unknown name raises ValueError
     listing the valid ones.
     """
+    valid = methods()
     if names is None:
         items = list(default)
     elif isinstance(names, str):
@@ -274,71 +271,53 @@ def resolve_methods(names: str | Iterable[str] | None, default: Sequence[str] = 
     else:
         items = [str(s).strip() for s in names]
     if not items:
-        raise ValueError(f"no methods given; valid methods: {', '.join(METHODS)}")
-    unknown = [s for s in items if s not in METHODS]
+        raise ValueError(f"no methods given; valid methods: {', '.join(valid)}")
+    unknown = [s for s in items if s not in valid]
     if unknown:
         raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; "
-                         f"valid methods: {', '.join(METHODS)}")
+                         f"valid methods: {', '.join(valid)}")
     return list(dict.fromkeys(items))
 
 
-def group_by_family(methods: Iterable[str]) -> dict[str, list[str]]:
+def group_by_family(names: Iterable[str]) -> dict[str, list[str]]:
     """family -> its requested methods, in first-appearance order (one training per family)."""
     out: dict[str, list[str]] = {}
-    for name in resolve_methods(list(methods)):
-        out.setdefault(METHODS[name].family, []).append(name)
+    valid = methods()
+    for name in resolve_methods(list(names)):
+        out.setdefault(valid[name].family, []).append(name)
     return out
 
 
-def _build(family: str, cfg: SystemConfig) -> Any:
-    if family in ("zero", "oracle"):
-        from bayes_talk.evaluation.ceiling import OracleModel, ZeroModel
+def _settings(cls: type) -> dict[str, str]:
+    """The :data:`FIT_SETTINGS` of ``cls`` or of its nearest listed base class."""
+    return next((FIT_SETTINGS[k] for k in cls.__mro__ if k in FIT_SETTINGS), {})
 
-        return ZeroModel() if family == "zero" else OracleModel(n_draws=cfg.oracle_draws, seed=cfg.seed)
-    if family == "sparse-sgpdm":
-        from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 
-        return CorpusSparseSGPDM(latent_dim=cfg.latent_dim, n_inducing=cfg.sparse_inducing,
-                                 max_iter=cfg.sparse_max_iter, seed=cfg.seed,
-                                 synth_max_iter=cfg.sparse_synth_max_iter)
-    from bayes_talk.estimators.registry import FAMILY_DEFAULTS, make_estimator
-
-    params: dict[str, dict[str, Any]] = {
-        "ssgpdm-vlmm": {"latent_dim": cfg.latent_dim, "max_frames_per_state": cfg.ssgpdm_max_frames_per_state,
-                        "min_frames_per_state": cfg.ssgpdm_min_frames_per_state, "min_count": cfg.ssgpdm_min_count,
-                        "max_iter": cfg.ssgpdm_max_iter, "fallback_frames": cfg.ssgpdm_fallback_frames,
-                        "seed": cfg.seed},
-        "sgplvm": {"latent_dim": cfg.latent_dim, "max_frames": cfg.sgplvm_max_frames, "max_iter": cfg.sgplvm_max_iter,
-                   "seed": cfg.seed, "validation_frames": cfg.sgplvm_validation_frames},
-        "voice-puppetry": {"n_states": cfg.vp_n_states, "n_iter": cfg.vp_n_iter, "random_state": cfg.seed},
-        "slds": {"n_iter": cfg.slds_n_iter},
-        "dpds": {"max_iter": cfg.dpds_max_iter},
-        "context-mlp": {"seed": cfg.seed},
-    }
-    for fam in ("ssgpdm-phone", "ssgpdm-vlmm-rc", "ssgpdm-phone-rc", "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean"):
-        # a family's own default (registry.FAMILY_DEFAULTS) wins over a setting the protocol
-        # leaves at the library default
-        own = FAMILY_DEFAULTS.get(fam, {})
-        params[fam] = {k: v for k, v in params["ssgpdm-vlmm"].items()
-                       if k not in own or v != getattr(_SWITCHING, k)}
-    if family not in FAMILIES:
-        raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
-    return make_estimator(family, **params.get(family, {}))
+def build_family(family: str, cfg: SystemConfig) -> Estimator:
+    """The unfitted estimator of ``family`` with the protocol's settings (:data:`FIT_SETTINGS`).
+    A family's own default (registry.FAMILY_DEFAULTS) wins over a setting the protocol
+    leaves at the class's default."""
+    if family not in ESTIMATORS:
+        raise ValueError(f"unknown family {family!r}; valid families: {', '.join(ESTIMATORS)}")
+    cls = ESTIMATORS[family][0]
+    own = FAMILY_DEFAULTS.get(family, {})
+    params = {k: getattr(cfg, f) for k, f in _settings(cls).items()}
+    return make_estimator(family, **{k: v for k, v in params.items() if k not in own or v != _default(cls, k)})
 
 
 def fit_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, executor=None) -> Any:
     """Build and train the model of ``family`` on ``train`` (seeded by ``cfg.seed``).
 
-    ``executor`` (anything with ``map``) is passed to the switching models' ``fit``; the
-    other families train in this process.
+    ``executor`` (anything with ``map``) is passed to an estimator whose ``fit`` takes one
+    (the switching models' states); the others train in this process.
     """
     from bayes_talk.gp.threads import torch_threads
 
     if not train:
         raise ValueError("no training sequences")
-    model = _build(family, cfg)
+    model = build_family(family, cfg)
     with torch_threads(cfg.torch_threads):
-        if family.startswith("ssgpdm-"):
+        if "executor" in inspect.signature(model.fit).parameters:
             return model.fit(list(train), executor=executor)
         return model.fit(list(train))
 
@@ -347,10 +326,10 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
     """Visual features of ``seq`` (from its mfcc and labels only) by ``method``."""
     from bayes_talk.gp.threads import torch_threads
 
-    m = METHODS[resolve_methods([method])[0]]
+    m = get_method(method)
     with torch_threads(cfg.torch_threads):
         pred = _predict(m, model, seq, cfg)
-    if cfg.lowpass_hz is not None and m.family not in ("zero", "oracle"):
+    if cfg.lowpass_hz is not None and not getattr(model, "reference", False):
         from bayes_talk.synthesis.sequential import lowpass
 
         smooth = lowpass(pred.mean, cfg.lowpass_hz)
@@ -360,56 +339,53 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
     return pred
 
 
-def fit_band_calibration(family: str, model: Any, train: Sequence[Utterance], cfg: SystemConfig,
-                         executor=None, progress=None) -> Any:
-    """Fit the band calibration of ``family``'s posterior methods on held-out training
-    utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
-    extra fit on the other ``1 - cfg.band_calibration`` of ``train``) and attach it to
-    ``model`` as ``band_calibration_``; the ``*-posterior`` methods then return the
-    calibrated predictive with the raw one beside it. Returns the calibration."""
-    from bayes_talk.gp.threads import torch_threads
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration as _fit
+def calibrated_method(names: Iterable[str]) -> str | None:
+    """The posterior method (e.g. "laplace") a band calibration is fitted for among the
+    methods ``names`` of one family, or None when none of them is a posterior method."""
+    valid = methods()
+    posterior = {valid[n].options["posterior"] for n in names if "posterior" in valid[n].options}
+    return min(posterior) if posterior else None
 
-    posterior = {m.options["posterior"] for m in METHODS.values() if m.family == family and "posterior" in m.options}
-    if not posterior or cfg.band_calibration is None:
-        raise ValueError(f"family {family!r} has no posterior method to calibrate (or band_calibration is off)")
+
+def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConfig, method: str,
+                         executor=None, progress=None) -> Any:
+    """Fit the band calibration of ``model``'s posterior ``method`` on held-out training
+    utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
+    extra fit on the other ``1 - cfg.band_calibration`` of ``train``). Returns ``model``
+    wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
+    ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
+    from bayes_talk.gp.threads import torch_threads
+    from bayes_talk.synthesis.band_calibration import fit_band_calibration as fit_calibration
+
+    if cfg.band_calibration is None:
+        raise ValueError("band_calibration is off: nothing to fit")
     with torch_threads(cfg.torch_threads):
-        cal = _fit(model, train, method=min(posterior), holdout=cfg.band_calibration,
-                   n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
-    model.band_calibration_ = cal
-    return cal
+        cal = fit_calibration(model, train, method=method, holdout=cfg.band_calibration,
+                              n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
+    return BandCalibrated.wrap(model, cal)
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
-    if m.family in ("zero", "oracle"):
-        return Prediction(*model.predict(seq))
-    if m.family.startswith("ssgpdm-") and "posterior" in m.options:
-        from bayes_talk.synthesis.posterior import sample_synthesis
-
-        r = sample_synthesis(model, seq.mfcc, seq.labels, method=m.options["posterior"],
-                             n_draws=cfg.posterior_draws, seed=cfg.seed, log_warnings=False)
-        cal, raw, control = getattr(model, "band_calibration_", None), None, None
-        if cal is not None and cal.method == r.method:
-            raw, r = r, cal.apply(r)
+    """The method's predictive: ``model.predict_dist`` with the method's options and the
+    protocol's settings, band-calibrated where the model holds a calibration of that
+    inference method; a point method's ``predict``."""
+    if not m.has_variance:
+        return Prediction(np.asarray(model.predict(seq), np.float64), None)
+    options = {**m.options, **{k: getattr(cfg, f) for k, f in m.settings.items()}}
+    raw = control = None
+    if isinstance(model, BandCalibrated):   # the raw predictive, and the control, scored beside it
+        r = model.estimator_.predict_dist(seq, **options)
+        if r.method == model.calibration_.method:
+            cal = model.calibration_
+            raw, r = r, model.calibrate(r)
             control = cal.control_result(raw) if cal.control is not None else None
-        for w in r.warnings:   # those of the predictive reported (calibrated: BandCalibration.domain)
-            log.warning("%s: %s", seq.name, w)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r, raw=raw,
-                          control=control)
-    if m.family.startswith("ssgpdm-"):
-        r = model.synthesize(seq.mfcc, seq.labels, algorithm=m.options["algorithm"],
-                             max_iter=cfg.synth_max_iter)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
-    if m.family == "sparse-sgpdm":
-        r = model.synthesize(seq.mfcc, seq.labels)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
-    if m.family == "sgplvm":
-        r = model.synthesize(seq.mfcc, seq.labels, init=m.options["init"], max_iter=cfg.sgplvm_synth_max_iter)
-        return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), result=r)
-    if m.has_variance and hasattr(model, "predict_var"):  # the context regressions
-        return Prediction(np.asarray(model.predict(seq), np.float64),
-                          np.asarray(model.predict_var(seq), np.float64))
-    return Prediction(np.asarray(model.predict(seq), np.float64), None)
+    else:
+        r = model.predict_dist(seq, **options)
+    for w in r.warnings:   # those of the predictive reported (calibrated: BandCalibration.domain)
+        log.warning("%s: %s", seq.name, w)
+    bias = r.diagnostics.get(MSE_BIAS) if isinstance(r.diagnostics, dict) else None
+    return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), mse_bias=bias, result=r,
+                      raw=raw, control=control)
 
 
 def log_likelihood(method: str, model: Any, seq: Utterance, pred: Prediction) -> float | None:
@@ -418,7 +394,7 @@ def log_likelihood(method: str, model: Any, seq: Utterance, pred: Prediction) ->
     Baselines: their own ``log_likelihood`` (where ``has_log_likelihood``). Our methods:
     Σ_t Σ_d ln N(z_td; μ_td, σ²_td) of the frame-wise Gaussian predictive.
     """
-    m = METHODS[method]
+    m = get_method(method)
     if m.has_variance:
         if pred.var is None:
             return None

@@ -127,9 +127,9 @@ class SwitchingConfig:
     audio_context: k, the audio view of frame t is the PCA-reduced MFCCs of frames t−k..t+k
         (:mod:`bayes_talk.features.audio_context`); 0 (the default) is deena2010's per-frame
         MFCC. On our 40 held-out sentences (deena2010 settings, 4 Hz post-filter) k = 2 took
-        the posterior from AMSE 8.42 / ACC 0.345 / NMSE 0.887 to 7.37 / 0.377 / 0.872; not
-        the default until it passes the resampling robustness test on its own
-        (docs/results.md).
+        the posterior from AMSE 8.42 / ACC 0.345 / NMSE 0.887 to 7.37 / 0.377 / 0.872
+        (docs/results.md); the default model's families set it
+        (``bayes_talk.estimators.registry.AUDIO_CONTEXT``), deena2010's keep 0.
     context_view: L, the phonetic-context view (:mod:`bayes_talk.features.context_view`):
         the audio view of frame t is joined by a supervised reduction of the phone labels
         t−L..t+L and the MFCCs t−4..t+4 to D_z columns, which the latent space must explain

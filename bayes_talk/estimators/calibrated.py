@@ -1,0 +1,103 @@
+"""An estimator with band-calibrated predictive bands, wrapping another (issue 26, item 3),
+as scikit-learn's ``CalibratedClassifierCV`` wraps a classifier.
+
+:class:`BandCalibrated` holds a fitted estimator with a whole-utterance posterior (a
+switching SGPDM) and the :class:`~bayes_talk.synthesis.band_calibration.BandCalibration`
+of one of its inference methods (stages 0-3: mean shrinkage, band scale, level map, pool
+with the constant band; fitted on held-out *training* utterances by
+:func:`~bayes_talk.synthesis.band_calibration.fit_band_calibration`). Its ``predict_dist``
+is the wrapped estimator's, recalibrated when the result is of the calibrated method
+(``result.method == calibration.method``) and returned as it is otherwise (e.g. the
+sequential path, or another sampler). ``save`` writes the wrapped estimator's own files
+and ``band_calibration.json`` beside them; ``load`` reads both (every saved calibration
+format, versions 1-5, through :meth:`BandCalibration.load`).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, ClassVar, Self
+
+import numpy as np
+
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.synthesis import band_calibration
+from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION, BandCalibration
+from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
+from bayes_talk.synthesis.result import SynthesisResult
+
+__all__ = ["BandCalibrated"]
+
+
+class BandCalibrated(Estimator):
+    """``estimator`` (unfitted for :meth:`fit`, fitted for :meth:`wrap`) with the band
+    calibration of its ``method`` posterior, fitted on ``holdout`` of the training
+    utterances with ``n_draws`` draws and seed ``seed``."""
+
+    name: ClassVar[str] = "band-calibrated"
+    #: the wrapper's layout is the model directory's: the estimator at its own
+    #: ``bundle_path``, ``band_calibration.json`` at the top
+    bundle_path: ClassVar[str] = ""
+
+    def __init__(self, estimator: Estimator, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
+                 n_draws: int = DEFAULT_DRAWS["laplace"], seed: int = 0) -> None:
+        self.estimator, self.method, self.holdout = estimator, method, holdout
+        self.n_draws, self.seed = n_draws, seed
+
+    @classmethod
+    def wrap(cls, estimator: Estimator, calibration: BandCalibration) -> Self:
+        """A fitted estimator and its fitted calibration as one estimator (nothing is refitted)."""
+        obj = cls(estimator, method=calibration.method)
+        obj.estimator_, obj.calibration_ = estimator, calibration
+        return obj
+
+    def fit(self, train: list[Utterance], executor=None, progress=None) -> Self:
+        """Fit the estimator on all of ``train`` (through ``executor`` where its ``fit`` takes
+        one), then the calibration (one more fit on ``1 - holdout`` of ``train``, the rest
+        synthesised: :func:`~bayes_talk.synthesis.band_calibration.fit_band_calibration`)."""
+        fit_kw = {} if executor is None else {"executor": executor}
+        self.estimator_ = self.estimator.fit(list(train), **fit_kw)
+        self.calibration_ = band_calibration.fit_band_calibration(
+            self.estimator_, train, method=self.method, holdout=self.holdout, n_draws=self.n_draws, seed=self.seed,
+            executor=executor, progress=progress)
+        return self
+
+    def predict(self, utt: Utterance) -> np.ndarray:
+        """The wrapped estimator's mean trajectory (its own path, never recalibrated)."""
+        self._require_fitted()
+        return self.estimator_.predict(utt)
+
+    def calibrate(self, result: SynthesisResult) -> SynthesisResult:
+        """``result`` recalibrated when it is of the calibrated method, else unchanged."""
+        self._require_fitted()
+        return self.calibration_.apply(result) if result.method == self.calibration_.method else result
+
+    def predict_dist(self, utt: Utterance, **options: Any) -> SynthesisResult:
+        """The wrapped estimator's ``predict_dist(utt, **options)``, recalibrated
+        (:meth:`calibrate`)."""
+        self._require_fitted()
+        return self.calibrate(self.estimator_.predict_dist(utt, **options))
+
+    def save(self, directory: str | os.PathLike) -> Path:
+        """The wrapped estimator's files (at its ``bundle_path`` in ``directory``) and
+        ``band_calibration.json``. Returns the directory."""
+        self._require_fitted()
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        self.estimator_.save(d / self.estimator_.bundle_path)
+        self.calibration_.save(d)
+        return d
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike, estimator: type[Estimator] | None = None) -> Self:
+        """Read what :meth:`save` wrote: the estimator of class ``estimator`` (required: the
+        directory's descriptor, or the caller, knows it) and the calibration;
+        FileNotFoundError naming the directory when it holds no calibration."""
+        if estimator is None:
+            raise TypeError("BandCalibrated.load needs the wrapped estimator's class")
+        d = Path(directory)
+        cal = BandCalibration.load(d)
+        if cal is None:
+            raise FileNotFoundError(f"{d} holds no {band_calibration.CALIBRATION_FILE}")
+        return cls.wrap(estimator.load(d / estimator.bundle_path), cal)

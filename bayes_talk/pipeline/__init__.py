@@ -1,0 +1,46 @@
+"""From a corpus to a trained model directory, and from WAV + labels to a talking face:
+the command line's workflow, split by idea (issue 26, item 4):
+
+* :mod:`~bayes_talk.pipeline.training`: ``train`` (corpus -> model directory), the model
+  kinds (every registered family with a predictive distribution) and their defaults;
+* :mod:`~bayes_talk.pipeline.trained`: ``load_trained`` (model directory -> model, AAM,
+  front end, calibration);
+* :mod:`~bayes_talk.pipeline.front_end`: the audio front end, built in one place with its
+  settings (what ``train`` records, what ``synth`` applies to new audio);
+* :mod:`~bayes_talk.pipeline.talking_face`: ``synth`` (WAV + labels -> face, bands, video).
+
+The model directory's descriptor is :mod:`bayes_talk.bundle`'s. The public names of the
+four modules are importable from here (on first access, PEP 562, so that importing the
+package for the command line's defaults loads no more than those).
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS: dict[str, str] = {
+    **dict.fromkeys(("DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands",
+                     "fit_model", "model_kinds", "new_model", "select_holdout", "train"),
+                    "bayes_talk.pipeline.training"),
+    **dict.fromkeys(("TrainedModel", "load_trained"), "bayes_talk.pipeline.trained"),
+    **dict.fromkeys(("audio_settings", "front_end", "read_utterance", "utterance_from_intervals"),
+                    "bayes_talk.pipeline.front_end"),
+    **dict.fromkeys(("SYNTH_OUTPUT_NAMES", "synth"), "bayes_talk.pipeline.talking_face"),
+}
+
+__all__ = ["DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "TrainedModel", "aam_offset",
+           "audio_settings", "calibrates_bands", "fit_model", "front_end", "load_trained", "model_kinds", "new_model",
+           "read_utterance", "select_holdout", "synth", "train", "utterance_from_intervals"]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first access (PEP 562)."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'bayes_talk.pipeline' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__

@@ -1,0 +1,278 @@
+"""From WAV + phone labels (or a transcript, or audio alone) to a talking face
+(``bayes-talk synth``; issue 26, item 4)::
+
+    WAV + .lab/.TextGrid ──read_utterance──▶ Utterance without visual features
+              ──model.predict_dist──▶ AAM trajectory + predictive distribution
+              ──AAM.render──▶ frames ──▶ MP4, with the bands, diagnostics and uncertainty outputs
+
+The model directory is read by :func:`bayes_talk.pipeline.trained.load_trained`; the audio
+is featurised by the model's own front end (:mod:`bayes_talk.pipeline.front_end`); the
+model is run through the estimator protocol with the options it declares
+(``synthesis_options``), whatever its family.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import warnings
+from pathlib import Path
+
+from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
+from bayes_talk.audio import load_audio, speech_problem
+from bayes_talk.bundle import OutputSet, check_output_dir
+from bayes_talk.data.labels import write_lab
+from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.files import write_json, write_npy, write_npz
+from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
+from bayes_talk.pipeline.trained import TrainedModel, load_trained
+from bayes_talk.synthesis.defaults import DEFAULT_METHOD, check_method
+from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
+from bayes_talk.uncertainty_outputs import (
+    BAND_LEVELS,
+    plot_bands,
+    read_truth,
+    uncertainty_frames,
+    write_posterior_netcdf,
+)
+from bayes_talk.video import write_video
+
+__all__ = ["SYNTH_OUTPUT_NAMES", "synth"]
+
+log = logging.getLogger(__name__)
+
+#: every file name synth can write (docs/outputs.md)
+SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
+                      "bands.npz", "diagnostics.json", "labels.lab", "posterior.nc", "bands.png",
+                      "uncertainty.mp4")
+
+
+def _mean_shrinkage(res, tm) -> list[float] | None:
+    """The band calibration's per-parameter mean factors a_d applied to ``res``, or None."""
+    bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
+    if not bc or tm.calibration is None or tm.calibration.mean_scale is None:
+        return None
+    return [float(a) for a in tm.calibration.mean_scale]
+
+
+def _pool_weight(res, tm) -> list[float] | None:
+    """The band calibration's per-parameter pool weights w_d (stage 3) applied to ``res``, or None."""
+    bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
+    if not bc or tm.calibration is None or tm.calibration.pool_weight is None:
+        return None
+    return [float(w) for w in tm.calibration.pool_weight]
+
+
+def _trajectory_description(res, lowpass_hz) -> str:
+    """What ``trajectory.npy`` holds, in words (written to ``diagnostics.json``)."""
+    calibrated = isinstance(res.diagnostics, dict) and "band_calibration" in res.diagnostics
+    has_c = getattr(res, "mean_function", None) is not None
+    toward = ("the model's explicit mean function c_t (its phonetic-context view)" if has_c
+              else "0 (the parameter's training mean)")
+    what = (f"the mean of the band-calibrated {res.method} predictive: the posterior mean with each AAM "
+            f"parameter's part beyond {toward} multiplied by the calibration's mean factor a_d "
+            "(mean_shrinkage; 1 = unchanged, 0 = the parameter is predicted as that mean function); "
+            "the bands' pool with the constant band (pool_weight) leaves the mean unchanged" if calibrated else
+            f"the mean of the {res.method} posterior predictive (no band calibration applied)")
+    filt = f", low-passed at {lowpass_hz:g} Hz (zero phase)" if lowpass_hz is not None else ""
+    return what + filt + "; mean-removed AAM parameters (add the model's offset)"
+
+
+def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: str | None = None,
+          force: bool = False, video: bool = True, posterior: str | None = None, n_draws: int | None = None,
+          seed: int = 0, tier: str | None = None, text: str | None = None,
+          transcript: str | os.PathLike | None = None, align_method: str | None = None,
+          truth: str | os.PathLike | None = None, calibrated: bool = True,
+          sampler_options: dict | None = None, lowpass_hz: float | None = POST_FILTER_HZ) -> dict[str, Path]:
+    """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
+    landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
+
+    posterior: for a switching model, the whole-utterance synthesis posterior by "laplace"
+    (the default), "nuts", "pg-nuts" (particle Gibbs ∘ NUTS ∘ mode jumps), "emcee" or "vi"
+    (docs/uncertainty.md "Which sampler"): the trajectory and variance are
+    the posterior mixture's mean and variance, and ``bands.npz`` (central 50 % and 90 %
+    bands: lower50, upper50, lower90, upper90) and ``diagnostics.json`` (MAP convergence,
+    R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
+    (``algorithm`` 1 or 2, deena2010) with the GP variance, the only choice (and the
+    default) for an sgplvm model. A posterior whose diagnostics fail the convergence checks
+    (bayes_talk.synthesis.posterior) is logged as a WARNING and marked ``"converged": false``
+    in ``diagnostics.json``.
+
+    The audio is resampled to the model's training rate and normalised as in training
+    (bayes_talk.audio); ``tier`` names the TextGrid tier with the phones. With ``force``
+    the files of an earlier run in ``out_dir`` that this run does not write are removed
+    (only files recorded by that run; bayes_talk.bundle.OutputSet).
+
+    Without ``labels`` (issue 13): the phone labels come from aligning ``text`` (or the
+    ``transcript`` file) to the audio, or, with neither, from the phone recogniser (a
+    warning says so); they are written to ``labels.lab`` in ``out_dir``.
+
+    Every run (issue 10) also writes, from the one synthesis result
+    (bayes_talk.synthesis.result.SynthesisResult, whatever the method): ``bands.npz`` (its
+    exact central 50 % / 90 % bands, the ones ``evaluate`` scores), ``posterior.nc`` (its
+    ArviZ InferenceData), ``bands.png`` (the first AAM parameters: mean, bands, and the
+    ``truth`` when given: a .npy (T, n_params) in the space of ``trajectory.npy``) and, with
+    a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
+    rendered predictive draws; bayes_talk.uncertainty_outputs).
+
+    ``calibrated``: apply the model's band calibration (``band_calibration.json``, fitted by
+    ``train --calibrate-bands``) when ``posterior`` is the method it was fitted on; False:
+    the raw posterior bands. Whether it was applied is recorded in ``diagnostics.json``.
+
+    ``lowpass_hz``: the zero-phase low-pass of deena2010 §4.2.3 applied to the mean of a
+    model that takes it (its ``post_filter``: the switching models), the bands moving with it (default
+    :data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz, the setting of the
+    held-out figures in docs/results.md; None: off). Recorded in ``segments.json``.
+    """
+    check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
+    if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
+        raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
+    tm = load_trained(model_dir)
+    choices = type(tm.model).synthesis_options
+    if posterior is None:
+        posterior = DEFAULT_METHOD if "posterior" in choices else "map"
+    check_method(posterior)
+    if posterior != "map" and posterior not in choices.get("posterior", ()):
+        raise ValueError(f"--posterior {posterior} needs a model with a whole-utterance posterior (a switching "
+                         f"model); this model is {tm.kind!r}: use --posterior map")
+    if init is not None and init not in choices.get("init", ()):
+        raise ValueError(f"--init {init}: a {tm.kind} model initialises by "
+                         f"{' or '.join(choices.get('init', ())) or 'no initialiser'}")
+    options = _synthesis_options(choices, posterior, algorithm, init, n_draws, seed, sampler_options)
+    _check_speech(wav, recognise=labels is None and text is None and transcript is None)
+    derived = None
+    if labels is None:
+        derived = _derived_labels(model_dir, wav, text, transcript, align_method)
+    elif text is not None or transcript is not None:
+        raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
+    front = front_end(tm.audio)
+    utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
+           else utterance_from_intervals(wav, derived, tm.fps, **front))
+    if truth is not None:
+        truth = read_truth(truth, (utt.mfcc.shape[0], len(tm.offset)))
+    out = Path(out_dir)
+    outputs = OutputSet(out, SYNTH_OUTPUT_NAMES)
+    names = {"trajectory": "trajectory.npy", "variance": "variance.npy", "landmarks": "landmarks.npy",
+             "segments": "segments.json", "video": "face.mp4"}
+    if derived is not None:
+        names["labels"] = "labels.lab"
+    names.update(bands="bands.npz", posterior="posterior.nc", plot="bands.png")
+    if video and tm.aam is not None:
+        names["uncertainty"] = "uncertainty.mp4"
+    if posterior != "map":
+        names.update(diagnostics="diagnostics.json")
+    existing = sorted({n for n in list(names.values()) + outputs.present() if (out / n).exists()})
+    if existing and not force:
+        raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
+    out.mkdir(parents=True, exist_ok=True)
+    model = (BandCalibrated.wrap(tm.model, tm.calibration) if calibrated and tm.calibration is not None
+             else tm.model)   # calibrates a result of the calibrated method only
+    res = model.predict_dist(utt, **options)
+    post_filter_hz = lowpass_hz if tm.model.post_filter else None
+    if post_filter_hz is not None:
+        res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
+    segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
+    written = {}
+    if derived is not None:
+        write_lab(out / names["labels"], derived)
+        written["labels"] = out / names["labels"]
+    written.update(_write_uncertainty(out, names, res, truth, tm, wav, video, seed))
+    if posterior != "map":
+        problems = list(res.warnings)
+        if problems:
+            # each warning names its failed checks and what to try (posterior._convergence_warnings);
+            # more draws help the samplers, not an approximation's k̂ (laplace, vi)
+            log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
+                        "unreliable%s", posterior, "; ".join(problems),
+                        "; raise --draws or --warmup" if posterior in ("nuts", "pg-nuts", "emcee") else "")
+        write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
+                                                "converged": not problems, "problems": problems,
+                                                "trajectory_holds": _trajectory_description(res, post_filter_hz),
+                                                "mean_shrinkage": _mean_shrinkage(res, tm),
+                                                "pool_weight": _pool_weight(res, tm),
+                                                "diagnostics": res.diagnostics})
+        written.update(diagnostics=out / names["diagnostics"])
+    for key, arr in (("trajectory", res.mean), ("variance", res.var)):
+        write_npy(out / names[key], arr)
+        written[key] = out / names[key]
+    write_json(out / names["segments"], {"segments": segs, "fps": tm.fps,
+                                         "post_filter_hz": post_filter_hz})
+    written["segments"] = out / names["segments"]
+    if tm.aam is not None:
+        params = res.mean + tm.offset
+        lms, _ = tm.aam.reconstruct(params)
+        write_npy(out / names["landmarks"], lms)
+        written["landmarks"] = out / names["landmarks"]
+        if video:
+            write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
+            written["video"] = out / names["video"]
+    outputs.commit(list(written.values()))
+    return written
+
+
+def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav, video: bool,
+                       seed: int) -> dict[str, Path]:
+    """bands.npz, posterior.nc, bands.png and (with a video and an AAM) uncertainty.mp4 of
+    the synthesis result ``res`` (see :func:`synth`)."""
+    written = {}
+    bands = {}
+    for q in BAND_LEVELS:
+        lo, hi = res.interval(q)
+        bands[f"lower{round(100 * q)}"], bands[f"upper{round(100 * q)}"] = lo, hi
+    written["bands"] = write_npz(out / names["bands"], bands)
+    written["posterior"] = write_posterior_netcdf(out / names["posterior"], res, truth)
+    written["plot"] = plot_bands(out / names["plot"], res, truth, fps=tm.fps)
+    if "uncertainty" in names:
+        frames = uncertainty_frames(tm.aam, res, tm.offset, seed=seed)
+        written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps,
+                                                   audio_path=wav, overwrite=True)
+    return written
+
+
+def _synthesis_options(choices: dict, posterior: str, algorithm: str, init: str | None, n_draws: int | None,
+                       seed: int, sampler_options: dict | None) -> dict:
+    """The keyword arguments of the model's ``predict_dist`` for synth's choices, among those
+    the model takes (``choices``, its ``synthesis_options``): "map" is the model's own path
+    (``algorithm`` where it has one), any other ``posterior`` the whole-utterance posterior
+    with its draws, seed and sampler options."""
+    opts: dict = {} if init is None else {"init": init}
+    if posterior != "map":
+        return {**opts, "posterior": posterior, "n_draws": n_draws, "seed": seed, **_sampler_args(sampler_options)}
+    if "algorithm" in choices:
+        opts["algorithm"] = algorithm
+    return opts
+
+
+def _sampler_args(options: dict | None) -> dict:
+    """``sample_synthesis`` keywords from synth's sampler options (``chains``, ``warmup``,
+    ``target_accept``, ``max_tree_depth``, ``pg_particles``; None entries keep the library defaults)."""
+    opts = {k: v for k, v in (options or {}).items() if v is not None}
+    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles"}
+    if unknown:
+        raise ValueError(f"unknown sampler options {sorted(unknown)}")
+    kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}
+    return {**kw, "sampler_kw": opts} if opts else kw
+
+
+def _check_speech(wav, recognise: bool) -> None:
+    """No speech in ``wav`` (:func:`bayes_talk.audio.speech_problem`): an error before the
+    phone recogniser invents phones for it; a warning when labels or a transcript were given
+    (the face then follows them, not the audio). The file's own warnings (clipping, an MP3
+    without its gapless header) are left to the load that makes the features, so that each
+    is said once."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        y, sr = load_audio(wav)
+    problem = speech_problem(y, sr)
+    if problem is None:
+        return
+    if recognise:
+        raise ValueError(f"{wav}: no speech found, the audio is {problem}; the phone recogniser would "
+                         "invent phones for it. Check the file, or give --labels/--text if this is intended")
+    warnings.warn(f"{wav}: no speech found, the audio is {problem}: the face follows the given labels, "
+                  "not the audio", UserWarning, stacklevel=3)
+
+
+def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:
+    """Phone intervals from the alignment models of ``model_dir`` (aligner or recogniser)."""
+    return label_audio(model_dir, wav, text=text, transcript=transcript,
+                       method=align_method or DEFAULT_ALIGN_METHOD).intervals

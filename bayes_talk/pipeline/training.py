@@ -1,0 +1,192 @@
+"""From a corpus to a trained model directory (``bayes-talk train``; issue 26, item 4).
+
+The data flow::
+
+    corpus dir ──load_corpus──▶ Utterances (MFCC, AAM params, frame labels)
+              ──fit──▶ model (any registered family: a switching SGPDM, the 2009 SGPLVM, a
+                       baseline with a predictive distribution; estimators.registry)
+              ──save──▶ model directory
+
+A model directory holds ``bayes_talk_model.json`` (the descriptor, :mod:`bayes_talk.bundle`:
+what kind of model, the audio front end of :mod:`bayes_talk.pipeline.front_end`, the AAM
+offset), the model's own files (where its class's ``bundle_path`` says), a copy of the
+corpus AAM (``aam.json`` + ``aam.npz``) so that synthesis can render without the corpus,
+the band calibration and the aligner, and ends with ``bundle_manifest.json``.
+"""
+from __future__ import annotations
+
+import inspect
+import os
+from pathlib import Path
+
+import numpy as np
+
+from bayes_talk import bundle
+from bayes_talk.alignment import commands as alignment_commands
+from bayes_talk.bundle import DESCRIPTOR
+from bayes_talk.data import corpus as corpus_store
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
+from bayes_talk.executor import executor_for
+from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
+from bayes_talk.progress import ProgressMapper
+from bayes_talk.synthesis import band_calibration
+from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION
+
+__all__ = ["DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
+           "model_kinds", "new_model", "select_holdout", "train"]
+
+
+def model_kinds() -> tuple[str, ...]:
+    """The families ``train`` fits and ``synth`` runs: every registered estimator with a
+    predictive distribution that is a method, not an evaluation's floor or ceiling."""
+    return tuple(name for name, (cls, _) in ESTIMATORS.items() if cls.has_distribution() and not cls.reference)
+
+
+#: :func:`model_kinds` when this module was imported (``train --model`` choices)
+MODEL_KINDS = model_kinds()
+#: fraction of the training utterances ``train`` holds out for the band calibration by default
+DEFAULT_CALIBRATION = HOLDOUT_FRACTION
+
+
+def new_model(kind: str, **overrides):
+    """An untrained model of the given kind (see :data:`MODEL_KINDS`)."""
+    if kind in model_kinds():
+        return make_estimator(kind, **overrides)
+    raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(model_kinds())}")
+
+
+def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, scheduler: str | None = None):
+    """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
+    "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
+    or this process when ``workers`` is 1, the default; ``scheduler``: a running dask scheduler), with a
+    progress bar of states done / total on a terminal (bayes_talk.progress). The model
+    does not depend on the executor."""
+    if "executor" not in inspect.signature(model.fit).parameters:
+        return model.fit(train)
+    with executor_for(executor, workers, scheduler) as ex:
+        return model.fit(train, executor=ProgressMapper(ex, "training states", "state"))
+
+
+def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 1,
+          force: bool = False, holdout: int | None = None,
+          holdout_list: str | os.PathLike | None = None, cmvn: str = DEFAULT_CMVN, fmax: float | None = FMAX_HZ,
+          floor_dbfs: float | None = FLOOR_DBFS,
+          alignment: bool = True, executor=None, scheduler: str | None = None,
+          calibrate_bands: float | None = None, **overrides) -> Path:
+    """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
+
+    Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
+    utterances (corpus order), or ``holdout_list``, a file naming them one a line (see
+    :func:`select_holdout`). The descriptor records the held-out names (``held_out``).
+
+    ``cmvn``: per-utterance cepstral normalisation (bayes_talk.audio; ``DEFAULT_CMVN``, "mean");
+    ``fmax``: mel filterbank edge (default ``features.frontend.FMAX_HZ``; None: sr/2, as before).
+    ``floor_dbfs``: absolute mel-power floor (default ``features.frontend.FLOOR_DBFS``; None: none, as before).
+    The bundle records the audio front end (:func:`bayes_talk.pipeline.front_end.audio_settings`)
+    and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
+    last (bayes_talk.bundle).
+
+    ``alignment``: also fit the aligner / phone recogniser (docs/alignment.md) into the
+    same directory, so that ``synth`` runs from a transcript or from audio alone.
+
+    ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
+    (:func:`fit_model`; docs/scaling.md); the model does not depend on it. ``workers``:
+    processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
+    ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
+    the band calibration of the Laplace posterior (switching models;
+    bayes_talk.synthesis.band_calibration: one extra fit on the rest, saved as
+    ``band_calibration.json`` and applied by ``synth``); None: no calibration.
+    """
+    out = Path(out_dir)
+    if kind not in model_kinds():
+        raise ValueError(f"unknown model kind {kind!r}; choose one of {', '.join(model_kinds())}")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise FileExistsError(f"{out} is not empty; choose another directory or pass --force")
+    if calibrate_bands is not None and (not calibrates_bands(kind) or not 0 < calibrate_bands < 1):
+        raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a model with a whole-utterance "
+                         f"posterior (a switching model), found {calibrate_bands!r} for {kind}")
+    with executor_for(executor, workers, scheduler) as ex:
+        corpus = corpus_store.load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs,
+                             executor=ex if executor is not None or ex.parallel else None)
+        train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
+        corpus.sequences = train_seqs
+        model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers, executor=ex)
+        band_cal = None
+        if calibrate_bands is not None:
+            band_cal = band_calibration.fit_band_calibration(
+                model, corpus.sequences, holdout=calibrate_bands, seed=model.get_params()["seed"],
+                fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex), executor=ex)
+    out.mkdir(parents=True, exist_ok=True)
+    bundle.begin_bundle(out, DESCRIPTOR)
+    audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
+    if band_cal is not None:   # saved as the wrapped estimator: the model and band_calibration.json
+        model = BandCalibrated.wrap(model, band_cal)
+    model.save(out / model.bundle_path)
+    offset = aam_offset(corpus)
+    if corpus.aam is not None:
+        corpus.aam.save(out / "aam.npz")
+    bundle.write_descriptor(out, {
+        "kind": kind, "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
+        "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
+        "held_out": held_out, "audio": audio,
+    })
+    if alignment:  # issue 13: labels for test audio without hand-made phone labels
+        alignment_commands.fit_alignment(corpus.sequences).save(out)
+    bundle.write_bundle_manifest(out)
+    return out
+
+
+def calibrates_bands(kind: str) -> bool:
+    """Whether a model of ``kind`` takes a band calibration: it has a whole-utterance
+    posterior (bayes_talk.synthesis.band_calibration calibrates its bands)."""
+    return kind in ESTIMATORS and "posterior" in ESTIMATORS[kind][0].synthesis_options
+
+
+def select_holdout(sequences: list[Utterance], holdout: int | None = None,
+                   holdout_list: str | os.PathLike | None = None,
+                   where: str = "corpus") -> tuple[list[Utterance], list[str]]:
+    """(training sequences, held-out names): the last ``holdout`` utterances, or those
+    named in the file ``holdout_list`` (one name a line; blank lines and ``#`` comments
+    skipped). ValueError naming the problem: both given, N outside [0, n - 1], an unknown
+    or repeated name, or nothing left to train on."""
+    seqs = list(sequences)
+    if holdout is not None and holdout_list is not None:
+        raise ValueError("give either holdout (a count) or holdout_list (a file), not both")
+    if holdout is not None:
+        if not isinstance(holdout, (int, np.integer)) or isinstance(holdout, bool) or not 0 <= holdout < len(seqs):
+            raise ValueError(f"holdout: expected an integer in [0, {len(seqs) - 1}] for the "
+                             f"{len(seqs)} utterances of {where}, found {holdout!r}")
+        names = [s.name for s in seqs[len(seqs) - int(holdout):]] if holdout else []
+    elif holdout_list is not None:
+        path = Path(holdout_list)
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read the hold-out list ({exc})") from exc
+        names = [ln.split("#", 1)[0].strip() for ln in lines]
+        names = [n for n in names if n]
+        known = {s.name for s in seqs}
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise ValueError(f"{path}: utterance(s) {unknown[:5]} are not in {where} "
+                             f"(its names look like {seqs[0].name!r})")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"{path}: utterance(s) {dup[:5]} listed more than once")
+        if len(names) >= len(seqs):
+            raise ValueError(f"{path}: holds out all {len(seqs)} utterances of {where}; nothing left to train on")
+    else:
+        return seqs, []
+    out = set(names)
+    return [s for s in seqs if s.name not in out], names
+
+
+def aam_offset(corpus) -> np.ndarray:
+    """What to add back to mean-removed AAM parameters before rendering: the AAM's own mean
+    parameters plus the average of the removed per-sequence means."""
+    means = [s.meta["aam_mean"] for s in corpus.sequences if "aam_mean" in s.meta]
+    Dz = corpus.sequences[0].aam.shape[1]
+    avg = np.mean(means, axis=0) if means else np.zeros(Dz)
+    return np.asarray(avg, dtype=np.float64)
