@@ -25,7 +25,7 @@ from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.files import write_json, write_npy, write_npz
 from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
-from bayes_talk.synthesis.defaults import DEFAULT_METHOD, check_method
+from bayes_talk.synthesis.defaults import DEFAULT_METHOD, INFERENCE, check_method
 from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
 from bayes_talk.uncertainty_outputs import (
     BAND_LEVELS,
@@ -46,20 +46,15 @@ SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segmen
                       "uncertainty.mp4")
 
 
-def _mean_shrinkage(res, tm) -> list[float] | None:
-    """The band calibration's per-parameter mean factors a_d applied to ``res``, or None."""
+def _calibration_factors(res, tm, attribute: str) -> list[float] | None:
+    """The band calibration's per-parameter factors ``attribute`` (``mean_scale``: the mean
+    factors a_d; ``pool_weight``: the stage-3 pool weights w_d) as applied to ``res``, or
+    None when ``res`` was not calibrated or the calibration has none."""
     bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
-    if not bc or tm.calibration is None or tm.calibration.mean_scale is None:
+    values = getattr(tm.calibration, attribute, None) if tm.calibration is not None else None
+    if not bc or values is None:
         return None
-    return [float(a) for a in tm.calibration.mean_scale]
-
-
-def _pool_weight(res, tm) -> list[float] | None:
-    """The band calibration's per-parameter pool weights w_d (stage 3) applied to ``res``, or None."""
-    bc = res.diagnostics.get("band_calibration") if isinstance(res.diagnostics, dict) else None
-    if not bc or tm.calibration is None or tm.calibration.pool_weight is None:
-        return None
-    return [float(w) for w in tm.calibration.pool_weight]
+    return [float(v) for v in values]
 
 
 def _trajectory_description(res, lowpass_hz) -> str:
@@ -183,12 +178,12 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
             # more draws help the samplers, not an approximation's k̂ (laplace, vi)
             log.warning("--posterior %s did not converge (%s): treat the mean, variance and bands as "
                         "unreliable%s", posterior, "; ".join(problems),
-                        "; raise --draws or --warmup" if posterior in ("nuts", "pg-nuts", "emcee") else "")
+                        "; raise --draws or --warmup" if "rhat_ess" in INFERENCE[posterior].diagnostics else "")
         write_json(out / names["diagnostics"], {"method": posterior, "n_draws": res.n_draws, "seed": seed,
                                                 "converged": not problems, "problems": problems,
                                                 "trajectory_holds": _trajectory_description(res, post_filter_hz),
-                                                "mean_shrinkage": _mean_shrinkage(res, tm),
-                                                "pool_weight": _pool_weight(res, tm),
+                                                "mean_shrinkage": _calibration_factors(res, tm, "mean_scale"),
+                                                "pool_weight": _calibration_factors(res, tm, "pool_weight"),
                                                 "diagnostics": res.diagnostics})
         written.update(diagnostics=out / names["diagnostics"])
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
