@@ -41,7 +41,6 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
-from bayes_talk.evaluation.sbc_power import combined_verdict
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -119,8 +118,7 @@ def main() -> None:
         t0 = time.perf_counter()
         load0 = os.getloadavg()[0]
         r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed)
-        out = r.to_dict()
-        out["verdict"] = combined_verdict(r.ranks, r.n_draws, r.p_adjusted)
+        out = r.to_dict()   # its "verdict": the combined verdict (sbc_power.combined_verdict)
         if "worst_ess_bulk_min" in r.info and method in ("nuts", "emcee"):
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])

@@ -11,8 +11,11 @@ the middle (∩), biased on one side.
 * :func:`ranks` - the rank statistic of each coordinate.
 * :func:`uniformity_test` - per coordinate, Pearson's χ² test of the rank histogram
   (B bins, B dividing L + 1 so that each bin has equal probability) against uniform,
-  p-values Holm-corrected (Holm 1979) for the K coordinates; the calibration fails when
-  any corrected p-value is below ``alpha``.
+  p-values Holm-corrected (Holm 1979) for the K coordinates (``SBCResult.passed``: no
+  corrected p-value below ``alpha``). This test alone is weak against a posterior uniformly
+  too narrow; the calibration's verdict is ``SBCResult.verdict`` (also in ``to_dict()``):
+  χ²-Holm, the pooled dispersion test and the bias test of
+  :mod:`bayes_talk.evaluation.sbc_power` at ``alpha``/3 each.
 * :func:`run_sbc` - the loop: simulate, sample, rank, for any simulator and posterior.
 * :func:`synthesis_sbc` - SBC of the whole-utterance synthesis model of a trained
   switching SGPDM (:mod:`bayes_talk.synthesis.joint`) on a given frame-label sequence:
@@ -40,6 +43,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.stats
+
+from bayes_talk.evaluation.sbc_power import combined_verdict
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingModel as SwitchingSGPDM
@@ -110,8 +115,17 @@ class SBCResult:
 
     @property
     def passed(self) -> bool:
-        """No coordinate rejects uniformity at family-wise level ``alpha``."""
+        """The χ²-Holm test alone: no coordinate rejects uniformity at family-wise level
+        ``alpha``. Weak against a uniformly too narrow posterior; :attr:`verdict` is the
+        combined test."""
         return bool(np.all(self.p_adjusted >= self.alpha))
+
+    @property
+    def verdict(self) -> dict:
+        """The combined verdict (:func:`bayes_talk.evaluation.sbc_power.combined_verdict`):
+        χ²-Holm, the pooled dispersion test and the bias test at ``alpha``/3 each;
+        ``verdict["passed"]`` is the calibration's pass/fail."""
+        return combined_verdict(self.ranks, self.n_draws, self.p_adjusted, self.alpha)
 
     @property
     def n_rejected(self) -> int:
@@ -141,8 +155,9 @@ class SBCResult:
         return np.bincount(b.ravel(), minlength=self.bins)
 
     def to_dict(self) -> dict:
-        """JSON-ready summary (the per-coordinate p-values included, not the ranks)."""
-        return {"passed": self.passed, "alpha": self.alpha, "n_sims": int(self.ranks.shape[0]),
+        """JSON-ready summary (the per-coordinate p-values included, not the ranks): ``passed``
+        is the χ²-Holm test alone, ``verdict`` the combined verdict (read ``verdict["passed"]``)."""
+        return {"verdict": self.verdict, "passed": self.passed, "alpha": self.alpha, "n_sims": int(self.ranks.shape[0]),
                 "n_coordinates": int(self.ranks.shape[1]), "n_draws": self.n_draws, "bins": self.bins,
                 "n_rejected": self.n_rejected, "min_p_adjusted": float(np.min(self.p_adjusted)),
                 "min_p": float(np.min(self.p_values)), "extreme_fraction": self.extreme_fraction,
@@ -209,7 +224,7 @@ def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
     return post
 
 
-def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior | str = "nuts", n_sims: int = 50,
+def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior | str = "nuts", n_sims: int = 200,
                   n_draws: int = 19, seed: int = 0, bins: int | None = None, alpha: float = ALPHA,
                   **sampler_kw) -> SBCResult:
     """SBC of the synthesis model of ``model`` on the frame labels ``labels`` (T frames; keep T
