@@ -54,6 +54,8 @@ class FrameFactors:
         s_vis = np.empty(len(tm.s_idx), dtype=np.int64)
         s_vis[tm.s_order] = tm.s_vis_runs.row_gp(1)
         self.smooth = {int(t): (int(p), int(v)) for t, p, v in zip(tm.s_idx, s_prev, s_vis, strict=True)}
+        # the factor's pseudo-observation u_t (joint.py, (S)): the factor observes μ_Z^{π'}(x_{t−1}) + u_t
+        self.smooth_shift = {int(t): tm.s_shift[j] for j, t in enumerate(tm.s_idx)}
 
     def log_f(self, t: int, Xprev: np.ndarray | None, X: np.ndarray) -> np.ndarray:
         """f_t(x_{t−1}^i, x_t^i) for N pairs (Xprev (N, d) or None at t = 0, X (N, d)) → (N,)."""
@@ -69,7 +71,7 @@ class FrameFactors:
         if t in self.smooth:
             gp, gv = self.smooth[t]
             zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
-            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp, X, tm.motion_var)
+            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp + self.smooth_shift[t], X, tm.motion_var)
             out += ll
         return out
 
@@ -158,6 +160,7 @@ class MixtureProposal:
             return lw
         gp, _ = self.ff.smooth[t]
         zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
+        zp = zp + self.ff.smooth_shift[t]
         mu, var = self.smooth_pred[t]
         r = zp[:, None, :] - mu[None]
         ls = -0.5 * (np.log(var)[None] + r * r / var[None]).sum(-1)
