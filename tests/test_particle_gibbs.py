@@ -78,10 +78,11 @@ class _AR1:
         return cov @ (self.y / r**2), np.diag(cov)
 
 
-@pytest.mark.parametrize("broken", [False, True])
-def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken):
-    """Mean and variance of every coordinate within 5 Monte-Carlo s.e. of the exact posterior;
-    a deliberately broken kernel (the reference particle's weight ignored: not invariant) fails."""
+@pytest.mark.parametrize(("broken", "backward"), [(False, False), (True, False), (False, True)])
+def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken, backward):
+    """Mean and variance of every coordinate within 5 Monte-Carlo s.e. of the exact posterior,
+    with ancestor sampling and with backward simulation; a deliberately broken kernel (the
+    reference particle's weight ignored: not invariant) fails."""
     y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
     m = _AR1(y)
     mean, var = m.exact()
@@ -93,7 +94,7 @@ def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken):
             x_new, _ = csmc_as(m, m, x, 2, rng)
             x = x_new if np.any(x_new != x) else x + 0.3
         else:
-            x, _ = csmc_as(m, m, x, 8, rng)
+            x, _ = csmc_as(m, m, x, 8, rng, backward=backward)
         if it >= 200:
             draws.append(x[:, 0].copy())
     D = np.array(draws)

@@ -211,34 +211,50 @@ class MixtureProposal:
         return X, np.logaddexp(np.log(rho) + lp, np.log1p(-rho) + lk)
 
 
-def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng: np.random.Generator):
-    """One conditional SMC sweep with ancestor sampling (module docstring): a new path (T, d)
-    given the reference path ``x_ref``, and the fraction of frames whose value changed."""
+def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng: np.random.Generator,
+            backward: bool = False):
+    """One conditional SMC sweep (module docstring): a new path (T, d) given the reference path
+    ``x_ref``, and the fraction of frames whose value changed. ``backward=False``: ancestor
+    sampling (Lindsten, Jordan & Schön 2014, Alg. 2); ``True``: the reference keeps its own
+    ancestry in the forward pass and the path is drawn by backward simulation instead
+    (Whiteley 2010; Lindsten & Schön 2013, "Backward simulation methods for Monte Carlo
+    statistical inference", §5.4): x_{T−1} ∝ W_{T−1}, then x_t = P_t^j with
+    probability ∝ W_t^j exp f_{t+1}(P_t^j, x_{t+1}) — both leave p(X | Ŷ) invariant."""
     T, d = ff.T, ff.d
     P = np.empty((T, N, d))
     A = np.zeros((T, N), dtype=np.int64)
+    LW = np.empty((T, N))
     X, lq = q.sample_logq(0, None, N, rng)
     X[-1] = x_ref[0]
     lq[-1] = q.sample_logq(0, None, 1, rng, X[-1:])[1][0]
     P[0] = X
     logw = ff.log_f(0, None, X) - lq
+    LW[0] = logw
     for t in range(1, T):
         W = np.exp(logw - logsumexp(logw))
         a = rng.choice(N, size=N, p=W)
-        # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
-        la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
-        a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
+        if backward:
+            a[-1] = N - 1
+        else:   # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
+            la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
+            a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
         Xprev = P[t - 1][a]
         X, lq = q.sample_logq(t, Xprev, N, rng)
         X[-1] = x_ref[t]
         lq[-1] = q.sample_logq(t, Xprev[-1:], 1, rng, X[-1:])[1][0]
         P[t], A[t] = X, a
         logw = ff.log_f(t, Xprev, X) - lq
+        LW[t] = logw
     k = rng.choice(N, p=np.exp(logw - logsumexp(logw)))
     out = np.empty((T, d))
-    for t in range(T - 1, -1, -1):
+    out[T - 1] = P[T - 1, k]
+    for t in range(T - 2, -1, -1):
+        if backward:
+            lb = LW[t] + ff.log_f(t + 1, P[t], np.repeat(out[t + 1][None], N, 0))
+            k = rng.choice(N, p=np.exp(lb - logsumexp(lb)))
+        else:
+            k = A[t + 1, k]
         out[t] = P[t, k]
-        k = A[t, k]
     return out, float(np.mean(np.any(out != x_ref, axis=1)))
 
 
@@ -250,14 +266,15 @@ class ParticleGibbsMove:
     (particle Gibbs ∘ NUTS)."""
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
-                 h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None):
+                 h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
+                 backward: bool = False):
         self.ff = FrameFactors(dens)
         self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
-        self.to_x, self.to_u, self.n = to_x, to_u, int(n_particles)
+        self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
-        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng)
+        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
         return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
 
 
