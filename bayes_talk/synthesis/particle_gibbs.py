@@ -258,23 +258,69 @@ def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng
     return out, float(np.mean(np.any(out != x_ref, axis=1)))
 
 
+def frame_mtm(ff: FrameFactors, q: MixtureProposal, x: np.ndarray, frames, K: int, rng: np.random.Generator,
+              _broken: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Multiple-try Metropolis updates of single frames given their neighbours (Liu, Liang &
+    Wong 2000, with independent proposals): for each t in ``frames`` in turn, the full
+    conditional π_t(x_t) ∝ exp(f_t(x_{t−1}, x_t) + f_{t+1}(x_t, x_{t+1})) of (1) (the density is
+    Markov), K tries y_k ~ q_t(· | x_{t−1}) — independent of x_t, so the move is an
+    independence MTM — w_k = π_t(y_k)/q_t(y_k), y = y_J with probability ∝ w_J, accepted with
+    probability min(1, Σ_k w_k / (Σ_k w_k − w_J + w(x_t))). Each update leaves π_t, hence
+    p(X | Ŷ), invariant. Returns the new path and, per frame of ``frames``, whether it moved.
+    (``_broken``: accept always — not invariant; the tests' control.)"""
+    x = np.array(x, dtype=np.float64, copy=True)
+    T = ff.T
+    moved = np.zeros(len(frames), dtype=bool)
+    for i, t in enumerate(frames):
+        prev = None if t == 0 else np.repeat(x[t - 1][None], K + 1, 0)
+        Y, lq = q.sample_logq(t, None if prev is None else prev[:K], K, rng)
+        _, lq_x = q.sample_logq(t, None if prev is None else prev[:1], 1, rng, x[t][None])
+        C = np.vstack([Y, x[t][None]])                                   # the K tries and the current value
+        lw = ff.log_f(t, prev, C)
+        if t + 1 < T:
+            lw = lw + ff.log_f(t + 1, C, np.repeat(x[t + 1][None], K + 1, 0))
+        lw = lw - np.concatenate([lq, lq_x])
+        j = rng.choice(K, p=np.exp(lw[:K] - logsumexp(lw[:K])))
+        s_y = logsumexp(lw[:K])
+        s_x = logsumexp(np.concatenate([np.delete(lw[:K], j), lw[K:]]))
+        if _broken or np.log(rng.random()) < s_y - s_x:
+            x[t] = Y[j]
+            moved[i] = True
+    return x, moved
+
+
+def isolated_frames(ff: FrameFactors) -> list[int]:
+    """Frames with no dynamics factor into them or out of them (one-frame blocks of a state
+    model without dynamics, coupled to their neighbours by smoothness factors only): the
+    frames whose full conditional :func:`frame_mtm` samples well (inside a dynamics run the
+    noise 10⁻⁶ pins a frame to its neighbours)."""
+    return [t for t in range(ff.T) if t not in ff.dyn_gp and t + 1 not in ff.dyn_gp]
+
+
 class ParticleGibbsMove:
     """One CSMC-AS sweep as a move in a sampler's coordinates u: x = to_x(u), the sweep, u' = to_u(x')
     (``to_x``/``to_u`` a bijection, e.g. the whitening or the non-centred map). The sweep leaves
     p(x | Ŷ) invariant, so the move leaves the sampler's target (p pushed through the bijection)
     invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
-    (particle Gibbs ∘ NUTS)."""
+    (particle Gibbs ∘ NUTS). ``frame_tries`` = K > 0: after the sweep, a multiple-try
+    Metropolis update (:func:`frame_mtm`, K tries) of every isolated frame
+    (:func:`isolated_frames`) — also invariant, so the composition is."""
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                  h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
-                 backward: bool = False):
+                 backward: bool = False, frame_tries: int = 0):
         self.ff = FrameFactors(dens)
         self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
+        self.frame_tries = int(frame_tries)
+        self.frames = isolated_frames(self.ff) if self.frame_tries > 0 else []
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
         x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
+        if self.frames:
+            x_new, m = frame_mtm(self.ff, self.q, x_new, self.frames, self.frame_tries, rng)
+            moved = moved + float(m.any())
         return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
 
 
@@ -304,4 +350,5 @@ def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws
             "seconds": time.perf_counter() - t0}
 
 
-__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "run_particle_gibbs"]
+__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "frame_mtm", "isolated_frames",
+           "run_particle_gibbs"]
