@@ -56,6 +56,12 @@ def main() -> None:
                     help="weigh the proposal's centres at a dynamics run's first frame by the run's audio (coords pg)")
     ap.add_argument("--pg-map-centre", action="store_true",
                     help="add the joint MAP's latent of each frame to the proposal's centres (coords pg)")
+    ap.add_argument("--pg-backward", action="store_true", help="backward simulation instead of ancestor sampling (pg-nuts)")
+    ap.add_argument("--pg-frame-tries", type=int, default=None,
+                    help="K-try Metropolis updates of isolated frames after each sweep (pg-nuts)")
+    ap.add_argument("--pg-every", type=int, default=None, help="a particle Gibbs sweep after every k-th iteration (pg-nuts)")
+    ap.add_argument("--save-draws", type=Path, default=None,
+                    help="write the latent draws (chains, draws, T, d) and the lp per draw to this .npz (for analysis)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "noncentred_toy78.json")
     args = ap.parse_args()
     model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
@@ -75,6 +81,12 @@ def main() -> None:
         t0 = time.perf_counter()
         method = "pg-nuts" if coords == "pg-nuts" else "nuts"   # pg-nuts: its own defaults (non-centred)
         skw = {"pg_particles": args.pg_particles} if method == "pg-nuts" else {"coords": coords}
+        if args.pg_every is not None and method == "pg-nuts":
+            skw["pg_every"] = args.pg_every
+        if args.pg_frame_tries is not None and method == "pg-nuts":
+            skw["pg_frame_tries"] = args.pg_frame_tries
+        if args.pg_backward and method == "pg-nuts":
+            skw["pg_backward"] = True
         if args.workers:
             skw["workers"] = args.workers
         r = sample_synthesis(model, mfcc, labels, method=method, seed=args.seed, sampler_kw=skw, log_warnings=False,
@@ -89,7 +101,12 @@ def main() -> None:
             **{k: d.get(k) for k in ("divergences", "ebfmi_min", "step_size", "n_steps_mean", "tree_depth_mean",
                                      "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
                                      "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
-                                     "pg_h", "pg_mode_centres", "pg_particles")}}
+                                     "pg_h", "pg_mode_centres", "pg_particles", "pg_every", "pg_backward", "pg_frame_tries")},
+            # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
+            "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
+            "lp_mean_per_chain": np.asarray(r.sample_stats["lp"]).mean(1).tolist() if "lp" in r.sample_stats else None}
+        if args.save_draws:
+            np.savez(args.save_draws, latents=r.latent_draws, lp=np.asarray(r.sample_stats.get("lp", np.nan)))
         print(coords, json.dumps(res["runs"][coords]), flush=True)
         _write(res, args.out)
 

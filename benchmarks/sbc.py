@@ -3,12 +3,13 @@
 For a trained switching model and a short stretch of frame labels (``--frames`` frames
 from ``--start`` of one utterance's labels), ``bayes_talk.evaluation.sbc.synthesis_sbc``
 simulates ``--sims`` latent trajectories and audio from the synthesis model
-(``pyro.infer.Predictive``, smoothness factors off), runs each sampler on every simulated
-audio, ranks the true latents among ``--rank-draws`` thinned posterior draws, and tests
+(``pyro.infer.Predictive``; with ``--smoothness frame``, the default, also the smoothness
+factors' pseudo-observations u, on which the samplers then condition:
+bayes_talk/synthesis/joint.py, (S)), runs each sampler on every simulated audio, ranks the true latents among ``--rank-draws`` thinned posterior draws, and tests
 rank uniformity per latent coordinate (χ², Holm-corrected, family-wise α = 0.05).
 
-Samplers: ``nuts`` (``--nuts-chains`` chains, ``--nuts-warmup`` warm-up, ``--nuts-draws``
-draws per chain), ``laplace`` (200 draws), ``emcee`` (library defaults), and the controls
+Samplers: ``nuts`` and ``pg-nuts`` (``--nuts-chains`` chains, ``--nuts-warmup`` warm-up,
+``--nuts-draws`` draws per chain; ``pg-nuts`` with ``PG_NUTS_DEFAULTS``), ``laplace`` (200 draws), ``emcee`` (library defaults), and the controls
 ``laplace-halved`` (Laplace with its covariance halved) and ``laplace-0.85sd`` (Laplace with
 its spread 0.85×, i.e. covariance × 0.7225: the positive control of issue 24, which SBC must
 reject). Besides the χ²-Holm verdict (``passed``), every sampler gets the combined verdict of
@@ -20,6 +21,7 @@ draws are thinned evenly from the pooled chains; Talts et al. §4.1). Power of t
 
     PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
         [--start 10] [--frames 4] [--sims 200] [--nuts-sims N] [--emcee-sims N] [--rank-draws 19]
+        [--smoothness frame|off]
         [--methods nuts,laplace,laplace-halved,laplace-0.85sd,emcee] [--out benchmarks/results/sbc.json]
 
 Without ``--model``: a toy switching model (tests/toydata.py, the test configuration) and
@@ -41,7 +43,6 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
-from bayes_talk.evaluation.sbc_power import combined_verdict
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -74,7 +75,9 @@ def main() -> None:
     ap.add_argument("--start", type=int, default=10)
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--sims", type=int, default=200)
-    ap.add_argument("--nuts-sims", type=int, default=None, help="simulations for NUTS (default --sims)")
+    ap.add_argument("--nuts-sims", type=int, default=None, help="simulations for NUTS and pg-nuts (default --sims)")
+    ap.add_argument("--smoothness", choices=("frame", "off"), default="frame",
+                    help="smoothness factors on (simulated as pseudo-observations) or off")
     ap.add_argument("--emcee-sims", type=int, default=None, help="simulations for emcee (default --sims)")
     ap.add_argument("--rank-draws", type=int, default=19)
     ap.add_argument("--nuts-chains", type=int, default=2)
@@ -106,6 +109,8 @@ def main() -> None:
     posteriors = {
         "nuts": lambda: sampler_posterior("nuts", n_draws=args.nuts_chains * args.nuts_draws, chains=args.nuts_chains,
                                           warmup=args.nuts_warmup),
+        "pg-nuts": lambda: sampler_posterior("pg-nuts", n_draws=args.nuts_chains * args.nuts_draws,
+                                             chains=args.nuts_chains, warmup=args.nuts_warmup),
         "laplace": lambda: sampler_posterior("laplace", n_draws=200),
         "laplace-halved": lambda: scaled_laplace(0.5, n_draws=200),
         "laplace-0.85sd": lambda: scaled_laplace(0.85 ** 2, n_draws=200),
@@ -114,14 +119,14 @@ def main() -> None:
     for method in args.methods.split(","):
         if method not in posteriors:
             raise SystemExit(f"unknown method {method!r}; choose from {sorted(posteriors)}")
-        n = {"nuts": args.nuts_sims, "emcee": args.emcee_sims}.get(method) or args.sims
+        n = {"nuts": args.nuts_sims, "pg-nuts": args.nuts_sims, "emcee": args.emcee_sims}.get(method) or args.sims
         print(f"{method}: {n} simulations ...", flush=True)
         t0 = time.perf_counter()
         load0 = os.getloadavg()[0]
-        r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed)
-        out = r.to_dict()
-        out["verdict"] = combined_verdict(r.ranks, r.n_draws, r.p_adjusted)
-        if "worst_ess_bulk_min" in r.info and method in ("nuts", "emcee"):
+        r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed,
+                          smoothness=args.smoothness)
+        out = r.to_dict()   # its "verdict": the combined verdict (sbc_power.combined_verdict)
+        if "worst_ess_bulk_min" in r.info and method in ("nuts", "pg-nuts", "emcee"):
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
         res["samplers"][method] = out

@@ -14,6 +14,8 @@ from bayes_talk.synthesis.particle_gibbs import (
     FrameFactors,
     MixtureProposal,
     csmc_as,
+    frame_mtm,
+    isolated_frames,
     run_particle_gibbs,
 )
 from bayes_talk.synthesis.posterior import sample_synthesis
@@ -78,10 +80,11 @@ class _AR1:
         return cov @ (self.y / r**2), np.diag(cov)
 
 
-@pytest.mark.parametrize("broken", [False, True])
-def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken):
-    """Mean and variance of every coordinate within 5 Monte-Carlo s.e. of the exact posterior;
-    a deliberately broken kernel (the reference particle's weight ignored: not invariant) fails."""
+@pytest.mark.parametrize(("broken", "backward"), [(False, False), (True, False), (False, True)])
+def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken, backward):
+    """Mean and variance of every coordinate within 5 Monte-Carlo s.e. of the exact posterior,
+    with ancestor sampling and with backward simulation; a deliberately broken kernel (the
+    reference particle's weight ignored: not invariant) fails."""
     y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
     m = _AR1(y)
     mean, var = m.exact()
@@ -93,7 +96,7 @@ def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken):
             x_new, _ = csmc_as(m, m, x, 2, rng)
             x = x_new if np.any(x_new != x) else x + 0.3
         else:
-            x, _ = csmc_as(m, m, x, 8, rng)
+            x, _ = csmc_as(m, m, x, 8, rng, backward=backward)
         if it >= 200:
             draws.append(x[:, 0].copy())
     D = np.array(draws)
@@ -102,6 +105,45 @@ def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken):
     se = B.std(0, ddof=1) / np.sqrt(len(B))
     ok = np.all(np.abs(D.mean(0) - mean) < 5 * se) and np.all(np.abs(D.var(0) / var - 1) < 0.15)
     assert ok != broken, (D.mean(0), mean, D.var(0), var)
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_frame_mtm_leaves_a_known_posterior_invariant(broken):
+    """Multiple-try Metropolis updates of every frame of the AR(1) chain given its neighbours
+    (bootstrap tries) keep the exact posterior's means and variances (5 Monte-Carlo s.e.,
+    15 %); accepting every selected try (no Metropolis test) does not."""
+    y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
+    m = _AR1(y)
+    mean, var = m.exact()
+    rng = np.random.default_rng(2)
+    x = np.zeros((m.T, 1))
+    draws = []
+    for it in range(3000):
+        x, moved = frame_mtm(m, m, x, list(range(m.T)), 4, rng, _broken=broken)
+        assert moved.shape == (m.T,)
+        if it >= 200:
+            draws.append(x[:, 0].copy())
+    D = np.array(draws)
+    B = D.reshape(28, -1, m.T).mean(1)
+    se = B.std(0, ddof=1) / np.sqrt(len(B))
+    ok = np.all(np.abs(D.mean(0) - mean) < 5 * se) and np.all(np.abs(D.var(0) / var - 1) < 0.15)
+    assert ok != broken, (D.mean(0), mean, D.var(0), var)
+
+
+def test_isolated_frames_are_those_without_dynamics_on_either_side(toy):
+    model, u = toy
+    plan = make_plan(model, u.mfcc, u.labels)
+    ff = FrameFactors(UtteranceDensity(plan))
+    iso = isolated_frames(ff)
+    assert iso and len(iso) < ff.T
+    for b in plan.blocks:   # every frame of a block without dynamics; of a block with, none unless alone
+        frames = set(range(b.start, b.stop))
+        nxt = next((c for c in plan.blocks if c.start == b.stop), None)
+        into_next = nxt is not None and nxt.linked
+        if b.model.dynamics_predictor_ is None:
+            assert frames <= set(iso)
+        elif b.stop - b.start > 1 or b.linked or into_next:
+            assert not frames & set(iso), (b.start, b.stop)
 
 
 def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_rate(toy):

@@ -3,6 +3,9 @@ posterior and fails for a deliberately wrong one; prior/posterior predictive che
 pyro.infer.Predictive on the synthesis model."""
 from __future__ import annotations
 
+import inspect
+import json
+
 import numpy as np
 import pytest
 from toydata import make_utterances
@@ -17,6 +20,7 @@ from bayes_talk.evaluation.sbc import (
     synthesis_sbc,
     uniformity_test,
 )
+from bayes_talk.evaluation.sbc_power import combined_verdict
 from bayes_talk.synthesis.joint import make_plan
 from bayes_talk.synthesis.posterior import sample_synthesis
 from bayes_talk.synthesis.predictive_checks import (
@@ -69,6 +73,23 @@ def test_sbc_fails_for_a_wrong_posterior_variance(scale):
     assert not res.passed and res.n_rejected == K, res.to_dict()
     # too narrow: the truth falls at the extremes; too wide: in the middle
     assert (res.extreme_fraction > 2 * res.extreme_expected) == (scale < 1)
+
+
+def test_to_dict_reports_the_combined_verdict_which_rejects_a_0_85_spread_that_chi2_misses():
+    # 200 simulations, 4 coordinates: the χ²-Holm test alone passes a posterior with 0.85× the
+    # true spread (this seed); the pooled dispersion test of the combined verdict rejects it
+    bad = run_sbc(_simulate, _posterior(0.85 ** 2), n_sims=200, n_draws=19, seed=0)
+    d = bad.to_dict()
+    assert d["passed"] and not d["verdict"]["passed"], d["verdict"]
+    assert d["verdict"]["rejected"]["dispersion"] and d["verdict"]["dispersion_t"] > 0
+    assert d["verdict"] == combined_verdict(bad.ranks, 19, bad.p_adjusted)
+    ok = run_sbc(_simulate, _posterior(1.0), n_sims=200, n_draws=19, seed=0).to_dict()
+    assert ok["verdict"]["passed"], ok["verdict"]
+    json.dumps(d)   # JSON-ready
+
+
+def test_synthesis_sbc_defaults_to_200_simulations():
+    assert inspect.signature(synthesis_sbc).parameters["n_sims"].default == 200
 
 
 def test_uniformity_test_rejects_unequal_bins():

@@ -11,19 +11,23 @@ the middle (∩), biased on one side.
 * :func:`ranks` - the rank statistic of each coordinate.
 * :func:`uniformity_test` - per coordinate, Pearson's χ² test of the rank histogram
   (B bins, B dividing L + 1 so that each bin has equal probability) against uniform,
-  p-values Holm-corrected (Holm 1979) for the K coordinates; the calibration fails when
-  any corrected p-value is below ``alpha``.
+  p-values Holm-corrected (Holm 1979) for the K coordinates (``SBCResult.passed``: no
+  corrected p-value below ``alpha``). This test alone is weak against a posterior uniformly
+  too narrow; the calibration's verdict is ``SBCResult.verdict`` (also in ``to_dict()``):
+  χ²-Holm, the pooled dispersion test and the bias test of
+  :mod:`bayes_talk.evaluation.sbc_power` at ``alpha``/3 each.
 * :func:`run_sbc` - the loop: simulate, sample, rank, for any simulator and posterior.
 * :func:`synthesis_sbc` - SBC of the whole-utterance synthesis model of a trained
   switching SGPDM (:mod:`bayes_talk.synthesis.joint`) on a given frame-label sequence:
   latent trajectories and audio simulated with ``pyro.infer.Predictive`` on
   ``synthesis_model`` (:func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`),
   each simulated audio given to :func:`~bayes_talk.synthesis.posterior.sample_synthesis`
-  (``method`` = ``nuts``, ``laplace`` or ``emcee``), ranks over the T·d latent
-  coordinates. Smoothness factors are off (``smoothness="off"``): they are
-  ``pyro.factor`` sites that shape the posterior but are not simulated, so with them on
-  the posterior would not be that of the simulating model and SBC would fail for that
-  reason alone.
+  (any method), ranks over the T·d latent coordinates. With smoothness on (the default,
+  as in synthesis) each smoothness factor is the density at u = 0 of a pseudo-observation
+  u | X (:mod:`bayes_talk.synthesis.joint`, (S)); the simulation draws (X, audio, u) from
+  that joint, and the sampler targets p(X | audio, u) (``sample_synthesis(...,
+  smooth_shift=u)``), the synthesis density with the simulated u in place of 0. (Before,
+  the factors were not simulated and SBC ran with smoothness off.)
 * :func:`scaled_laplace` - a deliberately wrong posterior: Laplace draws shrunk towards the
   MAP so that the variance is ``scale`` times Laplace's (0.5 in the tests) - the control
   that SBC must reject.
@@ -40,6 +44,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.stats
+
+from bayes_talk.evaluation.sbc_power import combined_verdict
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingModel as SwitchingSGPDM
@@ -110,8 +116,17 @@ class SBCResult:
 
     @property
     def passed(self) -> bool:
-        """No coordinate rejects uniformity at family-wise level ``alpha``."""
+        """The χ²-Holm test alone: no coordinate rejects uniformity at family-wise level
+        ``alpha``. Weak against a uniformly too narrow posterior; :attr:`verdict` is the
+        combined test."""
         return bool(np.all(self.p_adjusted >= self.alpha))
+
+    @property
+    def verdict(self) -> dict:
+        """The combined verdict (:func:`bayes_talk.evaluation.sbc_power.combined_verdict`):
+        χ²-Holm, the pooled dispersion test and the bias test at ``alpha``/3 each;
+        ``verdict["passed"]`` is the calibration's pass/fail."""
+        return combined_verdict(self.ranks, self.n_draws, self.p_adjusted, self.alpha)
 
     @property
     def n_rejected(self) -> int:
@@ -141,8 +156,9 @@ class SBCResult:
         return np.bincount(b.ravel(), minlength=self.bins)
 
     def to_dict(self) -> dict:
-        """JSON-ready summary (the per-coordinate p-values included, not the ranks)."""
-        return {"passed": self.passed, "alpha": self.alpha, "n_sims": int(self.ranks.shape[0]),
+        """JSON-ready summary (the per-coordinate p-values included, not the ranks): ``passed``
+        is the χ²-Holm test alone, ``verdict`` the combined verdict (read ``verdict["passed"]``)."""
+        return {"verdict": self.verdict, "passed": self.passed, "alpha": self.alpha, "n_sims": int(self.ranks.shape[0]),
                 "n_coordinates": int(self.ranks.shape[1]), "n_draws": self.n_draws, "bins": self.bins,
                 "n_rejected": self.n_rejected, "min_p_adjusted": float(np.min(self.p_adjusted)),
                 "min_p": float(np.min(self.p_values)), "extreme_fraction": self.extreme_fraction,
@@ -176,19 +192,25 @@ def run_sbc(simulate: Callable[[np.random.Generator], tuple[np.ndarray, object]]
     return SBCResult(r, n_draws, p, padj, B, alpha)
 
 
-SynthesisPosterior = Callable[["SwitchingSGPDM", np.ndarray, list, int], tuple[np.ndarray, dict]]
+SynthesisPosterior = Callable[..., tuple[np.ndarray, dict]]
+
+
+def _smooth_kw(smooth_shift: np.ndarray | None) -> dict:
+    """sample_synthesis keywords: smoothness off (None), or on with the pseudo-observations u."""
+    return {"smoothness": "off"} if smooth_shift is None else {"smoothness": "frame", "smooth_shift": smooth_shift}
 
 
 def sampler_posterior(method: str, n_draws: int | None = None, **kw) -> SynthesisPosterior:
-    """A posterior for :func:`synthesis_sbc`: ``sample_synthesis(method=...)`` with
-    smoothness off, on the simulated audio as the audio view it is (``audio_view=True``:
-    with ``audio_context`` > 0 it must not be spliced and projected again); returns (pooled
-    latent draws (M, T·d), diagnostics)."""
+    """A posterior for :func:`synthesis_sbc`: ``sample_synthesis(method=...)`` on the
+    simulated audio as the audio view it is (``audio_view=True``: with ``audio_context`` > 0
+    it must not be spliced and projected again), smoothness off when ``smooth_shift`` is None
+    and on with the simulated pseudo-observations u otherwise; returns (pooled latent draws
+    (M, T·d), diagnostics)."""
     from bayes_talk.synthesis.posterior import sample_synthesis
 
-    def post(model, audio, labels, seed):
-        r = sample_synthesis(model, audio, labels, method=method, n_draws=n_draws, seed=seed, smoothness="off",
-                             log_warnings=False, audio_view=True, **kw)
+    def post(model, audio, labels, seed, smooth_shift=None):
+        r = sample_synthesis(model, audio, labels, method=method, n_draws=n_draws, seed=seed, log_warnings=False,
+                             audio_view=True, **_smooth_kw(smooth_shift), **kw)
         return r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1]), r.diagnostics
 
     return post
@@ -199,9 +221,9 @@ def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
     multiplied by ``scale`` (a deliberately wrong posterior for ``scale`` ≠ 1)."""
     from bayes_talk.synthesis.posterior import sample_synthesis
 
-    def post(model, audio, labels, seed):
-        r = sample_synthesis(model, audio, labels, method="laplace", n_draws=n_draws, seed=seed, smoothness="off",
-                             log_warnings=False, audio_view=True)
+    def post(model, audio, labels, seed, smooth_shift=None):
+        r = sample_synthesis(model, audio, labels, method="laplace", n_draws=n_draws, seed=seed,
+                             log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift))
         X = r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1])
         x_map = r.map_latents.reshape(-1)
         return x_map + np.sqrt(scale) * (X - x_map), r.diagnostics
@@ -209,15 +231,18 @@ def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
     return post
 
 
-def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior | str = "nuts", n_sims: int = 50,
+def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior | str = "nuts", n_sims: int = 200,
                   n_draws: int = 19, seed: int = 0, bins: int | None = None, alpha: float = ALPHA,
-                  **sampler_kw) -> SBCResult:
+                  smoothness: str = "frame", **sampler_kw) -> SBCResult:
     """SBC of the synthesis model of ``model`` on the frame labels ``labels`` (T frames; keep T
     small: every simulation runs the sampler once). ``posterior``: a method name for
     :func:`sampler_posterior` (with ``sampler_kw``) or a callable
-    (model, audio, labels, seed) -> (draws (M, T·d), diagnostics), ``audio`` (T, D_y) being
-    the model's audio *view* (``model.audio_input`` of MFCCs; what the synthesis model
-    simulates), to be passed on with ``audio_view=True``. ``n_draws`` (L): draws
+    (model, audio, labels, seed, smooth_shift) -> (draws (M, T·d), diagnostics), ``audio``
+    (T, D_y) being the model's audio *view* (``model.audio_input`` of MFCCs; what the
+    synthesis model simulates), to be passed on with ``audio_view=True``, and
+    ``smooth_shift`` the simulated pseudo-observations u (T, D_z) of the smoothness factors
+    (None with ``smoothness="off"``), to be passed on as ``sample_synthesis(...,
+    smoothness="frame", smooth_shift=u)``. ``n_draws`` (L): draws
     ranked per simulation, after thinning. ``info`` records the sampler diagnostics
     (worst R-hat, smallest bulk ESS, k̂, divergences over the simulations) and seconds."""
     import time
@@ -227,9 +252,10 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
 
     labels = list(labels)
     post = sampler_posterior(posterior, **sampler_kw) if isinstance(posterior, str) else posterior
-    # the plan's audio is a placeholder: the prior predictive simulates it
-    plan = make_plan(model, np.zeros((len(labels), model.dims_[0])), labels, smoothness="off")
-    X, audio = prior_predictive(plan, n_sims, seed)
+    # the plan's audio is a placeholder: the prior predictive simulates it (and u)
+    plan = make_plan(model, np.zeros((len(labels), model.dims_[0])), labels, smoothness=smoothness)
+    X, audio, U = prior_predictive(plan, n_sims, seed, with_smoothness=True)
+    smooth_on = any(b.smooth for b in plan.blocks)
     diags: list[dict] = []
     it = iter(range(n_sims))
     t0 = time.perf_counter()
@@ -240,14 +266,15 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
 
     def sample(y, s):
         i, a = y
-        draws, diag = post(model, a, labels, seed + 1000 + i)
+        draws, diag = post(model, a, labels, seed + 1000 + i, U[i] if smooth_on else None)
         diags.append(diag)
         return draws
 
     res = run_sbc(simulate, sample, n_sims, n_draws, seed, bins, alpha)
     res.info.update(_summarise(diags))
     res.info.update(seconds=time.perf_counter() - t0, n_frames=plan.n_frames, latent_dim=plan.latent_dim,
-                    n_blocks=len(plan.blocks), method=posterior if isinstance(posterior, str) else "custom")
+                    n_blocks=len(plan.blocks), method=posterior if isinstance(posterior, str) else "custom",
+                    smoothness=smoothness, n_smoothness_factors=sum(b.smooth for b in plan.blocks))
     return res
 
 

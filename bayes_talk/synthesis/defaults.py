@@ -27,9 +27,11 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: of bandwidths ``pg_h`` around the training latents and, with ``pg_mode_centres``, around the
 #: joint MAP and its restarts' modes, weighted with ``pg_lookahead`` by the audio of a dynamics
 #: run's continuation (short toy runs: frames never updated 5 → 0 only with both;
-#: docs/uncertainty.md "The proposal at the modes")
+#: docs/uncertainty.md "The proposal at the modes"); ``pg_backward``: backward simulation
+#: instead of ancestor sampling (off); ``pg_frame_tries`` = K > 0: after each sweep a K-try
+#: Metropolis update of every frame without dynamics on either side (0: off)
 PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
-                    "pg_mode_centres": True}
+                    "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 0}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}

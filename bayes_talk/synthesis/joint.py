@@ -23,6 +23,18 @@ back-off to the longest suffix with a model):
   previous one: s = N(μ_Z^{π'}(x_{a−1}); μ_Z^π(x_a), σ²_Z^π(x_a)/w² + s²_Δ), π' the previous
   block's model, s²_Δ the mean square frame-to-frame motion of the training visual features.
 
+**The smoothness factor as a pseudo-observation.** s is the density at u_a = 0 of
+
+    u_a | X ~ N(μ_Z^π(x_a) − μ_Z^{π'}(x_{a−1}), σ²_Z^π(x_a)/w² + s²_Δ)                    (S)
+
+(the jump between the new block's visual frame, drawn from its visual predictive plus the
+frame-to-frame motion, and the previous block's last mean frame), since
+N(0; μ − μ', V) = N(μ'; μ, V). So the product is p(X | Ŷ, u = 0) of the generative model
+X ~ entries and dynamics, Ŷ | X ~ audio predictives, u | X ~ (S): the latents' prior has no
+smoothness term and can be simulated ancestrally, and simulation-based calibration with
+smoothness on simulates (X, Ŷ, u) and samples p(X | Ŷ, u) (``UtterancePlan.smooth_shift`` = u;
+zero, the product of the papers, by default).
+
 Relation to deena2010's Algorithm 1: Algorithm 1 maximises this density one block at a
 time, left to right, each block given the previous block's result (so it ignores a
 block's effect on the next one's smoothness factor), and it puts the entry density on
@@ -110,6 +122,9 @@ class UtterancePlan:
     latent_dim: int
     segments: list[Segment]
     visual_offset: np.ndarray | None = None  # (T, D_z)
+    #: the pseudo-observations u_a of the smoothness factors (module docstring, (S)), row a
+    #: for a block starting at a with a factor, other rows unused; None: u = 0 (the product)
+    smooth_shift: np.ndarray | None = None  # (T, D_z)
 
     @property
     def n_frames(self) -> int:
@@ -123,14 +138,16 @@ class UtterancePlan:
 
 
 def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str = "frame",
-              audio_view: bool = False) -> UtterancePlan:
+              audio_view: bool = False, smooth_shift: np.ndarray | None = None) -> UtterancePlan:
     """Segment ``labels`` with the model's states and assemble the blocks of the density.
 
     ``mfcc`` is the utterance's MFCCs (T, D_y), turned into the audio view the state models
     explain by ``model.audio_input`` (the identity, or the context window of
     :mod:`bayes_talk.features.audio_context`); with ``audio_view=True`` it is that view
     already (``plan.audio`` of another plan, audio simulated by
-    :func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`) and is used as it is."""
+    :func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`) and is used as it is.
+    ``smooth_shift`` (T, D_z): the smoothness factors' pseudo-observations u (module
+    docstring (S); simulated ones in simulation-based calibration); None: u = 0."""
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
     segments = model.segment(list(labels))
@@ -144,8 +161,14 @@ def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str =
                             np.asarray(cov, np.float64), linked, smooth))
     audio = np.asarray(mfcc, dtype=np.float64) if audio_view else model.audio_input(mfcc, labels)
     offset = model.visual_offset(audio) if model.config.context_mean else None
-    return UtterancePlan(blocks, audio, np.asarray(model.motion_var_, np.float64),
-                         int(model.config.latent_dim), segments, offset)
+    motion_var = np.asarray(model.motion_var_, np.float64)
+    if smooth_shift is not None:
+        smooth_shift = np.asarray(smooth_shift, dtype=np.float64)
+        want = (audio.shape[0], motion_var.shape[0])
+        if smooth_shift.shape != want or not np.all(np.isfinite(smooth_shift)):
+            raise ValueError(f"smooth_shift: expected finite values of shape (frames, visual dims) = {want}, "
+                             f"got shape {smooth_shift.shape}")
+    return UtterancePlan(blocks, audio, motion_var, int(model.config.latent_dim), segments, offset, smooth_shift)
 
 
 # ------------------------------------------------------------------------------ Pyro program
@@ -206,17 +229,19 @@ def _obs_dist(pred, X: torch.Tensor) -> dist.Distribution:
     return dist.Normal(mu, (pred.dim_var(var)).sqrt()).to_event(2)
 
 
-def _smooth_factor(prev_vis, vis, x_prev: torch.Tensor, x: torch.Tensor, motion_var: torch.Tensor) -> torch.Tensor:
+def _smooth_dist(prev_vis, vis, x_prev: torch.Tensor, x: torch.Tensor, motion_var: torch.Tensor) -> dist.Distribution:
+    """(S) of the module docstring: N(μ_Z^π(x_a) − μ_Z^{π'}(x_{a−1}), σ²_Z^π(x_a)/w² + s²_Δ) over (D_z,)."""
     z_prev, _ = prev_vis.mean_var(x_prev)
-    return vis.log_lik(z_prev, x, motion_var).sum()
+    mu, var = vis.mean_var(x)
+    return dist.Normal((mu - z_prev)[0], (vis.dim_var(var)[0] + motion_var).sqrt()).to_event(1)
 
 
 def synthesis_model(plan: UtterancePlan, audio: torch.Tensor | None = None) -> torch.Tensor:
     """The whole-utterance synthesis model as a Pyro program (see the module docstring).
 
-    ``audio`` given: the frames are observed (conditioning); None: they are sampled (prior
-    predictive). The smoothness factors are ``pyro.factor`` sites: they shape the posterior
-    but are not part of ancestral simulation.
+    ``audio`` given: the frames are observed (conditioning), and so are the smoothness
+    factors' pseudo-observations ``smooth_{i}`` at ``plan.smooth_shift`` (zero by default:
+    the factor s); None: both are sampled (the prior predictive; (S) of the module docstring).
     """
     X = pyro.sample("X", SwitchingLatents(plan))
     mv = torch.as_tensor(plan.motion_var)
@@ -226,7 +251,10 @@ def synthesis_model(plan: UtterancePlan, audio: torch.Tensor | None = None) -> t
         pyro.sample(f"audio_{i}", _obs_dist(b.model.predictors_["audio"], X[a:e]), obs=obs)
         if b.smooth:
             prev = plan.blocks[i - 1].model.predictors_["visual"]
-            pyro.factor(f"smooth_{i}", _smooth_factor(prev, b.model.predictors_["visual"], X[a - 1:a], X[a:a + 1], mv))
+            u = None if audio is None else (torch.zeros(len(plan.motion_var), dtype=torch.float64)
+                                            if plan.smooth_shift is None else torch.as_tensor(plan.smooth_shift[a]))
+            pyro.sample(f"smooth_{i}", _smooth_dist(prev, b.model.predictors_["visual"], X[a - 1:a], X[a:a + 1], mv),
+                        obs=u)
     return X
 
 
@@ -429,6 +457,9 @@ class _Terms:
         self.s_order = order
         self.s_vis_runs = Runs.of(np.array([smooth[j][1] for j in order]))
         self.motion_var = plan.motion_var
+        # pseudo-observations u_a per smoothness row (s_idx order): z_prev + u is the factor's "observation"
+        self.s_shift = (np.zeros((len(self.s_idx), len(plan.motion_var))) if plan.smooth_shift is None
+                        else np.asarray(plan.smooth_shift, dtype=np.float64)[self.s_idx].reshape(len(self.s_idx), -1))
         self.e_idx = np.array([b.start for b in entries], dtype=np.int64)
         self.e_mean = np.array([b.entry_mean for b in entries]).reshape(len(entries), plan.latent_dim)
         self.e_chol_inv = np.array([np.linalg.inv(b.entry_chol) for b in entries]).reshape(
@@ -452,11 +483,13 @@ class _Terms:
         return ll, np.concatenate([g_in, g_out], 1)
 
     def smooth_grad(self, R: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per-row smoothness factor ln N(μ_Z^{π'}(x_{a−1}); μ_Z^π(x_a), σ²_Z^π(x_a)/w² + s²_Δ) and
-        its gradient in (x_{a−1}, x_a) at rows R = [x_{a−1}, x_a] (through π''s visual mean)."""
+        """Per-row smoothness factor ln N(μ_Z^{π'}(x_{a−1}) + u_a; μ_Z^π(x_a), σ²_Z^π(x_a)/w² + s²_Δ)
+        (u_a the pseudo-observation, 0 by default) and its gradient in (x_{a−1}, x_a) at rows
+        R = [x_{a−1}, x_a] (through π''s visual mean)."""
         d = R.shape[1] // 2
         prev_runs = self.s_prev_runs.repeat(k)
         z_prev, _ = self.vis_gps.mean_var(prev_runs, R[:, :d])
+        z_prev = z_prev + np.repeat(self.s_shift, k, axis=0)
         perm = (self.s_order[:, None] * k + np.arange(k)).reshape(-1)   # rows in this block's model order
         ll_p, g_a_p, g_z_p = self.vis_gps.loglik(self.s_vis_runs.repeat(k), z_prev[perm], R[perm, d:], self.motion_var)
         ll, g_a, g_z = np.empty_like(ll_p), np.empty_like(g_a_p), np.empty_like(g_z_p)

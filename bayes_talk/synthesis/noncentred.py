@@ -230,7 +230,11 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     iteration: particle Gibbs ∘ NUTS ∘ mode jumps. Its proposal: kernel bandwidths
     ``skw["pg_h"]`` (default 0.05), lookahead weights ``skw["pg_lookahead"]`` (default False),
     and with ``skw["pg_mode_centres"]`` (default False) the joint MAP and the modes of its
-    restarts as extra centres (:class:`~bayes_talk.synthesis.particle_gibbs.MixtureProposal`). ``run``: the NUTS
+    restarts as extra centres (:class:`~bayes_talk.synthesis.particle_gibbs.MixtureProposal`);
+    ``skw["pg_backward"]`` (default False): backward simulation instead of ancestor sampling
+    (:func:`~bayes_talk.synthesis.particle_gibbs.csmc_as`); ``skw["pg_frame_tries"]`` = K > 0
+    (default 0): after each sweep a K-try Metropolis update of every isolated frame
+    (:func:`~bayes_talk.synthesis.particle_gibbs.frame_mtm`). ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
@@ -250,12 +254,15 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_h = skw.pop("pg_h", 0.05)
     pg_lookahead = bool(skw.pop("pg_lookahead", False))
     pg_mode_centres = bool(skw.pop("pg_mode_centres", False))
+    pg_backward = bool(skw.pop("pg_backward", False))
+    pg_frame_tries = int(skw.pop("pg_frame_tries", 0))
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
         from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 
         extra = (np.stack([np.reshape(m.latents, (T, d)) for m in [mp, *modes]]) if pg_mode_centres else None)
         skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, nc.to_x, nc.to_eps, pg_particles, h=pg_h,
-                                              lookahead=pg_lookahead, extra_centres=extra)
+                                              lookahead=pg_lookahead, extra_centres=extra, backward=pg_backward,
+                                              frame_tries=pg_frame_tries)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(nc.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,

@@ -54,6 +54,8 @@ class FrameFactors:
         s_vis = np.empty(len(tm.s_idx), dtype=np.int64)
         s_vis[tm.s_order] = tm.s_vis_runs.row_gp(1)
         self.smooth = {int(t): (int(p), int(v)) for t, p, v in zip(tm.s_idx, s_prev, s_vis, strict=True)}
+        # the factor's pseudo-observation u_t (joint.py, (S)): the factor observes μ_Z^{π'}(x_{t−1}) + u_t
+        self.smooth_shift = {int(t): tm.s_shift[j] for j, t in enumerate(tm.s_idx)}
 
     def log_f(self, t: int, Xprev: np.ndarray | None, X: np.ndarray) -> np.ndarray:
         """f_t(x_{t−1}^i, x_t^i) for N pairs (Xprev (N, d) or None at t = 0, X (N, d)) → (N,)."""
@@ -69,7 +71,7 @@ class FrameFactors:
         if t in self.smooth:
             gp, gv = self.smooth[t]
             zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
-            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp, X, tm.motion_var)
+            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp + self.smooth_shift[t], X, tm.motion_var)
             out += ll
         return out
 
@@ -158,6 +160,7 @@ class MixtureProposal:
             return lw
         gp, _ = self.ff.smooth[t]
         zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
+        zp = zp + self.ff.smooth_shift[t]
         mu, var = self.smooth_pred[t]
         r = zp[:, None, :] - mu[None]
         ls = -0.5 * (np.log(var)[None] + r * r / var[None]).sum(-1)
@@ -208,35 +211,90 @@ class MixtureProposal:
         return X, np.logaddexp(np.log(rho) + lp, np.log1p(-rho) + lk)
 
 
-def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng: np.random.Generator):
-    """One conditional SMC sweep with ancestor sampling (module docstring): a new path (T, d)
-    given the reference path ``x_ref``, and the fraction of frames whose value changed."""
+def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng: np.random.Generator,
+            backward: bool = False):
+    """One conditional SMC sweep (module docstring): a new path (T, d) given the reference path
+    ``x_ref``, and the fraction of frames whose value changed. ``backward=False``: ancestor
+    sampling (Lindsten, Jordan & Schön 2014, Alg. 2); ``True``: the reference keeps its own
+    ancestry in the forward pass and the path is drawn by backward simulation instead
+    (Whiteley 2010; Lindsten & Schön 2013, "Backward simulation methods for Monte Carlo
+    statistical inference", §5.4): x_{T−1} ∝ W_{T−1}, then x_t = P_t^j with
+    probability ∝ W_t^j exp f_{t+1}(P_t^j, x_{t+1}) — both leave p(X | Ŷ) invariant."""
     T, d = ff.T, ff.d
     P = np.empty((T, N, d))
     A = np.zeros((T, N), dtype=np.int64)
+    LW = np.empty((T, N))
     X, lq = q.sample_logq(0, None, N, rng)
     X[-1] = x_ref[0]
     lq[-1] = q.sample_logq(0, None, 1, rng, X[-1:])[1][0]
     P[0] = X
     logw = ff.log_f(0, None, X) - lq
+    LW[0] = logw
     for t in range(1, T):
         W = np.exp(logw - logsumexp(logw))
         a = rng.choice(N, size=N, p=W)
-        # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
-        la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
-        a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
+        if backward:
+            a[-1] = N - 1
+        else:   # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
+            la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
+            a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
         Xprev = P[t - 1][a]
         X, lq = q.sample_logq(t, Xprev, N, rng)
         X[-1] = x_ref[t]
         lq[-1] = q.sample_logq(t, Xprev[-1:], 1, rng, X[-1:])[1][0]
         P[t], A[t] = X, a
         logw = ff.log_f(t, Xprev, X) - lq
+        LW[t] = logw
     k = rng.choice(N, p=np.exp(logw - logsumexp(logw)))
     out = np.empty((T, d))
-    for t in range(T - 1, -1, -1):
+    out[T - 1] = P[T - 1, k]
+    for t in range(T - 2, -1, -1):
+        if backward:
+            lb = LW[t] + ff.log_f(t + 1, P[t], np.repeat(out[t + 1][None], N, 0))
+            k = rng.choice(N, p=np.exp(lb - logsumexp(lb)))
+        else:
+            k = A[t + 1, k]
         out[t] = P[t, k]
-        k = A[t, k]
     return out, float(np.mean(np.any(out != x_ref, axis=1)))
+
+
+def frame_mtm(ff: FrameFactors, q: MixtureProposal, x: np.ndarray, frames, K: int, rng: np.random.Generator,
+              _broken: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Multiple-try Metropolis updates of single frames given their neighbours (Liu, Liang &
+    Wong 2000, with independent proposals): for each t in ``frames`` in turn, the full
+    conditional π_t(x_t) ∝ exp(f_t(x_{t−1}, x_t) + f_{t+1}(x_t, x_{t+1})) of (1) (the density is
+    Markov), K tries y_k ~ q_t(· | x_{t−1}) — independent of x_t, so the move is an
+    independence MTM — w_k = π_t(y_k)/q_t(y_k), y = y_J with probability ∝ w_J, accepted with
+    probability min(1, Σ_k w_k / (Σ_k w_k − w_J + w(x_t))). Each update leaves π_t, hence
+    p(X | Ŷ), invariant. Returns the new path and, per frame of ``frames``, whether it moved.
+    (``_broken``: accept always — not invariant; the tests' control.)"""
+    x = np.array(x, dtype=np.float64, copy=True)
+    T = ff.T
+    moved = np.zeros(len(frames), dtype=bool)
+    for i, t in enumerate(frames):
+        prev = None if t == 0 else np.repeat(x[t - 1][None], K + 1, 0)
+        Y, lq = q.sample_logq(t, None if prev is None else prev[:K], K, rng)
+        _, lq_x = q.sample_logq(t, None if prev is None else prev[:1], 1, rng, x[t][None])
+        C = np.vstack([Y, x[t][None]])                                   # the K tries and the current value
+        lw = ff.log_f(t, prev, C)
+        if t + 1 < T:
+            lw = lw + ff.log_f(t + 1, C, np.repeat(x[t + 1][None], K + 1, 0))
+        lw = lw - np.concatenate([lq, lq_x])
+        j = rng.choice(K, p=np.exp(lw[:K] - logsumexp(lw[:K])))
+        s_y = logsumexp(lw[:K])
+        s_x = logsumexp(np.concatenate([np.delete(lw[:K], j), lw[K:]]))
+        if _broken or np.log(rng.random()) < s_y - s_x:
+            x[t] = Y[j]
+            moved[i] = True
+    return x, moved
+
+
+def isolated_frames(ff: FrameFactors) -> list[int]:
+    """Frames with no dynamics factor into them or out of them (one-frame blocks of a state
+    model without dynamics, coupled to their neighbours by smoothness factors only): the
+    frames whose full conditional :func:`frame_mtm` samples well (inside a dynamics run the
+    noise 10⁻⁶ pins a frame to its neighbours)."""
+    return [t for t in range(ff.T) if t not in ff.dyn_gp and t + 1 not in ff.dyn_gp]
 
 
 class ParticleGibbsMove:
@@ -244,17 +302,25 @@ class ParticleGibbsMove:
     (``to_x``/``to_u`` a bijection, e.g. the whitening or the non-centred map). The sweep leaves
     p(x | Ŷ) invariant, so the move leaves the sampler's target (p pushed through the bijection)
     invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
-    (particle Gibbs ∘ NUTS)."""
+    (particle Gibbs ∘ NUTS). ``frame_tries`` = K > 0: after the sweep, a multiple-try
+    Metropolis update (:func:`frame_mtm`, K tries) of every isolated frame
+    (:func:`isolated_frames`) — also invariant, so the composition is."""
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
-                 h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None):
+                 h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
+                 backward: bool = False, frame_tries: int = 0):
         self.ff = FrameFactors(dens)
         self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
-        self.to_x, self.to_u, self.n = to_x, to_u, int(n_particles)
+        self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
+        self.frame_tries = int(frame_tries)
+        self.frames = isolated_frames(self.ff) if self.frame_tries > 0 else []
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
-        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng)
+        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
+        if self.frames:
+            x_new, m = frame_mtm(self.ff, self.q, x_new, self.frames, self.frame_tries, rng)
+            moved = moved + float(m.any())
         return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
 
 
@@ -284,4 +350,5 @@ def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws
             "seconds": time.perf_counter() - t0}
 
 
-__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "run_particle_gibbs"]
+__all__ = ["FrameFactors", "MixtureProposal", "ParticleGibbsMove", "csmc_as", "frame_mtm", "isolated_frames",
+           "run_particle_gibbs"]

@@ -141,6 +141,7 @@ def sample_synthesis(
     sampler_kw: dict | None = None,
     log_warnings: bool = True,
     audio_view: bool = False,
+    smooth_shift: np.ndarray | None = None,
 ) -> SynthesisResult:
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
@@ -160,7 +161,7 @@ def sample_synthesis(
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (0);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -168,6 +169,10 @@ def sample_synthesis(
         simulation-based calibration), used as it is. With ``audio_context`` > 0 the view
         is a projection of spliced MFCCs, and transforming it a second time would condition
         on different audio.
+    smooth_shift: (T, D_z) pseudo-observations u of the smoothness factors
+        (:mod:`bayes_talk.synthesis.joint`, (S)); None: u = 0, the product of the papers.
+        Only simulation-based calibration with smoothness on sets it (simulated u). The
+        sampler's start (Algorithm 1's path) ignores it; the density does not.
     """
     spec = check_method(method)
     smoothness = "frame" if smoothness is True else "off" if smoothness is False else smoothness
@@ -187,7 +192,7 @@ def sample_synthesis(
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,
-                      emcee_thin, dict(sampler_kw or {}), map_restarts, audio_view)
+                      emcee_thin, dict(sampler_kw or {}), map_restarts, audio_view, smooth_shift)
     res.seconds = time.perf_counter() - t0
     if log_warnings:
         for w in res.warnings:
@@ -196,9 +201,9 @@ def sample_synthesis(
 
 
 def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter, emcee_thin,
-            skw, map_restarts: int = 0, audio_view: bool = False) -> SynthesisResult:
+            skw, map_restarts: int = 0, audio_view: bool = False, smooth_shift=None) -> SynthesisResult:
     spec = INFERENCE[method]
-    plan = make_plan(model, mfcc, labels, smoothness, audio_view)
+    plan = make_plan(model, mfcc, labels, smoothness, audio_view, smooth_shift)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
     start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
@@ -259,7 +264,8 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                                      f"{skw['pg_every']} and {skw['pg_particles']}")
                 diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
-                            pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]))
+                            pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
+                            pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")

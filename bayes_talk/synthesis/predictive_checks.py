@@ -4,8 +4,10 @@
 * :func:`prior_predictive` - latents X and audio frames simulated from the model with the
   audio unobserved: X by ancestral sampling of the entry distributions and switching
   dynamics (:class:`~bayes_talk.synthesis.joint.SwitchingLatents`), each block's audio
-  from its state's audio GP predictive. The smoothness factors are ``pyro.factor`` sites,
-  not part of the simulation.
+  from its state's audio GP predictive; with ``with_smoothness=True`` also the smoothness
+  factors' pseudo-observations u (:mod:`bayes_talk.synthesis.joint`, (S)), so that
+  (X, audio, u) is a draw of the joint whose posterior p(X | audio, u) the samplers target
+  with smoothness on (``make_plan(..., smooth_shift=u)``).
 * :func:`posterior_predictive` - audio frames replicated at the latent draws of a
   synthesis posterior (``Predictive(..., posterior_samples={"X": draws})``).
 * :func:`predictive_check` - the observed audio against replicated audio: for each
@@ -44,15 +46,28 @@ def _stack_audio(plan: UtterancePlan, out: dict) -> np.ndarray:
     return np.concatenate([out[s].detach().numpy() for s in _audio_sites(plan)], axis=1)
 
 
-def prior_predictive(plan: UtterancePlan, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def _smooth_sites(plan: UtterancePlan) -> dict[str, int]:
+    return {f"smooth_{i}": b.start for i, b in enumerate(plan.blocks) if b.smooth}
+
+
+def prior_predictive(plan: UtterancePlan, n: int, seed: int = 0, with_smoothness: bool = False):
     """n simulations (X (n, T, d), audio (n, T, D_y)) from the synthesis model's prior; the
-    audio is in the plan's audio view (module docstring)."""
+    audio is in the plan's audio view (module docstring). ``with_smoothness``: also the
+    smoothness factors' pseudo-observations u (n, T, D_z) (row a of a block start with a
+    factor; zero elsewhere), returned third."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
+    sm = _smooth_sites(plan) if with_smoothness else {}
     pyro.set_rng_seed(seed)
     with torch.no_grad():
-        out = Predictive(synthesis_model, num_samples=n, return_sites=["X"] + _audio_sites(plan))(plan, None)
-    return out["X"].detach().numpy().reshape(n, plan.n_frames, plan.latent_dim), _stack_audio(plan, out)
+        out = Predictive(synthesis_model, num_samples=n, return_sites=["X"] + _audio_sites(plan) + list(sm))(plan, None)
+    X = out["X"].detach().numpy().reshape(n, plan.n_frames, plan.latent_dim)
+    if not with_smoothness:
+        return X, _stack_audio(plan, out)
+    U = np.zeros((n, plan.n_frames, len(plan.motion_var)))
+    for site, a in sm.items():
+        U[:, a] = out[site].detach().numpy().reshape(n, -1)
+    return X, _stack_audio(plan, out), U
 
 
 def posterior_predictive(plan: UtterancePlan, latents: np.ndarray, seed: int = 0) -> np.ndarray:
