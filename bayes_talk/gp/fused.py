@@ -267,8 +267,20 @@ def rbf_matrix_normal(X: torch.Tensor, alpha, gamma, beta, V: torch.Tensor) -> t
     f64 = torch.float64
     alpha, gamma, beta = (torch.as_tensor(t, dtype=f64) for t in (alpha, gamma, beta))
     a, gm, b = float(alpha.detach()), float(gamma.detach()), float(beta.detach())
-    Xn = np.ascontiguousarray(X.detach().numpy())
-    A = np.array(V.detach().numpy(), order="F", copy=True)
+    solved = _factor_solve(X.detach().numpy(), a, gm, b, V.detach().numpy())
+    if solved is None:
+        return None
+    buf, A, ll = solved
+    state = {"buf": buf, "A": A, "A_rows": np.ascontiguousarray(A), "ll": ll}
+    return _RBFMatrixNormal.apply(X, alpha, gamma, beta, V, state)
+
+
+def _factor_solve(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
+    """The shared forward pass of ℓ above: (the factorised kernel buffer, A = K⁻¹V, ℓ), or
+    None when K cannot be factorised without jitter."""
+    Xn = np.ascontiguousarray(X, dtype=np.float64)
+    V = np.asarray(V, dtype=np.float64)
+    A = np.array(V, order="F", copy=True)
     N, D = A.shape
     buf = _Buffer(Xn, a, gm, 1.0 / b)
     if not buf.factor():
@@ -277,9 +289,7 @@ def rbf_matrix_normal(X: torch.Tensor, alpha, gamma, beta, V: torch.Tensor) -> t
     logdet = 2.0 * np.log(np.diagonal(L)).sum()
     if potrs_lower(L, A) != 0:
         return None
-    ll = -0.5 * D * logdet - 0.5 * float((V.detach().numpy() * A).sum()) - 0.5 * N * D * LOG_2PI
-    state = {"buf": buf, "A": A, "A_rows": np.ascontiguousarray(A), "ll": ll}
-    return _RBFMatrixNormal.apply(X, alpha, gamma, beta, V, state)
+    return buf, A, -0.5 * D * logdet - 0.5 * float((V * A).sum()) - 0.5 * N * D * LOG_2PI
 
 
 def rbf_matrix_normal_grad(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
@@ -288,18 +298,11 @@ def rbf_matrix_normal_grad(X: np.ndarray, a: float, gm: float, b: float, V: np.n
     ∂ℓ/∂β, ∂ℓ/∂V)`` by the same passes and formulas as :func:`rbf_matrix_normal` and its
     backward (so the same numbers), or None when K cannot be factorised without jitter.
     X (N×d) and V (N×D): float64 arrays; α, γ, β: floats."""
-    Xn = np.ascontiguousarray(X, dtype=np.float64)
-    A = np.array(V, dtype=np.float64, order="F", copy=True)
-    N, D = A.shape
-    buf = _Buffer(Xn, a, gm, 1.0 / b)
-    if not buf.factor():
+    solved = _factor_solve(X, a, gm, b, V)
+    if solved is None:
         return None
-    L = buf.m
-    logdet = 2.0 * np.log(np.diagonal(L)).sum()
-    if potrs_lower(L, A) != 0:
-        return None
-    ll = -0.5 * D * logdet - 0.5 * float((V * A).sum()) - 0.5 * N * D * LOG_2PI
-    acc, sums = _gradient(Xn, buf.inverse(), np.ascontiguousarray(A), a, N_CHUNKS)
+    buf, A, ll = solved
+    acc, sums = _gradient(buf.X, buf.inverse(), np.ascontiguousarray(A), a, N_CHUNKS)
     s_g, s_r2, tr = sums.sum(0)
     return ll, acc.sum(0) * (-2.0 * gm), s_g / a, -s_r2, -tr / (b * b), -A
 
