@@ -12,8 +12,7 @@ The layers and what each may import: docs/architecture.md.
 """
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from bayes_talk.lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -56,14 +55,4 @@ __all__ = [  # noqa: RUF022 - grouped by layer, as _EXPORTS
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """Import a public name on first access (PEP 562)."""
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'bayes_talk' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return __all__
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals(), __all__)

@@ -37,7 +37,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # façade whose exports are imported lazily (bayes_talk/__init__.py) so it sits here
     ("base", ("bayes_talk", "bayes_talk.files", "bayes_talk.bundle", "bayes_talk.errors", "bayes_talk.progress",
               "bayes_talk.gp", "bayes_talk.video", "bayes_talk.executor", "bayes_talk.memory",
-              "bayes_talk.arviz_compat", "bayes_talk.settings")),
+              "bayes_talk.arviz_compat", "bayes_talk.settings", "bayes_talk.lazy")),
     # raw data: phone set, utterance container, label files, speech synthesis, face
     # geometry and coarticulation
     ("data", ("bayes_talk.data",)),

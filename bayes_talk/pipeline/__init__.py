@@ -15,8 +15,7 @@ package for the command line's defaults loads no more than those).
 """
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from bayes_talk.lazy import lazy_exports
 
 _EXPORTS: dict[str, str] = {
     **dict.fromkeys(("DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands",
@@ -33,14 +32,4 @@ __all__ = ["DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_
            "read_utterance", "select_holdout", "synth", "train", "utterance_from_intervals"]
 
 
-def __getattr__(name: str) -> Any:
-    """Import a public name on first access (PEP 562)."""
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'bayes_talk.pipeline' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return __all__
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals(), __all__)
