@@ -33,11 +33,13 @@ import json
 import os
 import platform
 import resource
+import shutil
 import tempfile
 import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Self
 
 from bayes_talk.data.corpus import build_corpus, load_corpus
 from bayes_talk.data.phones import PHONES
@@ -80,7 +82,7 @@ class _LoadSampler:
             if self._stop.wait(self._every):
                 return
 
-    def __enter__(self) -> "_LoadSampler":
+    def __enter__(self) -> Self:
         self._thread.start()
         return self
 
@@ -123,6 +125,9 @@ def main() -> None:
                          "(default: a fresh empty directory, a truly cold build)")
     ap.add_argument("--peer-espeak", action="store_true",
                     help="--speech vtl: also build the espeak corpus of the same sentences and seed")
+    ap.add_argument("--keep", default=None,
+                    help="copy the built corpora (featurised) into this directory after measuring: "
+                         "KEEP/<speech> and, with --peer-espeak, KEEP/espeak; refuses an existing target")
     ap.add_argument("--out", default=None,
                     help="default benchmarks/results/corpus.json (corpus_vtl.json with --speech vtl)")
     args = ap.parse_args()
@@ -131,6 +136,12 @@ def main() -> None:
         args.out = str(Path(__file__).parent / "results" / name)
     if args.speech == "espeak" and (args.cache_dir or args.peer_espeak):
         ap.error("--cache-dir and --peer-espeak go with --speech vtl")
+    if args.keep:
+        targets = [Path(args.keep) / args.speech] + (
+            [Path(args.keep) / "espeak"] if args.speech == "vtl" and args.peer_espeak else [])
+        for t in targets:
+            if t.exists():
+                ap.error(f"--keep: {t} exists; choose an empty directory (nothing is overwritten)")
     kw = {"n_utterances": args.n, "seed": args.seed, "n_workers": args.workers}
     vtl_extra: dict = {}
     load_start = _load()
@@ -173,6 +184,11 @@ def main() -> None:
         load_corpus(root)
         t_warm = time.perf_counter() - t0
         size_total = _size(root)
+        if args.keep:
+            keep = Path(args.keep)
+            shutil.copytree(root, keep / args.speech)
+            if args.speech == "vtl" and args.peer_espeak:
+                shutil.copytree(Path(td) / "espeak", keep / "espeak")
         frames = Counter(lab for s in c for lab in s.labels)
         segs = Counter(p for s in c for _, _, p in s.meta["intervals"])
         n_frames = sum(s.n_frames for s in c)
