@@ -9,8 +9,8 @@ between. So appearance, not only shape, changes with speech: teeth show when the
 rises (/f v/) or the lips part (/iy aa/), the cavity darkens as the jaw opens, the eyes
 close in blinks (their triangles collapse and the eyelid skin stretches over them).
 
-Warping is :func:`bayes_talk.features.warp.warp_piecewise_affine` (its rasteriser and
-bilinear sampler are used directly for the supersampled render).
+Warping is :func:`bayes_talk.features.warp.warp_triangles` (the piecewise-affine warp,
+which also says which triangle each pixel came from: the cavity's pixels are repainted).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from scipy.spatial import Delaunay
 from skimage.transform import downscale_local_mean
 
 from bayes_talk.data import face as _face
-from bayes_talk.features.warp import bilinear_sample, rasterise_triangles
+from bayes_talk.features.warp import warp_triangles
 
 __all__ = [
     "CAMERA_PSF_PX",
@@ -267,33 +267,26 @@ def render_frames(landmarks: np.ndarray, image_size: int = 128,
     n = int(image_size)
     s = int(supersample)
     N = n * s
-    tex = _texture_cached(n, s)[None]
+    tex = _texture_cached(n, s)
     ref = _to_fine(_face.reference_shape(n), s)                # in fine texture pixels
     tri = _triangles_cached(n)
     cav = cavity_triangles(n)
-    bg = _background_cached(n, s).reshape(-1)
+    bg = _background_cached(n, s)
     k = n / _face.DESIGN_SIZE
     lm_fine = _to_fine(lm, s)
     T = lm.shape[0]
     batch = max(1, _RENDER_BATCH // (s * s))
+    in_cavity = np.append(cav, False)                           # triangle -1: not covered
     out = np.empty((T, n, n), dtype=np.uint8)
     for b0 in range(0, T, batch):
         b1 = min(T, b0 + batch)
-        frame, pixel, t_id, bary = rasterise_triangles(lm_fine[b0:b1], tri, (N, N))
-        sv = ref[tri[t_id]]
-        vals = bilinear_sample(tex, None, np.einsum("nk,nk->n", bary, sv[..., 0]),
-                               np.einsum("nk,nk->n", bary, sv[..., 1]))
-        in_cav = cav[t_id]
-        if in_cav.any():
-            pc = pixel[in_cav]
+        img, t_id = warp_triangles(tex, ref, lm_fine[b0:b1], tri, (N, N), fill=bg)
+        frame, row, col = np.nonzero(in_cavity[t_id])
+        if frame.size:
             # sub-pixel centres in image pixel coordinates
-            px = ((pc % N).astype(np.float64) + 0.5) / s - 0.5
-            py = ((pc // N).astype(np.float64) + 0.5) / s - 0.5
-            vals[in_cav] = _cavity_colour(lm[b0:b1], frame[in_cav], px, py, k)
-        img = np.empty((b1 - b0, N * N))
-        img[:] = bg
-        img[frame, pixel] = vals
-        img = img.reshape(b1 - b0, N, N)
+            px = (col + 0.5) / s - 0.5
+            py = (row + 0.5) / s - 0.5
+            img[frame, row, col] = _cavity_colour(lm[b0:b1], frame, px, py, k)
         if psf_px > 0:
             img = gaussian_filter(img, (0.0, psf_px * s, psf_px * s), mode="nearest")
         if s > 1:
