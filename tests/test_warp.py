@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp_reference as reference
+from scipy.ndimage import gaussian_filter
 from scipy.spatial import Delaunay
+from skimage.transform import downscale_local_mean
 
 from bayes_talk.data import face, render
 from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine, warp_triangles
@@ -94,11 +96,24 @@ def test_bilinear_sample_matches_reference():
         bilinear_sample(images, frame + 5, x, y)
 
 
-@pytest.mark.parametrize("camera", [{}, {"supersample": 1, "psf_px": 0.0}])
+@pytest.mark.parametrize("camera", [{}, {"supersample": 1, "psf_px": 0.0}, {"supersample": 3, "psf_px": 0.3}])
 def test_render_frames_match_reference(camera):
     lm = _landmarks(1, 4)
     lm[::7] += [3.3, -2.7]                      # head motion, sub-pixel
     np.testing.assert_array_equal(render.render_frames(lm, **camera), reference.render_frames(lm, **camera))
+
+
+@pytest.mark.parametrize(("s", "sd"), [(1, 0.0), (1, 0.7), (2, 1.4), (3, 2.1), (2, 9.0)])
+def test_camera_is_scipy_blur_then_skimage_block_mean(s, sd):
+    """The renderer's compiled camera against the library calls it replaces, bit for bit
+    before rounding shows: random scenes with values near the .5 rounding boundaries."""
+    rng = np.random.default_rng(5)
+    scene = rng.uniform(0.0, 255.0, (3, 12 * s, 12 * s))
+    scene[1] = np.round(scene[1]) + 0.5                          # rounding ties
+    scene[2, :, : 6 * s] = 300.0                                 # clipped at 255
+    expected = gaussian_filter(scene, (0.0, sd, sd), mode="nearest") if sd > 0 else scene
+    expected = downscale_local_mean(expected, (1, s, s)) if s > 1 else expected
+    np.testing.assert_array_equal(render._camera(scene, sd, s), np.clip(np.rint(expected), 0, 255).astype(np.uint8))
 
 
 def test_bad_inputs():

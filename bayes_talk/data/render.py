@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 from functools import lru_cache
 
+import numba
 import numpy as np
 from matplotlib.path import Path as MplPath
 from scipy.ndimage import gaussian_filter
@@ -230,6 +231,76 @@ def _cavity_colour(lm: np.ndarray, frame: np.ndarray, px: np.ndarray, py: np.nda
     return a_up * teeth_up + (1.0 - a_up) * (a_lo * teeth_lo + (1.0 - a_lo) * dark)
 
 
+# ------------------------------------------------------------------------------------
+# The camera
+# ------------------------------------------------------------------------------------
+def _gaussian_weights(sd: float, truncate: float = 4.0) -> np.ndarray:
+    """The 1-D kernel of ``scipy.ndimage.gaussian_filter`` (same formula, same floats):
+    exp(-x^2 / (2 sd^2)) / sum, x = -r..r, r = int(truncate sd + 1/2)."""
+    radius = int(truncate * float(sd) + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (float(sd) * float(sd)) * x**2)
+    return phi / phi.sum()
+
+
+@numba.njit(cache=True)
+def _camera_kernel(img: np.ndarray, w: np.ndarray, s: int, out: np.ndarray) -> None:
+    """out[b] = uint8(clip(rint(area mean over s x s blocks of (rows then columns)
+    separable correlation of img[b] with the symmetric kernel w, edges extended))).
+
+    The floating-point operations, in order, of ``gaussian_filter(img, (0, sd, sd),
+    mode="nearest")`` (scipy's symmetric-kernel loop: x_0 w_0 + sum_{j=r..1}
+    (x_{-j} + x_j) w_j, rows pass first) followed by ``downscale_local_mean(., (1, s, s))``
+    (each block row summed left to right, block rows summed top to bottom, / s^2).
+    """
+    B, N, _ = img.shape
+    r = (w.shape[0] - 1) // 2
+    n = N // s
+    buf = np.empty((N, N))
+    line = np.empty(N + 2 * r)
+    for b in range(B):
+        for i in range(N):                      # along axis 1 (down the columns)
+            for c in range(N):
+                buf[i, c] = img[b, i, c] * w[r]
+            for jj in range(-r, 0):
+                lo = min(max(i + jj, 0), N - 1)
+                hi = min(max(i - jj, 0), N - 1)
+                wj = w[r + jj]
+                for c in range(N):
+                    buf[i, c] += (img[b, lo, c] + img[b, hi, c]) * wj
+        for i in range(N):                      # along axis 2 (along the rows)
+            for c in range(N):
+                line[r + c] = buf[i, c]
+            for c in range(r):
+                line[c] = buf[i, 0]
+                line[r + N + c] = buf[i, N - 1]
+            for c in range(N):
+                buf[i, c] = line[r + c] * w[r]
+            for jj in range(-r, 0):
+                wj = w[r + jj]
+                for c in range(N):
+                    buf[i, c] += (line[r + c + jj] + line[r + c - jj]) * wj
+        for i in range(n):
+            for j in range(n):
+                total = 0.0
+                for a in range(s):
+                    row = buf[i * s + a, j * s]
+                    for c in range(1, s):
+                        row += buf[i * s + a, j * s + c]
+                    total = row if a == 0 else total + row
+                v = np.rint(total / (s * s))
+                out[b, i, j] = np.uint8(min(max(v, 0.0), 255.0))
+
+
+def _camera(scene: np.ndarray, psf_sd: float, s: int) -> np.ndarray:
+    """Frames (B, N/s, N/s) uint8 of the scene (B, N, N) float64: blurred by the PSF (sd
+    in scene pixels), integrated over s x s pixels, rounded (see :func:`render_frames`)."""
+    w = _gaussian_weights(psf_sd) if psf_sd > 1e-15 else np.ones(1)   # as scipy: no blur
+    out = np.empty((scene.shape[0], scene.shape[1] // s, scene.shape[2] // s), dtype=np.uint8)
+    _camera_kernel(np.ascontiguousarray(scene), w, s, out)
+    return out
+
+
 def render_frames(landmarks: np.ndarray, image_size: int = 128,
                   supersample: int = RENDER_SUPERSAMPLE, psf_px: float = CAMERA_PSF_PX) -> np.ndarray:
     """Grayscale frames (T, image_size, image_size) uint8 of the face at the landmarks.
@@ -248,8 +319,10 @@ def render_frames(landmarks: np.ndarray, image_size: int = 128,
     where L is the continuous scene (the texture warped piecewise-affinely onto the
     landmarks, the mouth cavity, the backdrop). The frame is rendered at s x resolution
     (landmarks mapped by ``p -> (p + 1/2) s - 1/2``, the texture painted at s x), blurred
-    by ``scipy.ndimage.gaussian_filter`` (sd ``sigma s`` fine pixels) and area-averaged
-    with :func:`skimage.transform.downscale_local_mean`. Point sampling with an ideal lens
+    as by ``scipy.ndimage.gaussian_filter(mode="nearest")`` (sd ``sigma s`` fine pixels)
+    and area-averaged as by :func:`skimage.transform.downscale_local_mean`, both in one
+    compiled pass with their floating-point operations in their order (bit for bit the
+    same frames, tests/test_warp.py; 2-3x less CPU). Point sampling with an ideal lens
     (s = 1, sigma = 0: the format-1 corpus, reproduced bit for bit) resamples sharp
     texture edges at positions that shift with sub-pixel head motion; that aliasing
     showed up as AAM modes (benchmarks/render_aliasing.py, docs/face.md). Cost grows as s^2.
@@ -277,19 +350,22 @@ def render_frames(landmarks: np.ndarray, image_size: int = 128,
     T = lm.shape[0]
     batch = max(1, _RENDER_BATCH // (s * s))
     in_cavity = np.append(cav, False)                           # triangle -1: not covered
+    inner = _face.LANDMARK_GROUPS["inner_lip"]
     out = np.empty((T, n, n), dtype=np.uint8)
     for b0 in range(0, T, batch):
         b1 = min(T, b0 + batch)
         img, t_id = warp_triangles(tex, ref, lm_fine[b0:b1], tri, (N, N), fill=bg)
-        frame, row, col = np.nonzero(in_cavity[t_id])
+        # the cavity's pixels lie in the bounding box of the inner lip (search only there)
+        lip = lm_fine[b0:b1, inner]
+        c0, r0 = np.clip(np.floor(lip.min(axis=(0, 1))).astype(np.int64) - 1, 0, N)
+        c1, r1 = np.clip(np.ceil(lip.max(axis=(0, 1))).astype(np.int64) + 2, 0, N)
+        frame, row, col = np.nonzero(in_cavity[t_id[:, r0:r1, c0:c1]])
+        row += r0
+        col += c0
         if frame.size:
             # sub-pixel centres in image pixel coordinates
             px = (col + 0.5) / s - 0.5
             py = (row + 0.5) / s - 0.5
             img[frame, row, col] = _cavity_colour(lm[b0:b1], frame, px, py, k)
-        if psf_px > 0:
-            img = gaussian_filter(img, (0.0, psf_px * s, psf_px * s), mode="nearest")
-        if s > 1:
-            img = downscale_local_mean(img, (1, s, s))
-        out[b0:b1] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        out[b0:b1] = _camera(img, psf_px * s, s)
     return out
