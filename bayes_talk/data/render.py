@@ -10,7 +10,8 @@ rises (/f v/) or the lips part (/iy aa/), the cavity darkens as the jaw opens, t
 close in blinks (their triangles collapse and the eyelid skin stretches over them).
 
 Warping is :func:`bayes_talk.features.warp.warp_triangles` (the piecewise-affine warp,
-which also says which triangle each pixel came from: the cavity's pixels are repainted).
+which also says which triangle each pixel came from: the cavity's pixels are repainted);
+the camera (PSF blur, pixel area mean, rounding) is one compiled pass (:func:`render_frames`).
 """
 from __future__ import annotations
 
