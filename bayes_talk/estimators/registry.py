@@ -196,10 +196,10 @@ def load_estimator(path: str | os.PathLike) -> Estimator:
     context regressions' own format) is refused, naming the file and its format;
     FileNotFoundError when ``path`` holds no saved estimator."""
     p = Path(path)
+    if (p / "model.json").is_file() and not (p / ESTIMATOR_FILE).is_file():
+        return SwitchingSGPDM.read_legacy(p)
     if (p / ESTIMATOR_FILE).is_file() or (p / BUNDLE_MANIFEST).is_file():
         return Estimator.load(p)
-    if (p / "model.json").is_file():
-        return SwitchingSGPDM.read_legacy(p)
     legacy = p.with_name(p.name + ".json")
     if legacy.is_file():
         try:
