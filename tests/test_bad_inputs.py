@@ -100,7 +100,7 @@ def test_resampled_audio_barely_moves_the_default_models_audio_context(corpus_di
 
     model = tmp_path / "model"
     train(corpus_dir, DEFAULT_MODEL, model, workers=1, **SMALL)
-    assert json.loads((model / "model.json").read_text())["config"]["audio_context"] == 2
+    assert load_trained(model).uncalibrated.config.audio_context == 2
     wav, lab = _utt(corpus_dir)
     y, sr = sf.read(wav, dtype="float64")
     silent, r44 = tmp_path / "silent.wav", tmp_path / "r44100.wav"
