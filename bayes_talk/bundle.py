@@ -28,8 +28,23 @@ from pathlib import Path
 
 from bayes_talk.files import check_format, sha256_file, write_json
 
-__all__ = ["BUNDLE_MANIFEST", "DESCRIPTOR", "DESCRIPTOR_FORMAT", "DESCRIPTOR_VERSION", "OUTPUT_RECORD", "BundleError", "OutputSet", "begin_bundle", "check_output_dir", "read_descriptor",
-           "sha256_file", "verify_bundle", "write_bundle_manifest", "write_descriptor"]
+__all__ = [
+    "BUNDLE_MANIFEST",
+    "DESCRIPTOR",
+    "DESCRIPTOR_FORMAT",
+    "DESCRIPTOR_VERSION",
+    "ESTIMATOR_DIR",
+    "OUTPUT_RECORD",
+    "BundleError",
+    "OutputSet",
+    "begin_bundle",
+    "check_output_dir",
+    "read_descriptor",
+    "sha256_file",
+    "verify_bundle",
+    "write_bundle_manifest",
+    "write_descriptor",
+]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +53,9 @@ log = logging.getLogger(__name__)
 DESCRIPTOR = "bayes_talk_model.json"
 DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
 DESCRIPTOR_VERSION = 1
+#: the sub-directory of a trained-model directory that holds its estimator, as
+#: :meth:`bayes_talk.estimators.base.Estimator.save` writes every one (issue 26)
+ESTIMATOR_DIR = "estimator"
 BUNDLE_MANIFEST = "bundle_manifest.json"
 OUTPUT_RECORD = ".bayes_talk_outputs.json"
 _FORMAT = "bayes_talk.bundle_manifest"
@@ -136,8 +154,7 @@ def read_descriptor(directory: str | Path) -> dict:
     d = Path(directory)
     p = d / DESCRIPTOR
     if not p.exists():
-        extra = (" -- its save was interrupted; train it again" if (d / "arrays.npz").exists()
-                 or (d / "sgpdm").exists() else "")
+        extra = (" -- its save was interrupted; train it again" if (d / ESTIMATOR_DIR).exists() else "")
         raise FileNotFoundError(f"{d} is not a bayes_talk model directory (no {DESCRIPTOR}){extra}")
     try:
         desc = json.loads(p.read_text())

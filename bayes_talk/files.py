@@ -80,8 +80,10 @@ def write_npy(path: str | os.PathLike, arr: np.ndarray) -> Path:
 
 def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: bool = False) -> Path:
     """An ``.npz`` of the given arrays, members in the given order with a fixed timestamp
-    (deflated if ``compress``): byte-identical for identical arrays. Object arrays are
-    refused (they would need pickle)."""
+    (deflated if ``compress``): byte-identical for identical arrays. A Fortran-ordered array
+    is stored and read back Fortran-ordered, so that a loaded model computes exactly as the
+    saved one (BLAS rounds a product by the operands' layout). Object arrays are refused
+    (they would need pickle)."""
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
 
     def w(tmp: str) -> None:
@@ -94,7 +96,7 @@ def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compres
                 info.compress_type = method
                 info.external_attr = 0o644 << 16
                 buf = io.BytesIO()
-                np.lib.format.write_array(buf, np.asarray(arr, order="C"), allow_pickle=False)
+                np.lib.format.write_array(buf, np.asarray(arr, order="K"), allow_pickle=False)
                 zf.writestr(info, buf.getvalue())
 
     return atomic_write(path, w)

@@ -66,7 +66,7 @@ def main() -> None:
     from bayes_talk.data.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
 
-    model = load_trained(args.model).model
+    model = load_trained(args.model).uncalibrated
     seqs = load_corpus(args.test_corpus, aam=args.aam, cache=False).sequences
     if args.utterances:
         want = args.utterances.split(",")

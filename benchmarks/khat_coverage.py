@@ -82,7 +82,7 @@ def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path,
             hits[flagged][lv].append(inside[lv].ravel())
         inner = diag.get("diagnostics", {})
         lp = inner.get("map_log_density")
-        rows.append({"utterance": wav.stem, "frames": int(len(truth)), "khat": inner.get("khat"),
+        rows.append({"utterance": wav.stem, "frames": len(truth), "khat": inner.get("khat"),
                      "map_log_density_per_frame": None if lp is None else lp / len(truth),
                      "warned": flagged, "warnings": diag.get("problems", []),
                      "coverage_50": float(inside[50].mean()), "coverage_90": float(inside[90].mean()),

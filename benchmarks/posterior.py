@@ -128,7 +128,7 @@ def efficiency(args) -> None:
     from bayes_talk.data.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
 
-    model = load_trained(args.model).model
+    model = load_trained(args.model).uncalibrated
     seqs = {s.name: s for s in load_corpus(args.test_corpus, aam=args.aam, cache=False).sequences}
     s = seqs[args.utterance]
     T = min(args.frames, s.n_frames) if args.frames else s.n_frames

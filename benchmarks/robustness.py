@@ -58,7 +58,7 @@ def synth_mean(tm, wav: Path, lab: Path, frontend: str) -> np.ndarray:
                              fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
     else:  # before issue 12: the file's own rate, mel bands to sr/2, no normalisation
         utt = read_utterance(wav, lab, tm.fps, sample_rate=None, cmvn="off", fmax=None)
-    res = tm.model.synthesize(utt.mfcc, utt.labels, algorithm="optimise")
+    res = tm.uncalibrated.synthesize(utt.mfcc, utt.labels, algorithm="optimise")
     return np.asarray(res.mean)
 
 

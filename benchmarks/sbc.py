@@ -52,7 +52,7 @@ def load(args):
         from bayes_talk.data.corpus import load_corpus
         from bayes_talk.pipeline import load_trained
 
-        model = load_trained(args.model).model
+        model = load_trained(args.model).uncalibrated
         seqs = {s.name: s for s in load_corpus(args.corpus, cache=False).sequences}
         name = args.utterance or min(seqs)
         return model, list(seqs[name].labels), {"model": str(args.model), "corpus": str(args.corpus),

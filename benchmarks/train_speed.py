@@ -70,11 +70,15 @@ def run_train(src: Path, corpus: str, out: Path, extra: list[str], env_extra: di
 
 
 def compare_models(a: Path, b: Path) -> dict:
-    """Array-by-array differences between two saved switching models (and calibrations)."""
-    za, zb = np.load(a / "arrays.npz"), np.load(b / "arrays.npz")
-    out: dict = {"same_keys": sorted(za.files) == sorted(zb.files)}
+    """Array-by-array differences between two trained switching-model directories (and their
+    calibrations), read by ``load_trained`` whatever layout each was saved in."""
+    from bayes_talk.pipeline import load_trained
+
+    ta, tb = load_trained(a), load_trained(b)
+    (ma, za), (mb, zb) = ta.uncalibrated.state(), tb.uncalibrated.state()
+    out: dict = {"same_keys": sorted(za) == sorted(zb)}
     groups: dict[str, dict] = {}
-    for k in sorted(set(za.files) & set(zb.files)):
+    for k in sorted(set(za) & set(zb)):
         x, y = np.asarray(za[k], dtype=np.float64), np.asarray(zb[k], dtype=np.float64)
         name = k.split("/", 1)[1] if "/" in k else k
         g = groups.setdefault(name, {"n": 0, "equal": 0, "max_abs": 0.0, "max_rel": 0.0})
@@ -87,12 +91,9 @@ def compare_models(a: Path, b: Path) -> dict:
         g["max_abs"] = max(g["max_abs"], float(d.max(initial=0.0)))
         g["max_rel"] = max(g["max_rel"], float((d / np.maximum(np.abs(y), 1e-300)).max(initial=0.0)))
     out["arrays"] = groups
-    ma = json.loads((a / "model.json").read_text())
-    mb = json.loads((b / "model.json").read_text())
     out["same_states"] = [e["state"] for e in ma["models"]] == [e["state"] for e in mb["models"]]
-    ca, cb = a / "band_calibration.json", b / "band_calibration.json"
-    if ca.is_file() and cb.is_file():
-        ja, jb = json.loads(ca.read_text()), json.loads(cb.read_text())
+    if ta.calibration is not None and tb.calibration is not None:
+        ja, jb = ta.calibration.to_dict(), tb.calibration.to_dict()
         sa, sb = np.asarray(ja["scale"]), np.asarray(jb["scale"])
         out["band_calibration"] = {
             "scale_equal": bool(np.array_equal(sa, sb)),

@@ -1,7 +1,8 @@
 """The band calibration as a wrapping estimator (issue 26, item 3):
 :class:`bayes_talk.estimators.calibrated.BandCalibrated` recalibrates the results of the
-calibrated method only, and saves / loads the wrapped estimator with the calibration
-beside it, reading every calibration format version."""
+calibrated method only, and saves / loads as every estimator (the calibration in its
+descriptor, the wrapped estimator in a sub-directory), reading every calibration format
+version."""
 from __future__ import annotations
 
 import json
@@ -10,9 +11,12 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
+from bayes_talk.bundle import write_bundle_manifest
+from bayes_talk.estimators.base import ESTIMATOR_FILE
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import ZeroModel
-from bayes_talk.synthesis.band_calibration import CALIBRATION_FILE, BandCalibration
+from bayes_talk.estimators.registry import load_estimator
+from bayes_talk.synthesis.band_calibration import BandCalibration
 
 
 @pytest.fixture(scope="module")
@@ -41,21 +45,28 @@ def test_save_and_load_round_trip_and_every_calibration_version_loads(utts, tmp_
     D = utts[0].aam.shape[1]
     model = BandCalibrated.wrap(zero, BandCalibration(np.linspace(0.5, 2.0, D), "zero"))
     d = model.save(tmp_path / "m")
-    assert (d / CALIBRATION_FILE).is_file() and (d / ZeroModel.bundle_path / "estimator.json").is_file()
-    back = BandCalibrated.load(d, ZeroModel)
+    assert (d / ESTIMATOR_FILE).is_file() and (d / "estimator" / ESTIMATOR_FILE).is_file()
+    back = load_estimator(d)                                       # no class passed in
+    assert isinstance(back, BandCalibrated) and isinstance(back.estimator_, ZeroModel)
     np.testing.assert_array_equal(back.predict_dist(utts[3]).var, model.predict_dist(utts[3]).var)
-    # a version-1 file (the band scale only) is read as stage 1 alone
-    old = json.loads((d / CALIBRATION_FILE).read_text())
+    assert type(BandCalibrated.load(d)) is BandCalibrated
+    # a version-1 calibration (the band scale only) is read as stage 1 alone
+    desc = json.loads((d / ESTIMATOR_FILE).read_text())
+    old = desc["state"]["calibration"]
     old = {k: old[k] for k in ("format", "method", "levels", "scale", "level_cal", "n_utterances", "n_frames",
                                "coverage_raw", "coverage_calibrated", "held_out")} | {"version": 1}
-    (d / CALIBRATION_FILE).write_text(json.dumps(old))
-    v1 = BandCalibrated.load(d, ZeroModel)
+    (d / ESTIMATOR_FILE).write_text(json.dumps({**desc, "state": {"calibration": old}}))
+    write_bundle_manifest(d)
+    v1 = load_estimator(d)
     np.testing.assert_allclose(v1.predict_dist(utts[3]).var, model.predict_dist(utts[3]).var, rtol=1e-12)
-    (d / CALIBRATION_FILE).unlink()
-    with pytest.raises(FileNotFoundError, match=CALIBRATION_FILE):
-        BandCalibrated.load(d, ZeroModel)
-    with pytest.raises(TypeError, match="wrapped estimator's class"):
-        BandCalibrated.load(d)
+    (d / ESTIMATOR_FILE).write_text(json.dumps({**desc, "state": {}}))
+    write_bundle_manifest(d)
+    with pytest.raises(ValueError, match=f"{ESTIMATOR_FILE}: incomplete or corrupt.*calibration"):
+        load_estimator(d)
+    (d / ESTIMATOR_FILE).write_text(json.dumps({**desc, "state": {"calibration": {**old, "version": 99}}}))
+    write_bundle_manifest(d)
+    with pytest.raises(ValueError, match=f"{ESTIMATOR_FILE}: calibration: format version 99"):
+        load_estimator(d)
 
 
 def test_fit_is_the_estimator_fit_then_the_calibration_of_its_posterior():

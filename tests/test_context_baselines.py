@@ -14,8 +14,11 @@ import bayes_talk.baselines.context as C
 from bayes_talk.baselines import REGISTRY
 from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
 from bayes_talk.baselines.context_mlp import ContextMLP
+from bayes_talk.bundle import write_bundle_manifest
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import NotFittedError
+from bayes_talk.estimators.base import ESTIMATOR_FILE, FORMAT_VERSION
+from bayes_talk.estimators.registry import load_estimator
 from bayes_talk.evaluation import systems as S
 from bayes_talk.features.context_window import ContextFeatures, stack_context
 
@@ -181,42 +184,59 @@ def test_mlp_is_seeded(toy, mlp_fit):
 # ----------------------------------------------------------------------------- files
 @pytest.mark.parametrize("which", ["ridge", "mlp"])
 def test_save_load_round_trip_and_damaged_files(which, ridge_fit, mlp_fit, linear_world, toy, tmp_path):
+    """The context regressions save as every estimator (issue 26): a directory, read back
+    without naming the class; a damaged or foreign file is refused, naming it."""
     model, seq = (ridge_fit, linear_world[3][0]) if which == "ridge" else (mlp_fit, toy[1][0])
     cls = type(model)
-    path = model.save(tmp_path / "m.json")
-    back = cls.load(tmp_path / "m")
+    d = model.save(tmp_path / "m")
+    back = load_estimator(d)
+    assert type(back) is cls
     np.testing.assert_array_equal(back.predict(seq), model.predict(seq))
     np.testing.assert_array_equal(back.predict_var(seq), model.predict_var(seq))
     assert back.windows_ == model.windows_
     with pytest.raises(FileExistsError, match="overwrite"):
-        model.save(path)
-    model.save(path, overwrite=True)
+        model.save(d)
+    model.save(d, overwrite=True)
+    path = d / ESTIMATOR_FILE
     meta = json.loads(path.read_text())
-    assert meta["version"] == C.FORMAT_VERSION
-    # wrong version, wrong format, truncated JSON, truncated / foreign arrays
-    path.write_text(json.dumps({**meta, "version": 99}))
-    with pytest.raises(ValueError, match="version expected 1, found 99"):
-        cls.load(path)
+    assert meta["version"] == FORMAT_VERSION
+
+    def rewrite(text: str) -> None:       # a changed descriptor with a manifest that agrees
+        path.write_text(text)
+        write_bundle_manifest(d)
+
+    # wrong version, the other regression's class, truncated JSON, arrays of another shape
+    rewrite(json.dumps({**meta, "version": 99}))
+    with pytest.raises(ValueError, match="version expected 2, found 99"):
+        load_estimator(d)
     other = ContextMLP if cls is ContextRidge else ContextRidge
-    path.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match="format expected"):
-        other.load(path)
-    path.write_text(json.dumps(meta)[:50])
+    rewrite(json.dumps(meta))
+    with pytest.raises(ValueError, match=f"a saved {cls.__name__}.*not a {other.__name__}"):
+        other.load(d)
+    rewrite(json.dumps(meta)[:50])
     with pytest.raises(ValueError, match="truncated or not JSON"):
-        cls.load(path)
-    path.write_text(json.dumps(meta))
-    npz = path.with_suffix(".npz")
-    data = npz.read_bytes()
-    npz.write_bytes(data[: len(data) // 2])
-    with pytest.raises(ValueError, match="truncated or corrupt"):
-        cls.load(path)
-    model.save(path, overwrite=True)                     # intact arrays, JSON of another save
-    path.write_text(json.dumps({**meta, "npz_sha256": "0" * 64}))
-    with pytest.raises(ValueError, match="SHA-256"):
-        cls.load(path)
+        load_estimator(d)
+    rewrite(json.dumps({**meta, "state": {**meta["state"], "n_visual": meta["state"]["n_visual"] + 1}}))
+    with pytest.raises(ValueError, match=f"{ESTIMATOR_FILE}: .*(residual_var|coef).*"):
+        load_estimator(d)
+    model.save(d, overwrite=True)                        # a truncated NPZ: the manifest names it
+    npz = d / "arrays.npz"
+    npz.write_bytes(npz.read_bytes()[:100])
+    with pytest.raises(ValueError, match=r"arrays\.npz"):
+        load_estimator(d)
+    model.save(d, overwrite=True)
     npz.unlink()
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        cls.load(path)
+    with pytest.raises(ValueError, match=r"arrays\.npz.*missing"):
+        load_estimator(d)
+
+
+def test_a_context_model_saved_by_an_earlier_version_is_refused_by_name(tmp_path):
+    """Before issue 26 the context regressions saved ``<base>.json`` + ``<base>.npz`` of their
+    own format; those files are refused with the file, the format and what to do."""
+    (tmp_path / "m.json").write_text(json.dumps({"format": "bayes_talk.context-ridge", "version": 1}))
+    with pytest.raises(ValueError, match=r"m\.json: a model of format 'bayes_talk.context-ridge' saved by an "
+                                         "earlier bayes_talk.*train the model again"):
+        load_estimator(tmp_path / "m")
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -1,9 +1,11 @@
-"""The estimator protocol over the one registry (issue 11): every family saves and loads
-with identical predictions, refuses to predict before ``fit``, clones with
-``sklearn.base.clone``, and refuses a saved model with a file swapped from another
-model or truncated, naming the file."""
+"""The estimator protocol over the one registry (issue 11): every family saves to a directory
+and loads back through the registry, without naming its class (issue 26: one layout, one
+signature), with identical predictions; refuses to predict before ``fit``; clones with
+``sklearn.base.clone``; and refuses a saved model with a file swapped from another model or
+truncated, naming the file."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -13,7 +15,8 @@ from sklearn.base import clone
 from toydata import make_utterances
 
 from bayes_talk.errors import NotFittedError
-from bayes_talk.estimators.registry import ESTIMATORS, make_estimator
+from bayes_talk.estimators.base import ARRAYS_FILE, ESTIMATOR_FILE, FORMAT_VERSION, Estimator
+from bayes_talk.estimators.registry import ESTIMATORS, load_estimator, make_estimator
 from bayes_talk.synthesis.result import SynthesisResult
 
 #: families without a predictive variance: ``predict_dist`` refuses
@@ -71,9 +74,16 @@ def _bundle_files(root: Path) -> list[Path]:
 def test_save_load_round_trip_gives_identical_predictions(name, fitted, data, tmp_path):
     model = fitted[name]
     test = data[1][0]
-    model.save(tmp_path / "m")
-    cls = type(model)
-    back = cls.load(tmp_path / "m")
+    d = model.save(tmp_path / "m")
+    # one layout: a directory with the descriptor naming the class, the arrays and the manifest
+    assert d == tmp_path / "m" and {p.name for p in d.iterdir()} >= {ESTIMATOR_FILE, ARRAYS_FILE,
+                                                                     "bundle_manifest.json"}
+    desc = json.loads((d / ESTIMATOR_FILE).read_text())
+    assert desc["version"] == FORMAT_VERSION and desc["class"] == type(model).__qualname__
+    assert desc["module"] == type(model).__module__
+    back = load_estimator(d)                           # no class passed in
+    assert type(back) is type(model)
+    assert type(Estimator.load(d)) is type(model) and type(type(model).load(d)) is type(model)
     assert back.get_params() == model.get_params()
     if name in GENERATOR:
         return
@@ -90,6 +100,46 @@ def test_save_load_round_trip_gives_identical_predictions(name, fitted, data, tm
         np.testing.assert_array_equal(d0.mean, model.predict(test))
         assert d0.var.shape == d0.mean.shape and np.all(d0.var > 0)
     assert back.get_params() == model.get_params()
+    # the saved arrays are the fitted state's, unchanged
+    with np.load(d / ARRAYS_FILE) as z:
+        saved = {k: z[k] for k in z.files}
+    state = model._get_state()[1]
+    assert sorted(saved) == sorted(state)
+    for k, a in state.items():
+        np.testing.assert_array_equal(saved[k], a)
+
+
+def test_another_class_s_bundle_is_refused_by_a_class_load(fitted, tmp_path):
+    from bayes_talk.estimators.ceiling import ZeroModel
+
+    d = fitted["hmm-mean"].save(tmp_path / "m")
+    with pytest.raises(ValueError, match="a saved HMMMean.*not a ZeroModel"):
+        ZeroModel.load(d)
+    with pytest.raises(FileNotFoundError, match="holds no saved estimator"):
+        load_estimator(tmp_path / "nothing")
+
+
+def test_the_band_calibrated_wrapper_round_trips_with_the_estimator_it_wraps(fitted, data, tmp_path):
+    """The wrapper (issue 26, item 3) saves and loads like any estimator: its descriptor holds
+    the calibration, the sub-directory ``estimator`` the wrapped one; nothing names a class."""
+    from bayes_talk.estimators.calibrated import BandCalibrated
+    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+
+    model = fitted["ssgpdm-vlmm"]
+    train, test = data[0], data[1][0]
+    cal = fit_band_calibration(model, train, method="laplace", holdout=0.3, n_draws=8, seed=1)
+    wrapped = BandCalibrated.wrap(model, cal)
+    d = wrapped.save(tmp_path / "m")
+    assert (d / "estimator" / ESTIMATOR_FILE).is_file()
+    back = load_estimator(d)
+    assert type(back) is BandCalibrated and type(back.estimator_) is type(model)
+    assert back.estimator_ is back.estimator and back.calibration_.to_dict() == cal.to_dict()
+    for opts in ({"posterior": "laplace", "n_draws": 8}, {}):
+        r0, r1 = wrapped.predict_dist(test, **opts), back.predict_dist(test, **opts)
+        np.testing.assert_array_equal(r1.mean, r0.mean)
+        np.testing.assert_array_equal(r1.var, r0.var)
+        np.testing.assert_array_equal(r1.interval(0.9)[1], r0.interval(0.9)[1])
+    assert back.synthesis_options == model.synthesis_options and back.post_filter is model.post_filter
 
 
 @pytest.mark.parametrize("name", list(ESTIMATORS))
@@ -124,7 +174,6 @@ def test_swapped_or_truncated_file_refuses_to_load_naming_it(name, fitted, data,
     other = make_estimator(name, **FAST[name]).fit(data[2])
     model.save(tmp_path / "a" / "m")
     other.save(tmp_path / "b" / "m")
-    cls = type(model)
     files_a = _bundle_files(tmp_path / "a")
     files_b = _bundle_files(tmp_path / "b")
     npz = [p for p in files_a if p.suffix == ".npz"]
@@ -134,10 +183,10 @@ def test_swapped_or_truncated_file_refuses_to_load_naming_it(name, fitted, data,
     backup = target.read_bytes()
     shutil.copyfile(donor, target)  # arrays from another model
     with pytest.raises(ValueError, match=target.name):
-        cls.load(tmp_path / "a" / "m")
+        load_estimator(tmp_path / "a" / "m")
     target.write_bytes(backup[: len(backup) // 2])  # half-written
     with pytest.raises(ValueError, match=target.name):
-        cls.load(tmp_path / "a" / "m")
+        load_estimator(tmp_path / "a" / "m")
 
 
 def test_the_default_family_sets_its_audio_context_and_the_paper_families_do_not():
@@ -168,3 +217,26 @@ def test_a_family_default_wins_in_evaluate_unless_the_protocol_changes_the_setti
     assert build_family("ssgpdm-phone-ctx-mean", SystemConfig(ssgpdm_min_frames_per_state=30)).config.min_frames_per_state == 30
     assert build_family("ssgpdm-phone-rc", SystemConfig()).config.min_frames_per_state == SwitchingConfig().min_frames_per_state
     assert build_family("ssgpdm-phone-ctx-mean", SystemConfig()).config.context_mean is True
+
+
+@pytest.mark.parametrize("name", ["ssgpdm-vlmm", "sgplvm", "sparse-sgpdm"])
+def test_the_layouts_of_earlier_versions_are_read(name, fitted, data, tmp_path):
+    """Before issue 26 the switching SGPDM saved ``model.json`` + ``arrays.npz`` into a
+    directory, deena2009's SGPLVM and the sparse SGPDM ``<base>.json`` + ``<base>.npz``
+    (with their settings under ``estimator``): ``load_estimator`` reads them, predictions equal."""
+    from bayes_talk.files import write_model_files
+
+    model, test = fitted[name], data[1][0]
+    meta, arrays = model._get_state()
+    if name == "ssgpdm-vlmm":
+        path = tmp_path / "m"
+        write_model_files(path / "model.json", path / "arrays.npz", meta, arrays)
+    else:
+        path = tmp_path / "sgpdm"
+        old = {**meta["model"], "estimator": {"name": name, "params": model.get_params()}}
+        write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), old, arrays)
+    back = load_estimator(path)
+    assert type(back) is type(model) and back.get_params() == model.get_params()
+    d0, d1 = model.predict_dist(test), back.predict_dist(test)
+    np.testing.assert_array_equal(d1.mean, d0.mean)
+    np.testing.assert_array_equal(d1.var, d0.var)

@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bayes_talk.bundle import ESTIMATOR_DIR, write_bundle_manifest
 from bayes_talk.cli import main
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.pipeline import load_trained
 
 SMALL = {"latent_dim": 3, "max_iter": 20, "min_count": 3, "max_frames_per_state": 80, "fallback_frames": 100}
@@ -127,8 +129,13 @@ def test_synth_with_laplace_posterior_writes_bands_and_diagnostics(model_dir, co
         synth(model_dir, wav, lab, tmp_path / "bad", posterior="gibbs")
 
 
+def _calibrate(m: Path, cal) -> None:
+    """Save the model of directory ``m`` wrapped with ``cal``, as ``train --calibrate-bands`` does."""
+    BandCalibrated.wrap(load_trained(m).uncalibrated, cal).save(m / ESTIMATOR_DIR, overwrite=True)
+    write_bundle_manifest(m)
+
+
 def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_path, monkeypatch):
-    from bayes_talk.bundle import write_bundle_manifest
     from bayes_talk.pipeline import synth, train
     from bayes_talk.synthesis import posterior
     from bayes_talk.synthesis.band_calibration import BandCalibration
@@ -145,9 +152,9 @@ def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_pat
 
     monkeypatch.setattr(posterior, "sample_synthesis", fake_posterior)
     scale = np.linspace(0.5, 3.0, D)
-    BandCalibration(scale, "laplace").save(m)
-    write_bundle_manifest(m)                          # as train --calibrate-bands does
+    _calibrate(m, BandCalibration(scale, "laplace"))
     assert load_trained(m).calibration is not None and load_trained(model_dir).calibration is None
+    assert isinstance(load_trained(m).model, BandCalibrated)
     wav, lab = _first_utterance(corpus_dir)
     args = ["synth", str(m), "--audio", str(wav), "--labels", str(lab), "--no-video", "--posterior", "laplace",
             "--draws", "16"]
@@ -167,16 +174,14 @@ def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_pat
     assert "band_calibration" not in raw["diagnostics"] and "no band calibration" in raw["trajectory_holds"]
     # stage 3, the pool with the constant band: variance (1 − w) s² v + w v_c, the mean unchanged
     w, cv = np.linspace(0.0, 1.0, D), np.full(D, 0.7)
-    BandCalibration(scale, "laplace", control_var=cv, pool_weight=w).save(m)
-    write_bundle_manifest(m)
+    _calibrate(m, BandCalibration(scale, "laplace", control_var=cv, pool_weight=w))
     assert main(args + ["--out", str(tmp_path / "pool")]) == 0
     np.testing.assert_allclose(np.load(tmp_path / "pool" / "trajectory.npy"), t_raw, atol=1e-10)
     np.testing.assert_allclose(np.load(tmp_path / "pool" / "variance.npy"),
                                (1 - w) * np.load(tmp_path / "raw" / "variance.npy") * scale**2 + w * cv, rtol=1e-8)
     assert json.loads((tmp_path / "pool" / "diagnostics.json").read_text())["pool_weight"] == pytest.approx(list(w))
     # a calibration of another model's size is refused by name
-    BandCalibration(np.ones(D + 1), "laplace").save(m)
-    write_bundle_manifest(m)
+    _calibrate(m, BandCalibration(np.ones(D + 1), "laplace"))
     with pytest.raises(ValueError, match=f"{D + 1} factors but the prediction has {D}"):
         synth(m, wav, lab, tmp_path / "bad", posterior="laplace", n_draws=16, video=False)
     with pytest.raises(ValueError, match="calibrate_bands: expected a fraction"):
@@ -242,6 +247,28 @@ def test_labels_that_disagree_with_the_audio_are_refused(model_dir, corpus_dir, 
     assert "labels end at" in capsys.readouterr().err
 
 
+def test_a_model_directory_of_the_layout_before_issue_26_loads(model_dir, tmp_path):
+    """Trained before issue 26: the switching model's ``model.json`` + ``arrays.npz`` at the
+    top of the directory and ``band_calibration.json`` beside them; ``load_trained`` reads it
+    as the band-calibrated wrapper, with the same arrays."""
+    from bayes_talk.files import write_model_files
+    from bayes_talk.synthesis.band_calibration import BandCalibration
+
+    old = tmp_path / "m"
+    shutil.copytree(model_dir, old)
+    new = load_trained(model_dir).model
+    meta, arrays = new.state()
+    shutil.rmtree(old / ESTIMATOR_DIR)
+    write_model_files(old / "model.json", old / "arrays.npz", meta, arrays)
+    cal = BandCalibration(np.linspace(0.5, 2.0, len(load_trained(model_dir).offset)), "laplace")
+    cal.save(old)
+    write_bundle_manifest(old)
+    tm = load_trained(old)
+    assert isinstance(tm.model, BandCalibrated) and tm.calibration.to_dict() == cal.to_dict()
+    for k, a in tm.uncalibrated.state()[1].items():
+        np.testing.assert_array_equal(a, arrays[k])
+
+
 def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
     other = tmp_path / "m"
     shutil.copytree(model_dir, other)
@@ -250,9 +277,8 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
     (other / "bayes_talk_model.json").write_text(json.dumps(desc))
     with pytest.raises(ValueError, match="version expected 1, found 7"):
         load_trained(other)
-    (other / "arrays.npz").write_bytes((model_dir / "arrays.npz").read_bytes()[:500])
-    desc["version"] = 1
-    (other / "bayes_talk_model.json").write_text(json.dumps(desc))
+    (other / ESTIMATOR_DIR / "arrays.npz").write_bytes((model_dir / ESTIMATOR_DIR / "arrays.npz").read_bytes()[:500])
+    shutil.copyfile(model_dir / "bayes_talk_model.json", other / "bayes_talk_model.json")   # the descriptor intact
     with pytest.raises(ValueError, match="arrays.npz.*(does not belong|truncated or corrupt)"):
         load_trained(other)
 
@@ -260,12 +286,10 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
 class _Recorder:
     """Stands in for a model: records what it was trained on (no training cost)."""
 
-    bundle_path = ""   # saved into the model directory itself, as the switching model
-
     def __init__(self):
         self.names: list[str] = []
 
-    def save(self, path):
+    def save(self, path, overwrite=False):
         Path(path).mkdir(parents=True, exist_ok=True)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
+from bayes_talk.bundle import ESTIMATOR_DIR
 from bayes_talk.estimators import registry
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.evaluation import harness as H
@@ -73,6 +74,13 @@ def test_every_method_names_a_registered_family():
         assert issubclass(registry.ESTIMATORS[fam][0], Estimator), fam
 
 
+def test_a_method_is_scored_with_a_variance_exactly_when_its_estimator_has_a_distribution():
+    """``has_variance`` of every method agrees with its family's estimator (e.g. ``hmm-mean``,
+    whose per-phone variance is a predictive distribution, is scored as one)."""
+    for name, m in registry.METHODS.items():
+        assert m.has_variance == registry.ESTIMATORS[m.family][0].has_distribution(), name
+
+
 def test_a_method_unknown_to_the_registry_is_refused_and_a_registered_one_is_known(registered):
     assert registered not in registry.METHODS            # the import-time table does not know it ...
     assert S.resolve_methods([registered]) == [registered]   # ... evaluate reads the registry afresh
@@ -110,7 +118,7 @@ def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_
     assert registered not in pipeline.MODEL_KINDS and registered in pipeline.model_kinds()
     out = pipeline.train(shared_built_corpus, registered, tmp_path / "model", alignment=False, extra_var=0.25)
     assert json.loads((out / "bayes_talk_model.json").read_text())["kind"] == registered
-    assert (out / PhoneMean.bundle_path / "estimator.json").is_file()
+    assert (out / ESTIMATOR_DIR / "estimator.json").is_file()
     tm = pipeline.load_trained(out)
     assert isinstance(tm.model, PhoneMean) and tm.model.extra_var == 0.25 and tm.calibration is None
     wav = min((shared_built_corpus / "utterances").rglob("*.wav"))

@@ -1,12 +1,14 @@
 """The switching SGPDM: training per state, Algorithms 1 and 2, persistence, bad input."""
 from __future__ import annotations
 
+import json
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
 from toydata import make_utterances
 
+from bayes_talk.bundle import write_bundle_manifest
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import FALLBACK
 from bayes_talk.synthesis.sequential import lowpass
@@ -122,11 +124,13 @@ def test_bad_input_is_refused_with_a_clear_message(vlmm_model, data, tmp_path):
         vlmm_model.synthesize(s.mfcc[:, :3], s.labels)
     with pytest.raises(ValueError, match="algorithm"):
         vlmm_model.synthesize(s.mfcc, s.labels, algorithm="viterbi")
-    vlmm_model.save(tmp_path / "m")
-    meta = (tmp_path / "m" / "model.json").read_text().replace('"version": 1', '"version": 99')
-    (tmp_path / "m" / "model.json").write_text(meta)
-    with pytest.raises(ValueError, match="version expected 1, found 99"):
-        SwitchingSGPDM.load(tmp_path / "m")
+    d = vlmm_model.save(tmp_path / "m")
+    desc = json.loads((d / "estimator.json").read_text())
+    desc["state"]["version"] = 99                       # the switching model's own format version
+    (d / "estimator.json").write_text(json.dumps(desc))
+    write_bundle_manifest(d)
+    with pytest.raises(ValueError, match="estimator.json: switching model: version expected 1, found 99"):
+        SwitchingSGPDM.load(d)
 
 
 def test_lowpass_is_zero_phase_and_removes_high_frequencies():
@@ -259,9 +263,8 @@ def test_direct_log_joint_trains_the_same_switching_model_as_the_pyro_trace(data
     the hyperparameters and latents of the Pyro-trace path (``sgpdm_program.trace_log_joint``,
     kept as the reference)."""
     import bayes_talk.models.sgpdm as sgpdm_mod
-    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
-
     from bayes_talk import settings
+    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     train = data[0][:5]
     fits = {}

@@ -39,14 +39,13 @@ chosen (L, M, α_d),
 
 constant over frames (a homoscedastic Gaussian predictive N(ẑ_t, diag σ²)).
 
-Saved models are ``<base>.json`` + ``<base>.npz`` (no pickle): the context settings,
-the label encoder, the MFCC standardisation, ``coef_``/``intercept_`` and the variances.
+Saved as every estimator (:meth:`bayes_talk.estimators.base.Estimator.save`, no pickle): the
+context settings, the label encoder, the MFCC standardisation, ``coef_``/``intercept_`` and
+the variances.
 """
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence as Seq
-from pathlib import Path
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -62,24 +61,12 @@ from bayes_talk.features.context_window import (
     MFCC_WINDOWS,
     ContextFeatures,
     Window,
-    listed,
     stack_context,
-    tupled,
     window_grid,
 )
-from bayes_talk.files import check_format, read_model_files, write_model_files
 
-__all__ = [
-    "FORMAT_VERSION",
-    "ContextBaseline",
-    "ContextRidge",
-    "grouped_ridge_cv",
-    "read_saved",
-    "select_context",
-    "write_saved",
-]
+__all__ = ["ContextBaseline", "ContextRidge", "grouped_ridge_cv", "select_context"]
 
-FORMAT_VERSION = 1
 #: default ridge penalties searched per visual dimension
 ALPHAS: tuple[float, ...] = tuple(float(a) for a in np.logspace(-2, 6, 17))
 
@@ -130,47 +117,6 @@ def grouped_ridge_cv(X: sp.csr_matrix | np.ndarray, Z: np.ndarray, groups: np.nd
             # Σ_t∈k (z̃ − x̃ B)² = ‖z̃‖² − 2 diag(Bᵀ X̃ᵀZ̃) + diag(Bᵀ X̃ᵀX̃ B), B = V Ũ
             sse[c] += rr[None, :] - 2 * np.einsum("pad,pd->ad", Ut, W) + np.einsum("pad,pad->ad", Ut, HU)
     return sse
-
-
-# --------------------------------------------------------------------------- files
-def _paths(path: str | os.PathLike) -> tuple[Path, Path]:
-    p = Path(path)
-    base = p.with_suffix("") if p.suffix in (".json", ".npz") else p
-    return base.with_name(base.name + ".json"), base.with_name(base.name + ".npz")
-
-
-def write_saved(path: str | os.PathLike, fmt: str, meta: dict[str, Any], arrays: dict[str, np.ndarray],
-                overwrite: bool = False) -> Path:
-    """Write ``<base>.npz`` then ``<base>.json`` (atomically); returns the JSON path.
-
-    The JSON records ``format``, ``version``, the NPZ's SHA-256 and every array's shape.
-    An existing file is refused (FileExistsError) unless ``overwrite``.
-    """
-    jpath, npath = _paths(path)
-    if not overwrite:
-        for p in (jpath, npath):
-            if p.exists():
-                raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
-    full = {"format": fmt, "version": FORMAT_VERSION, **meta,
-            "arrays": {k: list(np.shape(a)) for k, a in arrays.items()}}
-    return write_model_files(jpath, npath, full, arrays)
-
-
-def read_saved(path: str | os.PathLike, fmt: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Read a pair written by :func:`write_saved`. A missing file is FileNotFoundError; a
-    truncated, modified, foreign, wrong-format or wrong-version file a ValueError naming
-    the file and the problem."""
-
-    jpath, npath = _paths(path)
-    meta, arrays = read_model_files(jpath, npath)
-    check_format(meta, fmt, FORMAT_VERSION, f"model file {jpath}")
-    for k, shape in (meta.get("arrays") or {}).items():
-        if k not in arrays:
-            raise ValueError(f"model file {npath}: array {k!r} missing")
-        if list(arrays[k].shape) != list(shape):
-            raise ValueError(f"model file {npath}: array {k!r} shape expected {shape}, "
-                             f"found {list(arrays[k].shape)}")
-    return meta, arrays
 
 
 # --------------------------------------------------------------------------- the model
@@ -236,6 +182,21 @@ class ContextBaseline(Baseline):
         self.features_.check(seq)
         return np.broadcast_to(self.residual_var_, (seq.n_frames, self.n_visual_)).copy()
 
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The fitted context features, dimensions and residual variance (the shared part);
+        each regression adds its own coefficients."""
+        return ({"features": self.features_.to_meta(), "n_audio": self.n_audio_, "n_visual": self.n_visual_},
+                {**self.features_.arrays(), "residual_var": self.residual_var_})
+
+    def _set_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        self.features_ = ContextFeatures.from_saved(meta["features"], arrays)
+        self.n_audio_, self.n_visual_ = int(meta["n_audio"]), int(meta["n_visual"])
+        self.residual_var_ = arrays["residual_var"]
+        if self.residual_var_.shape != (self.n_visual_,):
+            raise ValueError(f"residual_var has shape {self.residual_var_.shape}, expected ({self.n_visual_},)")
+        if self.features_.mfcc_mean.shape != (self.n_audio_,):
+            raise ValueError(f"mfcc_mean has shape {self.features_.mfcc_mean.shape}, expected ({self.n_audio_},)")
+
     def log_likelihood(self, seq: Utterance) -> float:
         """Σ_t Σ_d log N(z_td; ẑ_td, σ²_d) of the ground truth (labels and audio given)."""
         self._check_fitted()
@@ -260,7 +221,6 @@ class ContextRidge(ContextBaseline):
     """
 
     name: ClassVar[str] = "context-ridge"
-    _format: ClassVar[str] = "bayes_talk.context-ridge"
 
     def __init__(self, label_window: Window | Seq[Window] = LABEL_WINDOWS,
                  mfcc_window: Window | Seq[Window] = MFCC_WINDOWS, alphas: Seq[float] = ALPHAS,
@@ -302,38 +262,16 @@ class ContextRidge(ContextBaseline):
         self.features_.check(seq)
         return self.features_.transform(seq) @ self.coef_.T + self.intercept_
 
-    # -- persistence
-    def save(self, path: str | os.PathLike, overwrite: bool = False) -> Path:
-        """Write ``<base>.json`` + ``<base>.npz`` (``path`` with or without suffix)."""
-        self._check_fitted()
-        meta = {"params": {"label_window": listed(self.label_window), "mfcc_window": listed(self.mfcc_window),
-                           "alphas": [float(a) for a in self.alphas], "n_splits": self.n_splits},
-                "features": self.features_.to_meta(), "n_audio": self.n_audio_, "n_visual": self.n_visual_,
-                "cv_table": self.cv_table_, "cv_splits": self.cv_splits_}
-        arrays = {**self.features_.arrays(), "coef": self.coef_, "intercept": self.intercept_,
-                  "alpha": self.alpha_, "residual_var": self.residual_var_}
-        return write_saved(path, self._format, meta, arrays, overwrite=overwrite)
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        meta, arrays = super()._get_state()
+        return ({**meta, "cv_table": self.cv_table_, "cv_splits": self.cv_splits_},
+                {**arrays, "coef": self.coef_, "intercept": self.intercept_, "alpha": self.alpha_})
 
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> ContextRidge:
-        """Read a model written by :meth:`save` (ValueError on any problem)."""
-        meta, arrays = read_saved(path, cls._format)
-        try:
-            p = meta["params"]
-            obj = cls(label_window=tupled(p["label_window"]), mfcc_window=tupled(p["mfcc_window"]),
-                      alphas=tuple(p["alphas"]), n_splits=p["n_splits"])
-            obj.features_ = ContextFeatures.from_saved(meta["features"], arrays)
-            obj.n_audio_, obj.n_visual_ = int(meta["n_audio"]), int(meta["n_visual"])
-            obj.coef_, obj.intercept_ = arrays["coef"], arrays["intercept"]
-            obj.alpha_, obj.residual_var_ = arrays["alpha"], arrays["residual_var"]
-            obj.cv_table_, obj.cv_splits_ = meta["cv_table"], meta["cv_splits"]
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"model file {path}: incomplete or corrupt (missing {exc})") from None
-        want = (obj.n_visual_, obj.features_.n_features)
-        if obj.coef_.shape != want or obj.intercept_.shape != (want[0],) or obj.residual_var_.shape != (want[0],):
-            raise ValueError(f"model file {path}: coef {obj.coef_.shape} / intercept {obj.intercept_.shape} / "
-                             f"residual_var {obj.residual_var_.shape} do not match (D_z, F) = {want}")
-        if obj.features_.mfcc_mean.shape != (obj.n_audio_,):
-            raise ValueError(f"model file {path}: mfcc_mean has shape {obj.features_.mfcc_mean.shape}, "
-                             f"expected ({obj.n_audio_},)")
-        return obj
+    def _set_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        super()._set_state(meta, arrays)
+        self.coef_, self.intercept_, self.alpha_ = arrays["coef"], arrays["intercept"], arrays["alpha"]
+        self.cv_table_, self.cv_splits_ = meta["cv_table"], meta["cv_splits"]
+        want = (self.n_visual_, self.features_.n_features)
+        if self.coef_.shape != want or self.intercept_.shape != (want[0],):
+            raise ValueError(f"coef {self.coef_.shape} / intercept {self.intercept_.shape} do not match "
+                             f"(D_z, F) = {want}")

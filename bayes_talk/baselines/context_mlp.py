@@ -31,25 +31,21 @@ trained), so a saved and re-loaded model predicts bit-identically.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence as Seq
-from pathlib import Path
 from typing import ClassVar, Self
 
 import numpy as np
 from sklearn.neural_network import MLPRegressor
 
 from bayes_talk.baselines.base import check_train
-from bayes_talk.baselines.context import ContextBaseline, read_saved, select_context, write_saved
+from bayes_talk.baselines.context import ContextBaseline, select_context
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.features.context_window import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,
     ContextFeatures,
     Window,
-    listed,
     stack_context,
-    tupled,
     window_grid,
 )
 
@@ -85,7 +81,6 @@ class ContextMLP(ContextBaseline):
     """
 
     name: ClassVar[str] = "context-mlp"
-    _format: ClassVar[str] = "bayes_talk.context-mlp"
 
     def __init__(self, label_window: Window | Seq[Window] = LABEL_WINDOWS,
                  mfcc_window: Window | Seq[Window] = MFCC_WINDOWS, hidden: int = 256, l2: float = 3.0,
@@ -177,50 +172,27 @@ class ContextMLP(ContextBaseline):
         out = mlp_forward(self.features_.transform(seq), self.weights_, self.biases_)
         return out.astype(np.float64) * self.z_scale_ + self.z_mean_
 
-    # -- persistence
-    def save(self, path: str | os.PathLike, overwrite: bool = False) -> Path:
-        """Write ``<base>.json`` + ``<base>.npz`` (``path`` with or without suffix)."""
-        self._check_fitted()
-        params = {k: getattr(self, k) for k in ("hidden", "l2", "learning_rate", "batch_size", "max_epochs",
-                                                 "patience", "validation_fraction", "n_splits", "seed")}
-        params["label_window"] = listed(self.label_window)
-        params["mfcc_window"] = listed(self.mfcc_window)
-        meta = {"params": params, "features": self.features_.to_meta(), "n_audio": self.n_audio_,
-                "n_visual": self.n_visual_, "n_layers": len(self.weights_), "best_epoch": self.best_epoch_,
+    def _get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        meta, arrays = super()._get_state()
+        meta = {**meta, "n_layers": len(self.weights_), "best_epoch": self.best_epoch_,
                 "val_history": self.val_history_, "validation_utterances": self.validation_utterances_}
-        arrays = {**self.features_.arrays(), "z_mean": self.z_mean_, "z_scale": self.z_scale_,
-                  "residual_var": self.residual_var_}
+        arrays = {**arrays, "z_mean": self.z_mean_, "z_scale": self.z_scale_}
         for i, (W, b) in enumerate(zip(self.weights_, self.biases_, strict=True)):
             arrays[f"W{i}"], arrays[f"b{i}"] = W, b
-        return write_saved(path, self._format, meta, arrays, overwrite=overwrite)
+        return meta, arrays
 
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> ContextMLP:
-        """Read a model written by :meth:`save` (ValueError on any problem)."""
-        meta, arrays = read_saved(path, cls._format)
-        try:
-            p = dict(meta["params"])
-            p["label_window"], p["mfcc_window"] = tupled(p["label_window"]), tupled(p["mfcc_window"])
-            obj = cls(**p)
-            obj.features_ = ContextFeatures.from_saved(meta["features"], arrays)
-            obj.n_audio_, obj.n_visual_ = int(meta["n_audio"]), int(meta["n_visual"])
-            n = int(meta["n_layers"])
-            obj.weights_ = [arrays[f"W{i}"] for i in range(n)]
-            obj.biases_ = [arrays[f"b{i}"] for i in range(n)]
-            obj.z_mean_, obj.z_scale_ = arrays["z_mean"], arrays["z_scale"]
-            obj.residual_var_ = arrays["residual_var"]
-            obj.best_epoch_, obj.val_history_ = meta["best_epoch"], meta["val_history"]
-            obj.validation_utterances_ = meta["validation_utterances"]
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"model file {path}: incomplete or corrupt (missing {exc})") from None
-        fan_in = obj.features_.n_features
-        for i, (W, b) in enumerate(zip(obj.weights_, obj.biases_, strict=True)):
+    def _set_state(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        super()._set_state(meta, arrays)
+        n = int(meta["n_layers"])
+        self.weights_ = [arrays[f"W{i}"] for i in range(n)]
+        self.biases_ = [arrays[f"b{i}"] for i in range(n)]
+        self.z_mean_, self.z_scale_ = arrays["z_mean"], arrays["z_scale"]
+        self.best_epoch_, self.val_history_ = meta["best_epoch"], meta["val_history"]
+        self.validation_utterances_ = meta["validation_utterances"]
+        fan_in = self.features_.n_features
+        for i, (W, b) in enumerate(zip(self.weights_, self.biases_, strict=True)):
             if W.ndim != 2 or W.shape[0] != fan_in or b.shape != (W.shape[1],):
-                raise ValueError(f"model file {path}: layer {i} has W {W.shape}, b {b.shape}; "
-                                 f"expected ({fan_in}, k) and (k,)")
+                raise ValueError(f"layer {i} has W {W.shape}, b {b.shape}; expected ({fan_in}, k) and (k,)")
             fan_in = W.shape[1]
-        if fan_in != obj.n_visual_ or obj.residual_var_.shape != (obj.n_visual_,):
-            raise ValueError(f"model file {path}: output size {fan_in} / residual_var {obj.residual_var_.shape} "
-                             f"do not match D_z = {obj.n_visual_}")
-        return obj
-
+        if fan_in != self.n_visual_:
+            raise ValueError(f"output size {fan_in} does not match D_z = {self.n_visual_}")

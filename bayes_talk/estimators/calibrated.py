@@ -8,14 +8,13 @@ with the constant band; fitted on held-out *training* utterances by
 :func:`~bayes_talk.synthesis.band_calibration.fit_band_calibration`). Its ``predict_dist``
 is the wrapped estimator's, recalibrated when the result is of the calibrated method
 (``result.method == calibration.method``) and returned as it is otherwise (e.g. the
-sequential path, or another sampler). ``save`` writes the wrapped estimator's own files
-and ``band_calibration.json`` beside them; ``load`` reads both (every saved calibration
-format, versions 1-5, through :meth:`BandCalibration.load`).
+sequential path, or another sampler). It saves and loads as every estimator
+(:meth:`Estimator.save <bayes_talk.estimators.base.Estimator.save>`): the calibration in its
+descriptor (:meth:`BandCalibration.to_dict`; every calibration format, versions 1-5, is
+read), the wrapped estimator in the sub-directory ``estimator``.
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -36,9 +35,16 @@ class BandCalibrated(Estimator):
     utterances with ``n_draws`` draws and seed ``seed``."""
 
     name: ClassVar[str] = "band-calibrated"
-    #: the wrapper's layout is the model directory's: the estimator at its own
-    #: ``bundle_path``, ``band_calibration.json`` at the top
-    bundle_path: ClassVar[str] = ""
+
+    @property
+    def synthesis_options(self) -> dict[str, tuple[str, ...]]:  # type: ignore[override]
+        """The wrapped estimator's choices (``synth`` offers them)."""
+        return self.estimator.synthesis_options
+
+    @property
+    def post_filter(self) -> bool:  # type: ignore[override]
+        """Whether ``synth`` low-passes the wrapped estimator's mean."""
+        return self.estimator.post_filter
 
     def __init__(self, estimator: Estimator, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                  n_draws: int = DEFAULT_DRAWS["laplace"], seed: int = 0) -> None:
@@ -79,25 +85,12 @@ class BandCalibrated(Estimator):
         self._require_fitted()
         return self.calibrate(self.estimator_.predict_dist(utt, **options))
 
-    def save(self, directory: str | os.PathLike) -> Path:
-        """The wrapped estimator's files (at its ``bundle_path`` in ``directory``) and
-        ``band_calibration.json``. Returns the directory."""
-        self._require_fitted()
-        d = Path(directory)
-        d.mkdir(parents=True, exist_ok=True)
-        self.estimator_.save(d / self.estimator_.bundle_path)
-        self.calibration_.save(d)
-        return d
+    def saved_estimators(self) -> dict[str, Estimator]:
+        """The fitted wrapped estimator, saved in the sub-directory ``estimator``."""
+        return {"estimator": self.estimator_}
 
-    @classmethod
-    def load(cls, directory: str | os.PathLike, estimator: type[Estimator] | None = None) -> Self:
-        """Read what :meth:`save` wrote: the estimator of class ``estimator`` (required: the
-        directory's descriptor, or the caller, knows it) and the calibration;
-        FileNotFoundError naming the directory when it holds no calibration."""
-        if estimator is None:
-            raise TypeError("BandCalibrated.load needs the wrapped estimator's class")
-        d = Path(directory)
-        cal = BandCalibration.load(d)
-        if cal is None:
-            raise FileNotFoundError(f"{d} holds no {band_calibration.CALIBRATION_FILE}")
-        return cls.wrap(estimator.load(d / estimator.bundle_path), cal)
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return {"calibration": self.calibration_.to_dict()}, {}
+
+    def _set_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        self.calibration_ = BandCalibration.from_dict(meta["calibration"], where="calibration")

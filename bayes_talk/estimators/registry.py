@@ -11,20 +11,33 @@ keyword arguments of its estimator's ``predict_dist`` (e.g. deena2010's Algorith
 or the Laplace posterior, of one trained switching model). Every family that names no
 method of its own is a method too, with no options, so adding a method is one estimator
 class and one line in :data:`ESTIMATORS`.
+
+:func:`load_estimator`: any saved estimator, registered or wrapping one (the band-calibrated
+wrapper), read back from the directory :meth:`Estimator.save
+<bayes_talk.estimators.base.Estimator.save>` wrote; its descriptor names the class, so no
+class is passed in. It also reads the layouts of earlier versions.
 """
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from bayes_talk.baselines import REGISTRY as BASELINES
-from bayes_talk.estimators.base import Estimator
+from bayes_talk.bundle import BUNDLE_MANIFEST
+from bayes_talk.estimators.base import ESTIMATOR_FILE, Estimator
+from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import OracleModel, ZeroModel
 from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.models.sgpdm import SGPDM
+from bayes_talk.models.sparse_sgpdm import SparseSGPDM
 
-__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "METHODS", "Method", "make_estimator"]
+__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "LEGACY_READERS", "METHODS", "WRAPPERS",
+           "Method", "load_estimator", "make_estimator"]
 
 #: family name -> (estimator class, constructor arguments the family fixes)
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
@@ -40,6 +53,8 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "oracle": (OracleModel, {}),
     "sparse-sgpdm": (CorpusSparseSGPDM, {}),
 }
+#: estimators that wrap a fitted one of a family (``train --calibrate-bands`` saves the wrapper)
+WRAPPERS: tuple[type[Estimator], ...] = (BandCalibrated,)
 #: the family ``train`` fits unless told otherwise: right-context phone states with an audio
 #: context of ±2 frames whose visual GPs have the phonetic-context view as their mean function
 #: (:data:`FAMILY_DEFAULTS`; docs/switching.md), the best model on our development sentences
@@ -138,7 +153,7 @@ _NAMED: tuple[Method, ...] = (
     Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
     Method("slds", "slds", "SLDS", False),
     Method("dpds", "dpds", "DPDS", False),
-    Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", False),
+    Method("hmm-mean", "hmm-mean", "HMM (per-phone mean)", True),
     Method("context-ridge", "context-ridge", "ridge on label/MFCC context windows", True),
     Method("context-mlp", "context-mlp", "MLP on label/MFCC context windows", True),
     Method("zero", "zero", "zero (utterance mean, still face)", True),
@@ -161,3 +176,39 @@ def methods() -> dict[str, Method]:
 #: method name -> :class:`Method` (see :func:`methods`; a family registered later in
 #: :data:`ESTIMATORS` is picked up by :func:`methods`, which ``evaluate`` reads)
 METHODS: dict[str, Method] = methods()
+
+
+#: ``format`` of a ``<path>.json`` written before issue 26's one layout -> its reader
+#: (deena2009's SGPLVM and the sparse SGPDM saved to a base name; a trained-model directory
+#: held them as ``sgpdm.*`` and ``sparse_sgpdm.*``)
+LEGACY_READERS = {SGPDM.format_name: SGPLVM.read_legacy, SparseSGPDM.format_name: CorpusSparseSGPDM.read_legacy}
+
+
+def load_estimator(path: str | os.PathLike) -> Estimator:
+    """The estimator saved in the directory ``path`` by :meth:`Estimator.save
+    <bayes_talk.estimators.base.Estimator.save>`, of the class its descriptor names
+    (:meth:`Estimator.load <bayes_talk.estimators.base.Estimator.load>`; every class of
+    :data:`ESTIMATORS` and :data:`WRAPPERS` is imported here).
+
+    Layouts of earlier versions (before issue 26), as trained-model directories held them,
+    are read too: ``path/model.json`` + ``arrays.npz`` (a switching SGPDM) and ``<path>.json``
+    + ``<path>.npz`` of a format in :data:`LEGACY_READERS`. Any other ``<path>.json`` (the
+    context regressions' own format) is refused, naming the file and its format;
+    FileNotFoundError when ``path`` holds no saved estimator."""
+    p = Path(path)
+    if (p / "model.json").is_file() and not (p / ESTIMATOR_FILE).is_file():
+        return SwitchingSGPDM.read_legacy(p)
+    if (p / ESTIMATOR_FILE).is_file() or (p / BUNDLE_MANIFEST).is_file():
+        return Estimator.load(p)
+    legacy = p.with_name(p.name + ".json")
+    if legacy.is_file():
+        try:
+            fmt = json.loads(legacy.read_text(encoding="utf-8")).get("format")
+        except (OSError, ValueError, AttributeError) as exc:
+            raise ValueError(f"model file {legacy} is truncated or not a saved model ({exc})") from None
+        if fmt not in LEGACY_READERS:
+            raise ValueError(f"model file {legacy}: a model of format {fmt!r} saved by an earlier bayes_talk, "
+                             f"which this version does not read (it reads {', '.join(map(repr, LEGACY_READERS))} "
+                             "and the directories Estimator.save writes); train the model again")
+        return LEGACY_READERS[fmt](p)
+    raise FileNotFoundError(f"{p} holds no saved estimator (no {ESTIMATOR_FILE})")

@@ -29,7 +29,7 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.files import read_model_files, write_model_files
+from bayes_talk.files import read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
@@ -40,7 +40,6 @@ from bayes_talk.synthesis.result import SynthesisResult
 class SGPLVM(Estimator):
     """deena2009's shared GPLVM with back-constraint and dynamics (an estimator)."""
 
-    bundle_path: ClassVar[str] = "sgpdm"
     synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {"init": tuple(INITIALISERS)}
 
     def __init__(self, latent_dim: int = 8, max_frames: int = 1500, chunk: int = 25, max_iter: int = 200,
@@ -123,35 +122,42 @@ class SGPLVM(Estimator):
         """Mean, calibrated variance and latents of ``seq``'s visual trajectory."""
         return self.synthesize(seq.mfcc, seq.labels, **kw)
 
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write ``<path>.npz`` then ``<path>.json``: the SGPDM's state plus this estimator's
-        constructor parameters (so :meth:`load` restores every setting)."""
-        self._require_fitted()
-        path = Path(path)
+    def _get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
         meta, arrays = self.model_.state()
-        meta["estimator"] = {"name": "sgplvm", "params": self.get_params(),
-                             "calibration_iter": self.calibration_iter}
-        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
+        return {"model": meta, "calibration_iter": self.calibration_iter,
+                "training_chunks": _chunks(getattr(self, "training_chunks_", None)),
+                "validation_chunks": _chunks(getattr(self, "validation_chunks_", None))}, arrays
+
+    def _set_state(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        with torch_threads(1):  # the predictors' Cholesky factors exactly as fit computed them
+            self.model_ = SGPDM.from_state(meta["model"], arrays)
+        self.calibration_iter = int(meta["calibration_iter"])
+        for k in ("training_chunks", "validation_chunks"):
+            if meta.get(k) is not None:
+                setattr(self, k + "_", [tuple(c) for c in meta[k]])
 
     @classmethod
-    def load(cls, path: str | os.PathLike, init: str | None = None) -> SGPLVM:
-        """Read :meth:`save`'s files; ``init`` overrides the saved initialiser. A model saved
-        before the estimator's settings were recorded keeps its latent dimension and the
-        defaults for the rest."""
+    def read_legacy(cls, path: str | os.PathLike) -> SGPLVM:
+        """A model saved before issue 26's one layout: ``<path>.json`` + ``<path>.npz`` (a
+        trained-model directory's ``sgpdm.*``, up to session 11). One saved before the
+        estimator's settings were recorded keeps its latent dimension and the defaults."""
         path = Path(path)
         meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))
         est = meta.get("estimator") if isinstance(meta, dict) else None
-        with torch_threads(1):  # the predictors' Cholesky factors exactly as fit computed them
+        with torch_threads(1):
             model = SGPDM.from_state(meta, arrays)
         if est is not None:
             obj = cls(**est["params"])
             obj.calibration_iter = int(est.get("calibration_iter", obj.calibration_iter))
         else:
             obj = cls(latent_dim=model.config.latent_dim)
-        if init is not None:
-            obj.set_params(init=init)
         obj.model_ = model
         return obj
+
+
+def _chunks(chunks: list | None) -> list | None:
+    """(utterance, start, stop) chunks as JSON lists of ints."""
+    return None if chunks is None else [[int(x) for x in c] for c in chunks]
 
 
 def _take(chunks: list[tuple[int, int, int]], max_frames: int) -> tuple[list, list]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.files import read_model_files, write_model_files
+from bayes_talk.files import read_model_files
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM, SparseSGPDMConfig
 from bayes_talk.synthesis.latents import infer_latents
 from bayes_talk.synthesis.result import SynthesisResult
@@ -28,7 +28,6 @@ class CorpusSparseSGPDM(Estimator):
     AAM parameters, one sequence per utterance); ``synthesize`` as in the module docstring."""
 
     name: ClassVar[str] = "sparse-sgpdm"
-    bundle_path: ClassVar[str] = "sparse_sgpdm"
 
     def __init__(self, latent_dim: int = 6, n_inducing: int = 200, max_iter: int = 300, seed: int = 0,
                  synth_max_iter: int = 100) -> None:
@@ -62,21 +61,19 @@ class CorpusSparseSGPDM(Estimator):
         """The visual GP predictive at the utterance's latents (:meth:`synthesize`)."""
         return self.synthesize(seq.mfcc, seq.labels)
 
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write ``<path>.npz`` then ``<path>.json``: the sparse model's state
-        (:meth:`SparseSGPDM.state`) plus this estimator's constructor parameters, so that
-        :meth:`load` restores every setting (as :meth:`bayes_talk.estimators.sgplvm.SGPLVM.save`)."""
-        self._require_fitted()
-        path = Path(path)
+    def _get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
         meta, arrays = self.model_.state()
-        meta["estimator"] = {"name": self.name, "params": self.get_params()}
-        return write_model_files(path.with_suffix(".json"), path.with_suffix(".npz"), meta, arrays)
+        return {"model": meta}, arrays
+
+    def _set_state(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.model_ = SparseSGPDM.from_state(meta["model"], arrays)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> CorpusSparseSGPDM:
-        """A system saved by :meth:`save` (one saved before the estimator's settings were
-        recorded keeps its latent dimension and inducing inputs, the defaults for the rest);
-        errors name the damaged file."""
+    def read_legacy(cls, path: str | os.PathLike) -> CorpusSparseSGPDM:
+        """A system saved before issue 26's one layout: ``<path>.json`` + ``<path>.npz`` (a
+        trained-model directory's ``sparse_sgpdm.*``, up to session 11); one saved before
+        the estimator's settings were recorded keeps its latent dimension and inducing
+        inputs, the defaults for the rest. Errors name the damaged file."""
         path = Path(path)
         meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))
         est = meta.get("estimator") if isinstance(meta, dict) else None

@@ -1,7 +1,7 @@
 """The switching shared GPDM as an estimator (deena2010; docs/switching.md).
 
 :class:`SwitchingSGPDM` is the generative model of :mod:`bayes_talk.models.switching`
-(``fit``, state lookup, ``save`` / ``load`` of ``model.json`` + ``arrays.npz``) with the
+(``fit``, state lookup, its saved ``state``; ``save`` / ``load`` are the estimator's) with the
 inference of :mod:`bayes_talk.synthesis` on top: ``synthesize`` runs deena2010's
 Algorithm 1 or 2 (:func:`bayes_talk.synthesis.sequential.synthesize`), ``predict`` returns
 its mean, ``predict_dist`` its mean and GP predictive variance. The whole-utterance
@@ -31,13 +31,18 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
     ``predict_dist`` from audio + labels (constructor arguments: :class:`SwitchingConfig
     <bayes_talk.models.switching.SwitchingConfig>`)."""
 
-    bundle_path: ClassVar[str] = ""
     synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {
         "algorithm": ("optimise", "predict"), "init": ("nn",), "posterior": tuple(INFERENCE)}
     post_filter: ClassVar[bool] = True
 
     def _is_fitted(self) -> bool:
         return bool(self.models_)
+
+    def _get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        return self.state()
+
+    def _set_state(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.restore(meta, arrays)
 
     def synthesize(self, mfcc: np.ndarray, labels: Sequence[str], algorithm: str = "optimise",
                    smoothness: str | bool = True, lowpass_hz: float | None = None,

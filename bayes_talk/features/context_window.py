@@ -14,8 +14,7 @@ from bayes_talk.data.phones import SILENCE
 from bayes_talk.data.utterance import Utterance, check_test
 from bayes_talk.features.phone_encoding import LabelEncoder
 
-__all__ = ["LABEL_WINDOWS", "MFCC_WINDOWS", "ContextFeatures", "Window", "listed", "stack_context", "tupled",
-           "window_grid"]
+__all__ = ["LABEL_WINDOWS", "MFCC_WINDOWS", "ContextFeatures", "Window", "stack_context", "window_grid"]
 
 #: default grids of the cross-validated window half-widths
 LABEL_WINDOWS: tuple[int, ...] = (2, 4, 8)
@@ -149,13 +148,3 @@ def stack_context(feats: ContextFeatures, train: list[Utterance]) -> tuple[sp.cs
     Z = np.concatenate([s.aam for s in train])
     groups = np.concatenate([np.full(s.n_frames, s.name, dtype=object) for s in train]).astype(str)
     return X, Z, groups
-
-
-def listed(v: Any) -> Any:
-    """A window grid as JSON can hold it (tuples become lists)."""
-    return list(v) if isinstance(v, (list, tuple)) else v
-
-
-def tupled(v: Any) -> Any:
-    """A window grid read back from JSON (lists become tuples)."""
-    return tuple(v) if isinstance(v, list) else v

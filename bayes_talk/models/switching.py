@@ -42,7 +42,7 @@ from bayes_talk.data.utterance import Utterance
 from bayes_talk.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.features.context_view import ContextView
-from bayes_talk.files import check_format, read_model_files, write_model_files
+from bayes_talk.files import check_format, read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.right_context import RightContextStates
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
@@ -367,11 +367,12 @@ class SwitchingModel:
         return self.states_model_.segment(replace_unseen(list(labels), counts, stacklevel=3), unknown="error")
 
     # ------------------------------------------------------------------ persistence
-    def save(self, directory: str | Path) -> Path:
-        """Write ``model.json`` + ``arrays.npz`` into ``directory`` (atomically)."""
+    def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(JSON-able metadata, arrays) that fully describe the fitted model: the state model,
+        the views, and each state's SGPDM (:meth:`SGPDM.state`) with its entry distribution.
+        The estimator saves them (:meth:`bayes_talk.estimators.base.Estimator.save`)."""
         if not self.models_:
             raise not_fitted(self, "call fit(train) or load() first")
-        directory = Path(directory)
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": asdict(self.config),
                 "dims": list(self.dims_), "states_model": self.states_model_.to_dict(),
                 "n_training_frames": self.n_training_frames_, "phone_counts": self.phone_counts_, "models": []}
@@ -384,37 +385,43 @@ class SwitchingModel:
             for k, a in marr.items():
                 arrays[f"{j}/{k}"] = a
             arrays[f"{j}/entry_mean"], arrays[f"{j}/entry_cov"] = self.entry_[st]
-        write_model_files(directory / "model.json", directory / "arrays.npz", meta, arrays)
-        return directory
+        return meta, arrays
+
+    def restore(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Set the fitted model from :meth:`state`'s output (self built with the same settings);
+        ValueError when the format is another's, KeyError / TypeError when a part is missing."""
+        check_format(meta, FORMAT_NAME, FORMAT_VERSION, "switching model")
+        self.dims_ = tuple(meta["dims"])
+        self.n_training_frames_ = meta["n_training_frames"]
+        # models saved before the counts were recorded: every seen phone counts once
+        self.phone_counts_ = {k: int(v) for k, v in meta.get("phone_counts", {}).items()}
+        self.states_model_ = _states_from_dict(meta["states_model"])
+        self.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
+        self.audio_ = AudioContext.from_arrays(self.audio_context, arrays)
+        self.context_ = ContextView.from_saved(meta.get("context_view"), arrays)
+        grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+        for k, a in arrays.items():
+            if "/" not in k:
+                continue
+            j, rest = k.split("/", 1)
+            grouped[j][rest] = a
+        self.models_, self.entry_ = {}, {}
+        for j, entry in enumerate(meta["models"]):
+            st = tuple(entry["state"])
+            sub = grouped[str(j)]
+            self.models_[st] = SGPDM.from_state(entry["meta"], sub)
+            self.entry_[st] = (sub["entry_mean"], sub["entry_cov"])
 
     @classmethod
-    def load(cls, directory: str | Path) -> SwitchingModel:
-        """Read a model written by :meth:`save`; errors name the damaged file."""
+    def read_legacy(cls, directory: str | Path) -> SwitchingModel:
+        """A model saved before issue 26's one layout: ``model.json`` + ``arrays.npz`` in
+        ``directory`` (a trained-model directory's top, up to session 11); errors name the file."""
         directory = Path(directory)
         meta, arrays = read_model_files(directory / "model.json", directory / "arrays.npz")
         check_format(meta, FORMAT_NAME, FORMAT_VERSION, f"{directory / 'model.json'}")
         try:
             obj = cls(**meta["config"])
-            obj.dims_ = tuple(meta["dims"])
-            obj.n_training_frames_ = meta["n_training_frames"]
-            # models saved before the counts were recorded: every seen phone counts once
-            obj.phone_counts_ = {k: int(v) for k, v in meta.get("phone_counts", {}).items()}
-            sm = meta["states_model"]
-            obj.states_model_ = _states_from_dict(sm)
-            obj.motion_var_ = np.asarray(arrays["motion_var"], dtype=np.float64)
-            obj.audio_ = AudioContext.from_arrays(obj.audio_context, arrays)
-            obj.context_ = ContextView.from_saved(meta.get("context_view"), arrays)
-            grouped: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
-            for k, a in arrays.items():
-                if "/" not in k:
-                    continue
-                j, rest = k.split("/", 1)
-                grouped[j][rest] = a
-            for j, entry in enumerate(meta["models"]):
-                st = tuple(entry["state"])
-                sub = grouped[str(j)]
-                obj.models_[st] = SGPDM.from_state(entry["meta"], sub)
-                obj.entry_[st] = (sub["entry_mean"], sub["entry_cov"])
+            obj.restore(meta, arrays)
         except (KeyError, TypeError) as exc:
             raise ValueError(f"{directory}: switching model is incomplete or corrupt (missing {exc})") from None
         return obj

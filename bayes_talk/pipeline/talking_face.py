@@ -21,7 +21,6 @@ from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
 from bayes_talk.audio import load_audio, speech_problem
 from bayes_talk.bundle import OutputSet, check_output_dir
 from bayes_talk.data.labels import write_lab
-from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.files import write_json, write_npy, write_npz
 from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
@@ -109,8 +108,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
     rendered predictive draws; bayes_talk.uncertainty_outputs).
 
-    ``calibrated``: apply the model's band calibration (``band_calibration.json``, fitted by
-    ``train --calibrate-bands``) when ``posterior`` is the method it was fitted on; False:
+    ``calibrated``: apply the model's band calibration (the model is saved band-calibrated by
+    ``train --calibrate-bands``, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`) when ``posterior`` is the method it was fitted on; False:
     the raw posterior bands. Whether it was applied is recorded in ``diagnostics.json``.
 
     ``lowpass_hz``: the zero-phase low-pass of deena2010 §4.2.3 applied to the mean of a
@@ -122,7 +121,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
         raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
     tm = load_trained(model_dir)
-    choices = type(tm.model).synthesis_options
+    choices = tm.model.synthesis_options
     if posterior is None:
         posterior = DEFAULT_METHOD if "posterior" in choices else "map"
     check_method(posterior)
@@ -159,8 +158,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
-    model = (BandCalibrated.wrap(tm.model, tm.calibration) if calibrated and tm.calibration is not None
-             else tm.model)   # calibrates a result of the calibrated method only
+    model = tm.model if calibrated else tm.uncalibrated   # the wrapper calibrates its own method's results only
     res = model.predict_dist(utt, **options)
     post_filter_hz = lowpass_hz if tm.model.post_filter else None
     if post_filter_hz is not None:

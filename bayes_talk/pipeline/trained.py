@@ -1,8 +1,9 @@
 """A trained-model directory, read back (``bayes-talk synth``, ``align``, ``recognise``):
 the descriptor (:func:`bayes_talk.bundle.read_descriptor`, every file checked against the
-bundle's manifest), the model through its registered estimator class
-(:data:`bayes_talk.estimators.registry.ESTIMATORS`; ``bundle_path`` says where its files
-are), the corpus AAM, the audio front end and the band calibration."""
+bundle's manifest), the estimator saved in its ``estimator`` sub-directory
+(:func:`bayes_talk.estimators.registry.load_estimator`: the class its own descriptor names;
+the band-calibrated wrapper when the model was trained with a calibration), the corpus AAM
+and the audio front end."""
 from __future__ import annotations
 
 import os
@@ -12,28 +13,55 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.audio import AudioSettings
-from bayes_talk.bundle import DESCRIPTOR, BundleError, read_descriptor
-from bayes_talk.estimators.registry import ESTIMATORS
+from bayes_talk.bundle import DESCRIPTOR, ESTIMATOR_DIR, BundleError, read_descriptor
+from bayes_talk.estimators.base import Estimator
+from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.estimators.registry import ESTIMATORS, load_estimator
 from bayes_talk.features.aam import AAM
 from bayes_talk.pipeline.training import model_kinds
 from bayes_talk.synthesis.band_calibration import BandCalibration
 
-__all__ = ["TrainedModel", "load_trained"]
+__all__ = ["LEGACY_ESTIMATOR_PATHS", "TrainedModel", "load_trained"]
+
+#: where a directory trained before issue 26 kept its estimator besides ``estimator/``:
+#: deena2009's SGPLVM as ``sgpdm.*``, the sparse SGPDM as ``sparse_sgpdm.*``; a switching
+#: model as ``model.json`` + ``arrays.npz`` at the top, with ``band_calibration.json`` beside
+LEGACY_ESTIMATOR_PATHS = ("sgpdm", "sparse_sgpdm")
 
 
 @dataclass
 class TrainedModel:
     """A loaded model directory: the model's ``kind`` (a registry family), the fitted
-    estimator, the corpus AAM (or None), the offset added back to its mean-removed
-    parameters, the frame rate, the audio front end and the band calibration (or None)."""
+    estimator ``synth`` runs (a :class:`~bayes_talk.estimators.calibrated.BandCalibrated`
+    when the model was trained with a band calibration), the corpus AAM (or None), the offset
+    added back to its mean-removed parameters, the frame rate and the audio front end."""
 
     kind: str
-    model: object
-    aam: object | None
+    model: Estimator
+    aam: AAM | None
     offset: np.ndarray
     fps: float
-    audio: object = None  # bayes_talk.audio.AudioSettings
-    calibration: object = None  # bayes_talk.synthesis.band_calibration.BandCalibration, if trained with one
+    audio: AudioSettings | None = None
+
+    @property
+    def calibration(self) -> BandCalibration | None:
+        """The model's band calibration (the wrapper's), or None."""
+        return self.model.calibration_ if isinstance(self.model, BandCalibrated) else None
+
+    @property
+    def uncalibrated(self) -> Estimator:
+        """The fitted estimator of the family, without its band calibration (raw bands; the
+        generative model that the synthesis functions take)."""
+        return self.model.estimator_ if isinstance(self.model, BandCalibrated) else self.model
+
+
+def _estimator_path(d: Path) -> Path:
+    """Where ``d`` keeps its estimator: ``estimator/``, or a place of :data:`LEGACY_ESTIMATOR_PATHS`,
+    or (a switching model trained before issue 26) ``d`` itself."""
+    for rel in (ESTIMATOR_DIR, *LEGACY_ESTIMATOR_PATHS):
+        if (d / rel).is_dir() or (d / f"{rel}.json").is_file():
+            return d / rel
+    return d
 
 
 def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
@@ -44,11 +72,19 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     if kind not in ESTIMATORS:
         raise ValueError(f"{d / DESCRIPTOR}: kind {kind!r} is no registered model family (expected one of "
                          f"{', '.join(model_kinds())})")
+    where = _estimator_path(d)
+    model = load_estimator(where)
+    legacy_cal = BandCalibration.load(d) if where != d / ESTIMATOR_DIR else None
+    if legacy_cal is not None:   # trained before issue 26: the calibration beside the model
+        model = BandCalibrated.wrap(model, legacy_cal)
     cls = ESTIMATORS[kind][0]
-    model = cls.load(d / cls.bundle_path)
+    family = model.estimator_ if isinstance(model, BandCalibrated) else model
+    if not isinstance(family, cls):
+        raise BundleError(f"{d / DESCRIPTOR}: kind {kind!r} is a {cls.__name__}, but the saved estimator is a "
+                          f"{type(family).__name__}: the files do not belong together")
     aam = AAM.load(d / "aam.npz") if desc.get("has_aam") else None
     if aam is not None and aam.n_params != len(desc["aam_offset"]):
         raise BundleError(f"{d / 'aam.npz'}: an AAM with {aam.n_params} parameters, but the model in {d} "
                           f"was trained on {len(desc['aam_offset'])}: the AAM does not belong to this model")
     return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)),
-                        AudioSettings.from_dict(desc.get("audio"), where=str(d)), BandCalibration.load(d))
+                        AudioSettings.from_dict(desc.get("audio"), where=str(d)))

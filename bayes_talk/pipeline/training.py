@@ -9,9 +9,10 @@ The data flow::
 
 A model directory holds ``bayes_talk_model.json`` (the descriptor, :mod:`bayes_talk.bundle`:
 what kind of model, the audio front end of :mod:`bayes_talk.pipeline.front_end`, the AAM
-offset), the model's own files (where its class's ``bundle_path`` says), a copy of the
-corpus AAM (``aam.json`` + ``aam.npz``) so that synthesis can render without the corpus,
-the band calibration and the aligner, and ends with ``bundle_manifest.json``.
+offset), the estimator in ``estimator/`` (:meth:`Estimator.save
+<bayes_talk.estimators.base.Estimator.save>`, the one layout: the band-calibrated wrapper when
+trained with a calibration), a copy of the corpus AAM (``aam.json`` + ``aam.npz``) so that
+synthesis can render without the corpus, and the aligner, and ends with ``bundle_manifest.json``.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from bayes_talk import bundle
 from bayes_talk.alignment import commands as alignment_commands
-from bayes_talk.bundle import DESCRIPTOR
+from bayes_talk.bundle import DESCRIPTOR, ESTIMATOR_DIR
 from bayes_talk.data import corpus as corpus_store
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.calibrated import BandCalibrated
@@ -96,8 +97,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
     ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
     the band calibration of the Laplace posterior (switching models;
-    bayes_talk.synthesis.band_calibration: one extra fit on the rest, saved as
-    ``band_calibration.json`` and applied by ``synth``); None: no calibration.
+    bayes_talk.synthesis.band_calibration: one extra fit on the rest; the model is saved
+    wrapped with it, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`, and ``synth``
+    applies it); None: no calibration.
     """
     out = Path(out_dir)
     if kind not in model_kinds():
@@ -121,9 +123,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
     audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
-    if band_cal is not None:   # saved as the wrapped estimator: the model and band_calibration.json
+    if band_cal is not None:   # saved as the wrapper: the model with its calibration
         model = BandCalibrated.wrap(model, band_cal)
-    model.save(out / model.bundle_path)
+    model.save(out / ESTIMATOR_DIR, overwrite=True)
     offset = aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")

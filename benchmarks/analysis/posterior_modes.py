@@ -27,7 +27,7 @@ from bayes_talk.synthesis.sequential import lowpass
 
 mdir, train_dir, test_dir, out_path = sys.argv[1:5]
 n = int(sys.argv[5]) if len(sys.argv) > 5 else 40
-model = load_trained(mdir).model
+model = load_trained(mdir).uncalibrated
 test = list(load_corpus(test_dir, aam=load_corpus(train_dir).aam_path).sequences)[:n]
 preds: dict[str, list[np.ndarray]] = {"first": [], "best": []}
 truth, info = [], []

@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     corpus = list(load_corpus(a.test, aam=Path(a.model_dir) / "aam.npz", cmvn=tm.audio.cmvn))[: a.n_test]
     raws, truths = [], []
     for u in corpus:
-        raws.append(sample_synthesis(tm.model, u.mfcc, u.labels, method="laplace", n_draws=64, seed=0,
+        raws.append(sample_synthesis(tm.uncalibrated, u.mfcc, u.labels, method="laplace", n_draws=64, seed=0,
                                      log_warnings=False))
         truths.append(u.aam)
         print(f"{u.name}: k̂ {raws[-1].diagnostics.get('khat'):.2f}", flush=True)

@@ -77,7 +77,7 @@ def main(argv=None):
     shipped = tm.calibration
     devp = []
     for u in dev:
-        r = sample_synthesis(tm.model, u.mfcc, u.labels, method="laplace", n_draws=64, seed=0, log_warnings=False)
+        r = sample_synthesis(tm.uncalibrated, u.mfcc, u.labels, method="laplace", n_draws=64, seed=0, log_warnings=False)
         devp.append(parts(shipped, r, u.aam))
     n = sum(lc.size for lc, _ in devp)
     with np.errstate(divide="ignore"):

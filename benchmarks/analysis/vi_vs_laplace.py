@@ -24,7 +24,7 @@ from bayes_talk.synthesis.posterior import sample_synthesis
 
 mdir, train_dir, test_dir, out_path = sys.argv[1:5]
 n = int(sys.argv[5]) if len(sys.argv) > 5 else 8
-model = load_trained(mdir).model
+model = load_trained(mdir).uncalibrated
 test = list(load_corpus(test_dir, aam=load_corpus(train_dir).aam_path).sequences)[:n]
 methods = ("laplace", "vi")
 got = {m: {"mean": [], "lo50": [], "hi50": [], "lo90": [], "hi90": [], "khat": [], "psis_ess": [], "seconds": []}
