@@ -7,6 +7,9 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PIP_ARGS ?=
+# test processes (pytest-xdist): tests and notebooks are spread over this many workers;
+# TEST_WORKERS=0 runs them in the calling process, one after another
+TEST_WORKERS ?= 2
 
 .PHONY: demo test bench lint clean-venv
 
@@ -21,8 +24,8 @@ demo: $(STAMP)
 	$(PY) -m bayes_talk.cli demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q tests
-	$(PY) -m pytest -q --nbmake --nbmake-timeout=600 notebooks   # executes every notebook
+	$(PY) -m pytest -q -n $(TEST_WORKERS) tests
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --nbmake --nbmake-timeout=600 notebooks   # executes every notebook
 
 bench: $(STAMP)
 	mkdir -p benchmarks/results

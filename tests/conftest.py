@@ -1,3 +1,4 @@
+import os
 import sys
 from pathlib import Path
 
@@ -13,15 +14,34 @@ SHARED_CORPUS_SEED = 3
 
 @pytest.fixture(scope="session")
 def shared_built_corpus(tmp_path_factory) -> Path:
-    """A built corpus of 10 utterances (seed 3), built once per test session through the
-    command line and shared by the files that read one (test_pipeline, test_bad_inputs):
-    a corpus build is the largest set-up cost of the suite (issue 29). Treat it as
-    read-only: a test that changes a corpus works on a copy (``shutil.copytree``); the
+    """A built corpus of 10 utterances (seed 3), built once per test run through the
+    command line and shared by the files that read one (test_pipeline, test_bad_inputs,
+    test_registry): a corpus build is the largest set-up cost of the suite (issue 29). Treat
+    it as read-only: a test that changes a corpus works on a copy (``shutil.copytree``); the
     feature cache that loading writes into it is the only change, and it is the same for
-    every reader."""
+    every reader (written atomically).
+
+    Under pytest-xdist (``make test`` runs ``pytest -n 2``) every worker process has its own
+    session; the first to ask builds the corpus in the directory the workers share
+    (the parent of their base temporary directories), under a file lock, and the others
+    wait for it and read it, so it is built once per run, not once per worker."""
+    from filelock import FileLock
+
     from bayes_talk.cli import main
 
-    out = tmp_path_factory.mktemp("shared") / "corpus"
-    assert main(["-q", "corpus", "build", str(out), "--n-utterances", str(SHARED_CORPUS_UTTERANCES),
-                 "--seed", str(SHARED_CORPUS_SEED)]) == 0
+    def build(out: Path) -> None:
+        assert main(["-q", "corpus", "build", str(out), "--n-utterances", str(SHARED_CORPUS_UTTERANCES),
+                     "--seed", str(SHARED_CORPUS_SEED)]) == 0
+
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        out = tmp_path_factory.mktemp("shared") / "corpus"
+        build(out)
+        return out
+    shared = tmp_path_factory.getbasetemp().parent / "shared_built_corpus"
+    out, done = shared / "corpus", shared / "built"
+    shared.mkdir(exist_ok=True)
+    with FileLock(str(shared / "lock")):
+        if not done.is_file():
+            build(out)
+            done.write_text("ok\n")
     return out

@@ -247,7 +247,10 @@ class ContextRidge(ContextBaseline):
             ridge = Ridge(alpha=sel["alpha"], fit_intercept=True, solver="cholesky").fit(
                 sel["X"].toarray(), sel["Z"])
         self.features_ = feats
-        self.coef_ = np.asarray(ridge.coef_, dtype=np.float64)          # (D_z, F)
+        # C order, as load() gives it back: sklearn's multi-output coef_ is a Fortran-ordered
+        # view, and `X @ coef_.T` then takes another BLAS path whose sums differ in the last
+        # bit, so a reloaded model would not predict bit-identically
+        self.coef_ = np.ascontiguousarray(ridge.coef_, dtype=np.float64)   # (D_z, F)
         self.intercept_ = np.asarray(ridge.intercept_, dtype=np.float64)  # (D_z,)
         self.alpha_ = np.asarray(sel["alpha"], dtype=np.float64)
         self.residual_var_ = np.maximum(sel["residual_var"], np.finfo(np.float64).tiny)
