@@ -175,7 +175,9 @@ def test_harness_baselines_schema_and_values(utts):
         for k in METRIC_KEYS:
             _check_summary(e[k], 9)
         assert ("log_likelihood_per_frame" in e) == REGISTRY[name].has_log_likelihood
-        assert not any(k in e for k in CAL_KEYS)
+        # a baseline with a predictive variance (hmm-mean) is scored for calibration too
+        assert all(k in e for k in CAL_KEYS) == S.METHODS[name].has_variance
+        assert any(k in e for k in CAL_KEYS) == S.METHODS[name].has_variance
         assert e["train_seconds"] > 0 and e["synth_frames_per_second"] > 0
         assert e["headline"]["AMSE"] == e["mse"]["mean"]
         assert len(e["per_split"]) == 3
@@ -240,7 +242,7 @@ def gp_run(utts):
 
 def test_harness_gp_families_train_once_and_report_calibration(gp_run):
     res, traj, calls = gp_run
-    assert sorted(calls) == ["context-mlp", "context-ridge", "sgplvm", "sparse-sgpdm", "ssgpdm-phone",
+    assert sorted(calls) == ["context-mlp", "context-ridge", "hmm-mean", "sgplvm", "sparse-sgpdm", "ssgpdm-phone",
                              "ssgpdm-phone-ctx", "ssgpdm-phone-ctx-mean", "ssgpdm-phone-rc", "ssgpdm-vlmm",
                              "ssgpdm-vlmm-rc"]  # shared training
     m = res["methods"]
