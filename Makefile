@@ -10,6 +10,10 @@ PIP_ARGS ?=
 # test processes (pytest-xdist): tests and notebooks are spread over this many workers;
 # TEST_WORKERS=0 runs them in the calling process, one after another
 TEST_WORKERS ?= 2
+# one pytest run for both, the notebooks (each a minute or more) first, so they start at
+# once and the short tests fill the workers' gaps around them; worksteal: an idle worker
+# takes tests queued for the other instead of waiting at the end (ignored with -n 0)
+TEST_DIST ?= worksteal
 
 .PHONY: demo test bench lint clean-venv
 
@@ -24,8 +28,7 @@ demo: $(STAMP)
 	$(PY) -m bayes_talk.cli demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) tests
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --nbmake --nbmake-timeout=600 notebooks   # executes every notebook
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist $(TEST_DIST) --nbmake --nbmake-timeout=600 notebooks tests   # tests/ and every notebook executed
 
 bench: $(STAMP)
 	mkdir -p benchmarks/results
