@@ -18,6 +18,8 @@ Metropolis test.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 import torch
@@ -43,8 +45,11 @@ def log_prob(x: torch.Tensor) -> torch.Tensor:
     return lg.sum() - 0.5 * ((x[1:] - x[:-1]) ** 2).sum() / C**2
 
 
+@functools.cache
 def exact_moments(n: int = 4001, lim: float = 6.0) -> dict:
-    """P(x_t > 0), E x_t, E x_t² by forward-backward on an n-point grid of [−lim, lim]."""
+    """P(x_t > 0), E x_t, E x_t² by forward-backward on an n-point grid of [−lim, lim].
+    Computed once per grid (3 s on the fine one, which the three moves' tests share); the
+    callers only read the result."""
     g = np.linspace(-lim, lim, n)
     lk = -0.5 * (g[:, None] - g[None]) ** 2 / C**2          # coupling, (from, to)
     fwd = [_log_g(g, 0)]
