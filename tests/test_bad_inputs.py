@@ -33,7 +33,8 @@ def model_dir(corpus_dir, tmp_path_factory) -> Path:
     from bayes_talk.pipeline import train
 
     out = tmp_path_factory.mktemp("bad") / "model"
-    train(corpus_dir, "ssgpdm-phone", out, workers=1, **SMALL)
+    # no aligner: every synth below is given its labels (the aligner is tested in test_alignment)
+    train(corpus_dir, "ssgpdm-phone", out, workers=1, alignment=False, **SMALL)
     return out
 
 
@@ -99,7 +100,7 @@ def test_resampled_audio_barely_moves_the_default_models_audio_context(corpus_di
     from bayes_talk.pipeline import DEFAULT_MODEL, train
 
     model = tmp_path / "model"
-    train(corpus_dir, DEFAULT_MODEL, model, workers=1, **SMALL)
+    train(corpus_dir, DEFAULT_MODEL, model, workers=1, alignment=False, **SMALL)   # synth is given the labels
     assert load_trained(model).uncalibrated.config.audio_context == 2
     wav, lab = _utt(corpus_dir)
     y, sr = sf.read(wav, dtype="float64")
