@@ -6,19 +6,14 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.noncentred import NonCentred
 from bayes_talk.synthesis.posterior import sample_synthesis
 
-SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
-
 
 @pytest.fixture(scope="module")
-def toy():
-    train = make_utterances(24, seed=0)
-    test = make_utterances(3, seed=1, mean_len=20)
-    return SwitchingSGPDM(states="vlmm", **SMALL).fit(train), test
+def toy(toy_vlmm):
+    return toy_vlmm, make_utterances(3, seed=1, mean_len=20)
 
 
 @pytest.fixture(scope="module", params=["frame", "off"])

@@ -7,7 +7,6 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.diagnostics import (
     DIAGNOSTIC_KEYS,
@@ -36,8 +35,6 @@ from bayes_talk.synthesis.posterior import sample_synthesis
 from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
 from bayes_talk.synthesis.segment_objective import numpy_gp
 from bayes_talk.synthesis.variational import run_vi
-
-SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 # a correlated 2-D Gaussian with known moments
 MU = np.array([1.0, -2.0])
@@ -268,10 +265,8 @@ def test_mode_jumps_split_the_differences_between_modes_into_relaxed_local_switc
 
 # ------------------------------------------------------------------ toy switching model
 @pytest.fixture(scope="module")
-def toy():
-    train = make_utterances(24, seed=0)
-    test = make_utterances(3, seed=1, mean_len=20)
-    return SwitchingSGPDM(states="vlmm", **SMALL).fit(train), test
+def toy(toy_vlmm):
+    return toy_vlmm, make_utterances(3, seed=1, mean_len=20)
 
 
 @pytest.mark.parametrize("smoothness", ["frame", "off"])

@@ -6,12 +6,9 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.synthesis.diagnostics import convergence_problems, frame_diagnostics
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.posterior import sample_synthesis
-
-SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
 def test_frame_diagnostics_find_the_frame_where_chains_disagree():
@@ -28,10 +25,9 @@ def test_frame_diagnostics_find_the_frame_where_chains_disagree():
 
 
 @pytest.fixture(scope="module")
-def toy():
-    train = make_utterances(24, seed=0)
+def toy(toy_vlmm):
     u = make_utterances(1, seed=1, mean_len=20)[0]
-    return SwitchingSGPDM(states="vlmm", **SMALL).fit(train), u.mfcc[:8], u.labels[:8]
+    return toy_vlmm, u.mfcc[:8], u.labels[:8]
 
 
 @pytest.mark.parametrize("method", ["laplace", "vi", "emcee"])

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.sbc import (
     default_bins,
     holm,
@@ -28,8 +27,6 @@ from bayes_talk.synthesis.predictive_checks import (
     predictive_check,
     prior_predictive,
 )
-
-SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 # conjugate Gaussian: θ ~ N(0, I_K), y = θ + N(0, s² I): posterior N(y/(1+s²), s²/(1+s²) I)
 K, S2 = 4, 0.5
@@ -102,10 +99,8 @@ def test_uniformity_test_rejects_unequal_bins():
 
 # ------------------------------------------------------------------ the synthesis model
 @pytest.fixture(scope="module")
-def toy():
-    train = make_utterances(24, seed=0)
-    test = make_utterances(2, seed=1, mean_len=20)
-    return SwitchingSGPDM(states="vlmm", **SMALL).fit(train), test
+def toy(toy_vlmm):
+    return toy_vlmm, make_utterances(2, seed=1, mean_len=20)
 
 
 def test_sbc_rejects_laplace_with_halved_variance_on_the_synthesis_model(toy):

@@ -9,19 +9,16 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.sbc import scaled_laplace, synthesis_sbc
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan, synthesis_model
 from bayes_talk.synthesis.particle_gibbs import FrameFactors
 from bayes_talk.synthesis.predictive_checks import prior_predictive
 from bayes_talk.synthesis.segment_objective import numpy_gp
 
-SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
-
 
 @pytest.fixture(scope="module")
-def toy():
-    model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
+def toy(toy_vlmm):
+    model = toy_vlmm
     labels = list(make_utterances(1, seed=1, mean_len=20)[0].labels[:20])
     plan = make_plan(model, np.zeros((20, model.dims_[0])), labels, smoothness="frame")
     assert sum(b.smooth for b in plan.blocks) >= 2, "the test needs smoothness factors"
