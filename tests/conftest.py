@@ -56,7 +56,7 @@ def toy_vlmm():
     """``SwitchingSGPDM(states="vlmm", **TOY_SMALL)`` fitted on ``make_utterances(24,
     seed=0)``: the toy model of the synthesis-posterior test files (test_posterior,
     test_noncentred, test_parallel_chains, test_particle_gibbs, test_sampler_diagnostics,
-    test_sbc, test_smoothness_simulation), fitted once per test process instead of once per
+    test_sbc, test_smoothness_simulation, test_switching), fitted once per test process instead of once per
     file (issue 29; 2.5–4 s a fit). Read-only: a test that changes a model fits its own."""
     from toydata import make_utterances
 

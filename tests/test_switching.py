@@ -22,8 +22,10 @@ def data():
 
 
 @pytest.fixture(scope="module")
-def vlmm_model(data):
-    return SwitchingSGPDM(states="vlmm", **SMALL).fit(data[0])
+def vlmm_model(toy_vlmm):
+    """``SwitchingSGPDM(states="vlmm", **SMALL)`` on ``data[0]``: the session's toy model
+    (tests/conftest.py, the same settings and data; read-only)."""
+    return toy_vlmm
 
 
 @pytest.fixture(scope="module")
