@@ -114,12 +114,16 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
                              executor=ex if executor is not None or ex.parallel else None)
         train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
         corpus.sequences = train_seqs
+        # the aligner is independent of the model: on an engine with workers it is fitted
+        # in one of them beside the state models (a plain executor fits it at .result())
+        aligner = ex.submit(alignment_commands.fit_alignment, list(corpus.sequences)) if alignment else None
         model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers, executor=ex)
         band_cal = None
         if calibrate_bands is not None:
             band_cal = band_calibration.fit_band_calibration(
                 model, corpus.sequences, holdout=calibrate_bands, seed=model.get_params()["seed"],
                 fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex), executor=ex)
+        aligner = aligner.result() if aligner is not None else None
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
     audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
@@ -134,8 +138,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
         "held_out": held_out, "audio": audio,
     })
-    if alignment:  # issue 13: labels for test audio without hand-made phone labels
-        alignment_commands.fit_alignment(corpus.sequences).save(out)
+    if aligner is not None:  # issue 13: labels for test audio without hand-made phone labels
+        aligner.save(out)
     bundle.write_bundle_manifest(out)
     return out
 
