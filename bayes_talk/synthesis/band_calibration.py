@@ -119,7 +119,7 @@ from bayes_talk.synthesis.pooled_result import PooledResult, check_pool
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "fit_band_calibration", "holdout_calibrated_model",
+__all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "calibrated_fit", "fit_band_calibration", "holdout_calibrated_model",
            "mean_shrinkage", "min_scales",
            "split_for_calibration"]
 
@@ -565,6 +565,24 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
 #: carried over to it (a model that has seen 1/(1 − holdout) times the data, but whose
 #: calibration was fitted on another model's errors; two fits)
 CALIBRATED_MODELS = ("holdout", "refit")
+
+
+def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = "laplace",
+                   holdout: float = HOLDOUT_FRACTION, n_draws: int = 64, seed: int = 0, executor=None,
+                   progress: Callable[[str], None] | None = None,
+                   fit: Callable | None = None) -> tuple[Any, BandCalibration]:
+    """(the model to ship, its calibration) by the scheme ``calibrated_model`` of
+    :data:`CALIBRATED_MODELS`: "holdout", :func:`holdout_calibrated_model` (one fit); "refit",
+    ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits).
+    The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this."""
+    if calibrated_model not in CALIBRATED_MODELS:
+        raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
+    kw = {"method": method, "holdout": holdout, "n_draws": n_draws, "seed": seed, "executor": executor,
+          "progress": progress, "fit": fit}
+    if calibrated_model == "holdout":
+        return holdout_calibrated_model(model, train, **kw)
+    fitted = fit(model, list(train)) if fit is not None else model.fit(list(train), executor=executor)
+    return fitted, fit_band_calibration(fitted, train, **kw)
 
 
 def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
