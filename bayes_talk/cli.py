@@ -439,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=DEFAULT_CALIBRATED_MODEL,
                    help="the model saved with the calibration: holdout = the one trained on the other "
                         "utterances, which the calibration was fitted for (one fit); refit = one more fit on "
-                        "all utterances, the calibration carried over to it (default %(default)s)")
+                        "all utterances, the calibration carried over to it")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",
