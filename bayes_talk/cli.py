@@ -124,7 +124,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
                 alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler,
-                calibrate_bands=cal)
+                calibrate_bands=cal, calibrated_model=args.calibrated_model)
     print(f"model written to {out}")
     return 0
 
@@ -159,6 +159,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
+                      calibrated_model=args.calibrated_model,
                       min_utterances=args.min_utterances, cmvn=args.cmvn,
                       labels=args.labels, executor=args.executor, workers=args.workers,
                       scheduler=args.scheduler)
@@ -173,6 +174,7 @@ def _add_evaluate_parser(sub) -> None:
     from bayes_talk.audio import DEFAULT_CMVN
     from bayes_talk.evaluation.protocols import PROTOCOLS
     from bayes_talk.evaluation.systems import METHODS
+    from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS
 
     e = sub.add_parser("evaluate", help="run a published evaluation protocol (JSON + Markdown + figure)",
                        **_SUB_KW)
@@ -188,6 +190,9 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--lowpass-hz", type=float, default=None,
                    help="zero-phase low-pass (Hz, e.g. 4) on every method's predicted mean, "
                         "deena2010's post-filter (default: off)")
+    e.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=None,
+                   help="the model the band calibration of the *-posterior methods is scored with, as "
+                        "train --calibrated-model (default: the protocol's, refit)")
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
     e.add_argument("--labels", default="true",
@@ -394,7 +399,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     # --- train / synth -------------------------------------------------------------------
     from bayes_talk.audio import DEFAULT_CMVN
-    from bayes_talk.pipeline import DEFAULT_CALIBRATION, DEFAULT_MODEL, MODEL_KINDS
+    from bayes_talk.pipeline import (
+        DEFAULT_CALIBRATED_MODEL,
+        DEFAULT_CALIBRATION,
+        DEFAULT_MODEL,
+        MODEL_KINDS,
+    )
+    from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS
     from bayes_talk.synthesis.sequential import POST_FILTER_HZ
 
     t = sub.add_parser("train", help="train a model on a corpus directory", **_SUB_KW)
@@ -425,6 +436,10 @@ def build_parser() -> argparse.ArgumentParser:
                         f"docs/uncertainty.md). On by default ({DEFAULT_CALIBRATION:g}) for switching models")
     t.add_argument("--no-calibrate-bands", action="store_true",
                    help="skip the calibration (half the training time; synth then gives the raw posterior)")
+    t.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=DEFAULT_CALIBRATED_MODEL,
+                   help="the model saved with the calibration: holdout = the one trained on the other "
+                        "utterances, which the calibration was fitted for (one fit); refit = one more fit on "
+                        "all utterances, the calibration carried over to it")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",

@@ -27,6 +27,7 @@
 """
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -81,8 +82,8 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     from bayes_talk.evaluation.ceiling import corpus_generator
     from bayes_talk.evaluation.metrics import acc, amse
     from bayes_talk.executor import executor_for
-    from bayes_talk.pipeline import aam_offset, fit_model
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+    from bayes_talk.pipeline import DEFAULT_CALIBRATED_MODEL, aam_offset, fit_model
+    from bayes_talk.synthesis.band_calibration import calibrated_fit
     from bayes_talk.synthesis.posterior import sample_synthesis
     from bayes_talk.synthesis.sequential import lowpass
     from bayes_talk.video import side_by_side, write_video
@@ -104,14 +105,14 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
           f"{corpus.sequences[0].aam.shape[1]} AAM parameters) after {time.time() - t0:.0f} s", flush=True)
 
     t1 = time.time()
-    model = fit_model(make_estimator(DEMO_MODEL, seed=seed), train, workers=workers)
+    with executor_for(None, workers) as ex:   # as `bayes-talk train` does
+        model, cal = calibrated_fit(make_estimator(DEMO_MODEL, seed=seed), train, DEFAULT_CALIBRATED_MODEL,
+                                    method="laplace", seed=seed, executor=ex,
+                                    fit=functools.partial(fit_model, workers=workers, executor=ex))
     train_s = time.time() - t1
-    print(f"[demo] trained {len(model.models_)} state models ({DEMO_MODEL}) in {train_s:.0f} s", flush=True)
-    t1 = time.time()
-    with executor_for(None, workers) as ex:
-        cal = fit_band_calibration(model, train, method="laplace", seed=seed, executor=ex)
-    print(f"[demo] fitted the band calibration (mean shrinkage, scale, level map, pool) on "
-          f"{cal.n_utterances} held-out training utterances in {time.time() - t1:.0f} s", flush=True)
+    print(f"[demo] trained {len(model.models_)} state models ({DEMO_MODEL}) and fitted the band calibration "
+          f"(mean shrinkage, scale, level map, pool) on {cal.n_utterances} held-out training utterances, "
+          f"calibrated model: {DEFAULT_CALIBRATED_MODEL}, in {train_s:.0f} s", flush=True)
 
     truth = [s.aam for s in test]
     rows: dict[str, dict] = {}
@@ -174,7 +175,8 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
                         side_by_side(gt_frames, syn_frames, labels=DEMO_VIDEO_LABELS), corpus.fps,
                         audio_path=s.audio_path, overwrite=True)
     shown = _show_uncertainty(out, r, s, corpus, offset)
-    summary = {"corpus": str(cdir), "speech": generator, "n_train": len(train), "n_test": len(test), "train_seconds": train_s,
+    summary = {"corpus": str(cdir), "speech": generator, "n_train": len(train), "n_test": len(test),
+               "calibrated_model": DEFAULT_CALIBRATED_MODEL, "train_seconds": train_s,
                "n_state_models": len(model.models_), "methods": rows, "video": str(video),
                "uncertainty": {k: str(v) for k, v in shown.items()},
                "total_seconds": time.time() - t0}

@@ -44,6 +44,7 @@ __all__ = [
     "DaskExecutor",
     "Executor",
     "LocalExecutor",
+    "Pending",
     "ProcessExecutor",
     "Terminated",
     "executor_for",
@@ -166,6 +167,14 @@ class Executor:
         """``[fn(x) for x in items]``, computed by this executor's engine."""
         raise NotImplementedError
 
+    def submit(self, fn: Callable[[Any], Any], item: Any) -> Pending:
+        """Start ``fn(item)`` now (on an engine with workers) and return at once; its
+        :meth:`Pending.result` waits for the value. Work done meanwhile by :meth:`map`
+        shares the same workers, so one long task (e.g. the aligner's fit in ``train``)
+        runs beside a map's tasks instead of after them. This engine: computed when the
+        result is asked for, in this process (the same value)."""
+        return _Deferred(fn, item)
+
     def close(self) -> None:
         """Release the engine's processes (the executor cannot be used afterwards)."""
 
@@ -177,6 +186,52 @@ class Executor:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(n_workers={self.n_workers})"
+
+
+class Pending:
+    """A task started by :meth:`Executor.submit`; :meth:`result` waits for its value."""
+
+    def result(self) -> Any:
+        """The task's value (its exception re-raised here if it failed)."""
+        raise NotImplementedError
+
+
+class _Deferred(Pending):
+    """``fn(item)`` computed by :func:`run_task` when the value is first asked for."""
+
+    def __init__(self, fn: Callable[[Any], Any], item: Any) -> None:
+        self._job: tuple | None = (fn, item)
+        self._value: Any = None
+
+    def result(self) -> Any:
+        if self._job is not None:
+            fn, item = self._job
+            self._value, self._job = run_task(fn, item), None
+        return self._value
+
+
+class _PoolPending(Pending):
+    """A task sent to a process pool pickled (:func:`_run_pickled`); its value is unpickled once."""
+
+    def __init__(self, future: Any) -> None:
+        self._future = future
+        self._done = False
+        self._value: Any = None
+
+    def result(self) -> Any:
+        if not self._done:
+            self._value, self._done = pickle.loads(self._future.result()), True
+        return self._value
+
+
+class _DaskPending(Pending):
+    """A task on a dask cluster (a ``distributed.Future``)."""
+
+    def __init__(self, future: Any) -> None:
+        self._future = future
+
+    def result(self) -> Any:
+        return self._future.result()
 
 
 def _bar(iterable: Iterable, total: int, desc: str | None, unit: str) -> Iterator:
@@ -241,6 +296,10 @@ class ProcessExecutor(Executor):
             for f in futures:
                 f.cancel()
             raise
+
+    def submit(self, fn, item):
+        """Send the task to the pool now (a worker takes it before the tasks of a later map)."""
+        return _PoolPending(self._pool.submit(_run_pickled, pickle.dumps((fn, item), protocol=pickle.HIGHEST_PROTOCOL)))
 
     def terminate(self) -> None:
         """Stop now (Ctrl-C): queued tasks are cancelled and the worker processes, which
@@ -342,6 +401,10 @@ class DaskExecutor(Executor):
         finally:
             self.client.cancel(futures)
             _restore_nanny_environ(self._environ)  # a restarted worker's nanny set them again
+
+    def submit(self, fn, item):
+        """Send the task to the cluster now (retried on a lost worker, as in :meth:`map`)."""
+        return _DaskPending(self.client.submit(run_task, fn, item, pure=False))
 
     def close(self) -> None:
         """Close the client (and the LocalCluster this executor started, if any)."""

@@ -230,3 +230,31 @@ def test_label_sources_need_one_training_set(small):
     with pytest.raises(ValueError, match="needs one training set"):
         run_label_sources(run_protocol, get_protocol("englebienne2008"), c.sequences, None,
                           ["voice-puppetry"], ("true", "aligned"))
+
+
+def test_aligner_fitted_in_a_worker_process_is_the_one_fitted_here(small, tmp_path):
+    """``train`` fits the aligner in a worker process beside the state models
+    (``Executor.submit``); the saved models are byte-identical to an in-process fit but
+    for the fit's timings (``info``'s seconds)."""
+    import json
+
+    from bayes_talk.alignment.commands import fit_alignment
+    from bayes_talk.executor import make_executor
+
+    c, _, _ = small
+    seqs = c.sequences[:4]
+    with make_executor("processes", 2) as ex:
+        remote = ex.submit(fit_alignment, seqs).result()
+    here = fit_alignment(seqs)
+    for name, model in (("remote", remote), ("here", here)):
+        (tmp_path / name).mkdir()
+        model.save(tmp_path / name)
+    files = sorted(p.name for p in (tmp_path / "here").iterdir())
+    assert files == sorted(p.name for p in (tmp_path / "remote").iterdir()) and files
+    for f in files:
+        a, b = (tmp_path / "here" / f).read_bytes(), (tmp_path / "remote" / f).read_bytes()
+        if f.endswith(".json"):
+            a, b = json.loads(a), json.loads(b)
+            for d in (a["info"], b["info"]):
+                assert d.pop("hmm_fit_seconds") > 0 and d.pop("tune_seconds") > 0
+        assert a == b, f

@@ -327,6 +327,39 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
     assert one.pool_weight is not None
 
 
+def test_calibrated_fit_ships_the_holdout_model_or_refits_on_every_utterance():
+    """``train --calibrated-model``: "holdout" fits once, on the utterances outside the
+    held-out fraction, and ships that model with the calibration fitted for it; "refit"
+    fits that model for the calibration, then a second one on every utterance, and ships the
+    second with the same calibration. Anything else is refused by name."""
+    from toydata import make_utterances
+
+    from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.synthesis.band_calibration import calibrated_fit
+
+    train = make_utterances(10, seed=3, mean_len=30)
+    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
+    seen, fitted = [], []
+
+    def fit(model, seqs):
+        seen.append(sorted(s.name for s in seqs))
+        fitted.append(model.fit(seqs))
+        return fitted[-1]
+
+    shipped, cal = calibrated_fit(SwitchingSGPDM(**small), train, "holdout", holdout=0.3, n_draws=16, seed=1, fit=fit)
+    assert len(seen) == 1 and len(cal.held_out) == 3 and cal.info["n_fit"] == 7
+    assert set(seen[0]).isdisjoint(cal.held_out) and len(seen[0]) + 3 == len(train)
+    assert shipped is fitted[0]
+    seen.clear()
+    refit, cal2 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1, fit=fit)
+    assert len(seen) == 2 and seen[0] == sorted(s.name for s in train) and len(seen[1]) == 7
+    assert cal2.held_out == cal.held_out and cal2.info["n_fit"] == 7
+    np.testing.assert_array_equal(cal2.scale, cal.scale)     # the same calibration model and syntheses
+    assert refit is fitted[-2]    # the model on every utterance, fitted first
+    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, found 'both'"):
+        calibrated_fit(SwitchingSGPDM(**small), train, "both", fit=fit)
+
+
 def _mixed_spread(n, seed, T=30):
     """Gaussian predictives over 2 parameters: on parameter 0 the variance tracks the error
     (an informative shape), on parameter 1 it is noise around a constant error variance."""

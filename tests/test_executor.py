@@ -171,3 +171,26 @@ def test_cli_rejects_an_unknown_executor(capsys):
     with pytest.raises(SystemExit):
         cli.main(["train", "corpus", "--out", "m", "--executor", "threads"])
     assert "invalid choice: 'threads'" in capsys.readouterr().err
+
+
+def _square_or_fail(x: int) -> int:
+    if x < 0:
+        raise ValueError(f"negative input {x}")
+    return x * x
+
+
+@pytest.mark.parametrize("kind", ["local", "processes", "dask"])
+def test_submit_runs_beside_a_map_and_gives_its_value(kind, dask_ex):
+    """``submit`` starts one task and returns at once; a map run meanwhile is unchanged, the
+    pending value is the task's (asked twice: the same), and its failure is raised by ``result``."""
+    ex = dask_ex if kind == "dask" else make_executor(kind, 2)
+    try:
+        pending = ex.submit(_square_or_fail, 7)
+        failing = ex.submit(_square_or_fail, -3)
+        assert ex.map(_square_or_fail, [1, 2, 3]) == [1, 4, 9]
+        assert pending.result() == 49 and pending.result() == 49
+        with pytest.raises(ValueError, match="negative input -3"):
+            failing.result()
+    finally:
+        if ex is not dask_ex:
+            ex.close()

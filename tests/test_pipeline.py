@@ -356,7 +356,9 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
     from bayes_talk import cli
 
     calls = []
-    monkeypatch.setattr(pl, "train", lambda corpus, kind, out, **kw: calls.append((kind, kw["calibrate_bands"])) or out)
+    models = []
+    monkeypatch.setattr(pl, "train", lambda corpus, kind, out, **kw: calls.append((kind, kw["calibrate_bands"]))
+                        or models.append(kw["calibrated_model"]) or out)
     assert cli.main(["train", "c", "--out", "o"]) == 0
     assert cli.main(["train", "c", "--out", "o", "--no-calibrate-bands"]) == 0
     assert cli.main(["train", "c", "--out", "o", "--calibrate-bands", "0.3", "--model", "ssgpdm-vlmm"]) == 0
@@ -365,3 +367,10 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
                      ("sgplvm", None)]
     assert pl.DEFAULT_MODEL == "ssgpdm-phone-ctx-mean"
     assert cli.main(["train", "c", "--out", "o", "--calibrate-bands", "--no-calibrate-bands"]) == 2
+    assert cli.main(["train", "c", "--out", "o", "--calibrated-model", "refit"]) == 0
+    assert cli.main(["train", "c", "--out", "o", "--calibrated-model", "holdout"]) == 0
+    assert models == [pl.DEFAULT_CALIBRATED_MODEL] * 4 + ["refit", "holdout"]
+    with pytest.raises(SystemExit):
+        cli.main(["train", "c", "--out", "o", "--calibrated-model", "both"])
+    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, found 'both'"):
+        pl.train("c", pl.DEFAULT_MODEL, "o", calibrate_bands=0.2, calibrated_model="both")

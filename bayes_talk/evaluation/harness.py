@@ -55,6 +55,7 @@ from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, ma
 from bayes_talk.evaluation.systems import (
     calibrated_method,
     fit_band_calibration,
+    fit_calibrated_family,
     fit_family,
     get_method,
     group_by_family,
@@ -135,14 +136,20 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
         if say is not None:
             say(f"split {split.index + 1}/{job.n_splits}: training {fam} on {len(job.train)} utterances")
         t0 = time.perf_counter()
+        cal_method = calibrated_method(fam_methods)
+        calibrates = cfg.band_calibration is not None and cal_method is not None
+        calib_s[fam] = 0.0
         if model_cache is not None and (fam, split.index) in model_cache:
             model = model_cache[(fam, split.index)]
+        elif calibrates and cfg.calibrated_model == "holdout":   # one fit: the calibration's own model
+            model = fit_calibrated_family(fam, job.train, cfg, cal_method, executor=executor,
+                                          progress=None if say is None else
+                                          (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
+            calib_s[fam] = time.perf_counter() - t0
         else:
             model = fit_family(fam, job.train, cfg, executor=executor)
         train_s[fam] = time.perf_counter() - t0
-        calib_s[fam] = 0.0
-        cal_method = calibrated_method(fam_methods)
-        if cfg.band_calibration is not None and not isinstance(model, BandCalibrated) and cal_method is not None:
+        if calibrates and not isinstance(model, BandCalibrated):
             t0 = time.perf_counter()
             model = fit_band_calibration(model, job.train, cfg, cal_method, executor=executor,
                                          progress=None if say is None else
@@ -325,6 +332,7 @@ def evaluate(
     figures: bool = True,
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
+    calibrated_model: str | None = None,
     min_utterances: int | None = None,
     cmvn: str = DEFAULT_CMVN,
     labels: str | Sequence[str] | None = None,
@@ -336,6 +344,8 @@ def evaluate(
 
     lowpass_hz: apply deena2010's zero-phase low-pass to every method's predicted mean
     (recorded in the JSON under ``settings``); None: off, the protocols' default.
+    calibrated_model: which model the band calibration is scored with (``SystemConfig``; None:
+    the protocol's, "refit").
     min_utterances: let a corpus smaller than the protocol needs (but with at least this
     many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
     JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
@@ -359,7 +369,8 @@ def evaluate(
 
     proto = get_protocol(protocol, quick=quick, seed=seed,
                          **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
-                         **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}))
+                         **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}),
+                         **({"calibrated_model": calibrated_model} if calibrated_model is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
     from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
 

@@ -83,7 +83,7 @@ from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import SwitchingConfig
-from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION
+from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS, HOLDOUT_FRACTION
 from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
@@ -97,6 +97,7 @@ __all__ = [
     "build_family",
     "calibrated_method",
     "fit_band_calibration",
+    "fit_calibrated_family",
     "fit_family",
     "get_method",
     "group_by_family",
@@ -167,6 +168,8 @@ class SystemConfig:
     #: fraction of the training utterances held out to fit the band calibration of the
     #: ``*-posterior`` methods (bayes_talk.synthesis.band_calibration); None: raw bands only
     band_calibration: float | None = HOLDOUT_FRACTION
+    #: which model the calibration is scored with (CALIBRATED_MODELS, as ``train --calibrated-model``)
+    calibrated_model: str = "refit"
     #: method ``sparse-sgpdm``: inducing inputs, L-BFGS iterations, synthesis iterations
     sparse_inducing: int = 150
     sparse_max_iter: int = 200
@@ -177,6 +180,10 @@ class SystemConfig:
             if k == "band_calibration":
                 if v is not None and not 0 < v < 1:
                     raise ValueError(f"band_calibration must be a fraction in (0, 1) or None, got {v!r}")
+                continue
+            if k == "calibrated_model":
+                if v not in CALIBRATED_MODELS:
+                    raise ValueError(f"calibrated_model must be one of {CALIBRATED_MODELS}, got {v!r}")
                 continue
             if k == "lowpass_hz":
                 if v is not None and not v > 0:
@@ -362,6 +369,24 @@ def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConf
     with torch_threads(cfg.torch_threads):
         cal = fit_calibration(model, train, method=method, holdout=cfg.band_calibration,
                               n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
+    return BandCalibrated.wrap(model, cal)
+
+
+def fit_calibrated_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, method: str,
+                          executor=None, progress=None) -> Any:
+    """``cfg.calibrated_model`` "holdout": the model of ``family`` trained on the utterances of
+    ``train`` outside the calibration's held-out ``cfg.band_calibration`` fraction, wrapped
+    with the calibration of its posterior ``method`` fitted on the held-out ones
+    (:func:`bayes_talk.synthesis.band_calibration.holdout_calibrated_model`; one fit in all)."""
+    from bayes_talk.gp.threads import torch_threads
+    from bayes_talk.synthesis.band_calibration import holdout_calibrated_model
+
+    if cfg.band_calibration is None:
+        raise ValueError("band_calibration is off: nothing to fit")
+    with torch_threads(cfg.torch_threads):
+        model, cal = holdout_calibrated_model(build_family(family, cfg), train, method=method,
+                                              holdout=cfg.band_calibration, n_draws=cfg.posterior_draws,
+                                              seed=cfg.seed, executor=executor, progress=progress)
     return BandCalibrated.wrap(model, cal)
 
 

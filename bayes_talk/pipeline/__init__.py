@@ -18,7 +18,7 @@ from __future__ import annotations
 from bayes_talk.lazy import lazy_exports
 
 _EXPORTS: dict[str, str] = {
-    **dict.fromkeys(("DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands",
+    **dict.fromkeys(("DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands",
                      "fit_model", "model_kinds", "new_model", "select_holdout", "train"),
                     "bayes_talk.pipeline.training"),
     **dict.fromkeys(("TrainedModel", "load_trained"), "bayes_talk.pipeline.trained"),
@@ -27,7 +27,7 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(("SYNTH_OUTPUT_NAMES", "synth"), "bayes_talk.pipeline.talking_face"),
 }
 
-__all__ = ["DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "TrainedModel", "aam_offset",
+__all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "TrainedModel", "aam_offset",
            "audio_settings", "calibrates_bands", "fit_model", "front_end", "load_trained", "model_kinds", "new_model",
            "read_utterance", "select_holdout", "synth", "train", "utterance_from_intervals"]
 

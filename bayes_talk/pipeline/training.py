@@ -16,6 +16,7 @@ synthesis can render without the corpus, and the aligner, and ends with ``bundle
 """
 from __future__ import annotations
 
+import functools
 import inspect
 import os
 from pathlib import Path
@@ -33,9 +34,9 @@ from bayes_talk.executor import executor_for
 from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
 from bayes_talk.progress import ProgressMapper
 from bayes_talk.synthesis import band_calibration
-from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION
+from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS, HOLDOUT_FRACTION
 
-__all__ = ["DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
+__all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
            "model_kinds", "new_model", "select_holdout", "train"]
 
 
@@ -49,6 +50,8 @@ def model_kinds() -> tuple[str, ...]:
 MODEL_KINDS = model_kinds()
 #: fraction of the training utterances ``train`` holds out for the band calibration by default
 DEFAULT_CALIBRATION = HOLDOUT_FRACTION
+#: which model ``train`` saves with a band calibration by default (CALIBRATED_MODELS)
+DEFAULT_CALIBRATED_MODEL = "refit"
 
 
 def new_model(kind: str, **overrides):
@@ -75,7 +78,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
           holdout_list: str | os.PathLike | None = None, cmvn: str = DEFAULT_CMVN, fmax: float | None = FMAX_HZ,
           floor_dbfs: float | None = FLOOR_DBFS,
           alignment: bool = True, executor=None, scheduler: str | None = None,
-          calibrate_bands: float | None = None, **overrides) -> Path:
+          calibrate_bands: float | None = None, calibrated_model: str = DEFAULT_CALIBRATED_MODEL,
+          **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
@@ -99,7 +103,10 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     the band calibration of the Laplace posterior (switching models;
     bayes_talk.synthesis.band_calibration: one extra fit on the rest; the model is saved
     wrapped with it, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`, and ``synth``
-    applies it); None: no calibration.
+    applies it); None: no calibration. ``calibrated_model``: which model is saved with it
+    (:data:`~bayes_talk.synthesis.band_calibration.CALIBRATED_MODELS`): "holdout", the model
+    trained on the other utterances, the one the calibration was fitted for (one fit);
+    "refit", a second model trained on all of them, the factors carried over (two fits).
     """
     out = Path(out_dir)
     if kind not in model_kinds():
@@ -109,17 +116,25 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if calibrate_bands is not None and (not calibrates_bands(kind) or not 0 < calibrate_bands < 1):
         raise ValueError(f"calibrate_bands: expected a fraction in (0, 1) for a model with a whole-utterance "
                          f"posterior (a switching model), found {calibrate_bands!r} for {kind}")
+    if calibrated_model not in CALIBRATED_MODELS:
+        raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
     with executor_for(executor, workers, scheduler) as ex:
         corpus = corpus_store.load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs,
                              executor=ex if executor is not None or ex.parallel else None)
         train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
         corpus.sequences = train_seqs
-        model = fit_model(new_model(kind, **overrides), list(corpus.sequences), workers, executor=ex)
-        band_cal = None
+        # the aligner is independent of the model: on an engine with workers it is fitted
+        # in one of them beside the state models (a plain executor fits it at .result())
+        aligner = ex.submit(alignment_commands.fit_alignment, list(corpus.sequences)) if alignment else None
+        model, band_cal = new_model(kind, **overrides), None
+        fit = functools.partial(fit_model, workers=workers, executor=ex)
         if calibrate_bands is not None:
-            band_cal = band_calibration.fit_band_calibration(
-                model, corpus.sequences, holdout=calibrate_bands, seed=model.get_params()["seed"],
-                fit=lambda m, seqs: fit_model(m, seqs, workers, executor=ex), executor=ex)
+            model, band_cal = band_calibration.calibrated_fit(
+                model, corpus.sequences, calibrated_model, holdout=calibrate_bands,
+                seed=model.get_params()["seed"], fit=fit, executor=ex)
+        else:
+            model = fit(model, list(corpus.sequences))
+        aligner = aligner.result() if aligner is not None else None
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
     audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
@@ -130,12 +145,16 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
     bundle.write_descriptor(out, {
-        "kind": kind, "corpus": str(Path(corpus_dir).resolve()), "n_train": len(corpus.sequences),
+        "kind": kind, "corpus": str(Path(corpus_dir).resolve()),
+        "n_train": band_cal.info["n_fit"] if calibrated_model == "holdout" and band_cal is not None
+        else len(corpus.sequences),
+        "calibration": None if band_cal is None else {"model": calibrated_model, "holdout": calibrate_bands,
+                                                      "held_out": list(band_cal.held_out)},
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
         "held_out": held_out, "audio": audio,
     })
-    if alignment:  # issue 13: labels for test audio without hand-made phone labels
-        alignment_commands.fit_alignment(corpus.sequences).save(out)
+    if aligner is not None:  # issue 13: labels for test audio without hand-made phone labels
+        aligner.save(out)
     bundle.write_bundle_manifest(out)
     return out
 

@@ -119,7 +119,7 @@ from bayes_talk.synthesis.pooled_result import PooledResult, check_pool
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "fit_band_calibration",
+__all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "calibrated_fit", "fit_band_calibration", "holdout_calibrated_model",
            "mean_shrinkage", "min_scales",
            "split_for_calibration"]
 
@@ -547,10 +547,52 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     (seed ``seed``) and the factors fitted to their AAM parameters. ``fit(model, utterances)``
     replaces the training call (e.g. the CLI's, with its progress bar and process pool).
 
+    The calibration is then applied to ``model`` (trained on all of ``train``: the
+    ``"refit"`` scheme of :data:`CALIBRATED_MODELS`); :func:`holdout_calibrated_model` returns
+    the model it was fitted for instead.
+
     When ``executor`` runs tasks in other processes (its ``parallel`` is true) the held-out
     syntheses go through it too, in contiguous chunks (the model is sent once per chunk);
     each synthesis is seeded and single-threaded either way, so the calibration does not
     depend on the executor (issue 29)."""
+    return holdout_calibrated_model(model, train, method, holdout, n_draws, seed, executor, progress, fit)[1]
+
+
+#: which model a band calibration is shipped with (``train --calibrated-model``):
+#: "holdout" -- the model trained on the other utterances, the one the calibration was
+#: fitted for (split-conformal: its held-out coverage is the shipped model's, and there is
+#: one fit in all); "refit" -- a second model trained on all the utterances, the factors
+#: carried over to it (a model that has seen 1/(1 − holdout) times the data, but whose
+#: calibration was fitted on another model's errors; two fits)
+CALIBRATED_MODELS = ("holdout", "refit")
+
+
+def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = "laplace",
+                   holdout: float = HOLDOUT_FRACTION, n_draws: int = 64, seed: int = 0, executor=None,
+                   progress: Callable[[str], None] | None = None,
+                   fit: Callable | None = None) -> tuple[Any, BandCalibration]:
+    """(the model to ship, its calibration) by the scheme ``calibrated_model`` of
+    :data:`CALIBRATED_MODELS`: "holdout", :func:`holdout_calibrated_model` (one fit); "refit",
+    ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits).
+    The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this."""
+    if calibrated_model not in CALIBRATED_MODELS:
+        raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
+    kw = {"method": method, "holdout": holdout, "n_draws": n_draws, "seed": seed, "executor": executor,
+          "progress": progress, "fit": fit}
+    if calibrated_model == "holdout":
+        return holdout_calibrated_model(model, train, **kw)
+    fitted = fit(model, list(train)) if fit is not None else model.fit(list(train), executor=executor)
+    return fitted, fit_band_calibration(fitted, train, **kw)
+
+
+def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
+                             n_draws: int = 64, seed: int = 0, executor=None,
+                             progress: Callable[[str], None] | None = None,
+                             fit: Callable | None = None) -> tuple[Any, BandCalibration]:
+    """(the fitted model, its calibration): ``model``'s configuration trained on the
+    utterances of ``train`` outside the seeded ``holdout`` fraction, and the calibration of
+    its ``method`` posterior fitted on the held-out ones (see :func:`fit_band_calibration`
+    for the arguments). ``model`` itself is only read for its configuration."""
     from bayes_talk.models.switching import SwitchingModel
     from bayes_talk.synthesis.posterior import sample_synthesis
 
@@ -586,4 +628,4 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
         "factors {:.2f}-{:.2f} (median {:.2f})".format(cal.coverage_raw.get("0.9", float("nan")),
                                                       cal.coverage_calibrated.get("0.9", float("nan")),
                                                       cal.scale.min(), cal.scale.max(), np.median(cal.scale)))
-    return cal
+    return sub, cal
