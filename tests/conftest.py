@@ -63,3 +63,14 @@ def toy_vlmm():
     from bayes_talk.estimators.switching import SwitchingSGPDM
 
     return SwitchingSGPDM(states="vlmm", **TOY_SMALL).fit(make_utterances(24, seed=0))
+
+
+@pytest.fixture(scope="session")
+def toy_vlmm_private():
+    """:func:`toy_vlmm` with one of its 3 latent dimensions private to the face (the audio
+    GPs read the first 2: SwitchingConfig.private_dims)."""
+    from toydata import make_utterances
+
+    from bayes_talk.estimators.switching import SwitchingSGPDM
+
+    return SwitchingSGPDM(states="vlmm", private_dims=1, **TOY_SMALL).fit(make_utterances(24, seed=0))

@@ -372,7 +372,7 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
     assert models == [pl.DEFAULT_CALIBRATED_MODEL] * 4 + ["refit", "holdout"]
     with pytest.raises(SystemExit):
         cli.main(["train", "c", "--out", "o", "--calibrated-model", "both"])
-    from bayes_talk.pipeline.training import train as real_train   # pl.train is the stub above
+    from bayes_talk.pipeline.training import train as real_train  # pl.train is the stub above
 
     with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, found 'both'"):
         real_train("c", pl.DEFAULT_MODEL, "o", calibrate_bands=0.2, calibrated_model="both")

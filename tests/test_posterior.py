@@ -269,12 +269,23 @@ def toy(toy_vlmm):
     return toy_vlmm, make_utterances(3, seed=1, mean_len=20)
 
 
+@pytest.fixture(scope="module")
+def toy_private(toy_vlmm_private):
+    return toy_vlmm_private, make_utterances(3, seed=1, mean_len=20)
+
+
+@pytest.fixture(params=["toy", "toy_private"])
+def toys(request):
+    """The toy model, and the same with a private latent dimension."""
+    return request.getfixturevalue(request.param)
+
+
 @pytest.mark.parametrize("smoothness", ["frame", "off"])
-def test_numpy_twin_equals_the_pyro_program(toy, smoothness):
+def test_numpy_twin_equals_the_pyro_program(toys, smoothness):
     """The closed-form density (and gradient) equals the Pyro program's log joint to 1e-8
     relative on a grid of points, in states whose dynamics noise is β_x⁻¹ = 10⁻⁶ — the
     silence state among them."""
-    model, test = toy
+    model, test = toys
     rng = np.random.default_rng(0)
     n_linked = 0
     for s in test:
@@ -313,14 +324,14 @@ def test_value_only_density_equals_the_density_with_gradient(toy, smoothness):
         np.testing.assert_allclose(dens.values(Xb), dens.batch(Xb)[0], rtol=1e-12)
 
 
-def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
+def test_compiled_predictive_equals_the_numpy_reference(toys, monkeypatch):
     """The compiled GP predictive (bayes_talk.gp.predictive_fused: loglik, mean/variance,
     mean VJP) equals the NumPy/LAPACK reference to 1e-9 relative for every state model's
     audio, visual and dynamics GP (β_x = 10⁶), with and without the extra variance, for 1
     and 40 rows, near and far from the training inputs."""
     from bayes_talk import settings
 
-    model, _ = toy
+    model, _ = toys
     rng = np.random.default_rng(1)
     for sg in model.models_.values():
         for p in (sg.predictors_["audio"], sg.predictors_["visual"], sg.dynamics_predictor_):
@@ -329,7 +340,8 @@ def test_compiled_predictive_equals_the_numpy_reference(toy, monkeypatch):
             g = numpy_gp(p)
             D = g.A.shape[1]
             for T, scale in ((1, 0.0), (40, 0.05), (40, 3.0)):
-                Xs = g.X[rng.integers(0, len(g.X), T)] + scale * rng.standard_normal((T, g.X.shape[1]))
+                Xs = sg.X_[rng.integers(0, len(sg.X_), T)] if p is not sg.dynamics_predictor_ else g.X[rng.integers(0, len(g.X), T)]
+                Xs = Xs + scale * rng.standard_normal(Xs.shape)
                 Y = g.mean + rng.standard_normal((T, D))
                 G = rng.standard_normal((T, D))
                 for extra in (None, np.abs(rng.standard_normal(D))):
@@ -365,8 +377,8 @@ def test_linked_blocks_follow_the_state_dynamics(toy):
     assert sim.shape == X.shape and torch.all(torch.isfinite(sim))
 
 
-def test_hessian_by_coloured_differences_matches_autograd(toy):
-    model, test = toy
+def test_hessian_by_coloured_differences_matches_autograd(toys):
+    model, test = toys
     s = test[2]
     plan = make_plan(model, s.mfcc[:9], s.labels[:9])
     dens = UtteranceDensity(plan)

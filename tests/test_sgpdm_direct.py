@@ -25,7 +25,7 @@ def _toy(N=40, seed=0):
 
 
 @pytest.mark.parametrize("kw", [{}, {"learn_dynamics": True, "balanced": True}, {"dynamics": False, "learn_w": False},
-                                {"learn_dynamics": True, "learn_w": False}])
+                                {"learn_dynamics": True, "learn_w": False}, {"view_dims": {"audio": 1}}])
 def test_direct_objective_and_gradient_equal_autograd_of_the_log_joint(kw):
     """−L and its gradient over the flat free parameters (log θ, log w, X) equal autograd
     of ``SGPDM.log_joint`` at a fitted (not stationary) point, to rounding."""
@@ -88,7 +88,7 @@ def _fit(direct: bool, kw: dict, max_iter: int = 60):
         return SGPDM(latent_dim=2, max_iter=max_iter, **kw).fit({"audio": audio, "visual": video}, seq_lengths=[15, 25])
 
 
-@pytest.mark.parametrize("kw", [{}, {"learn_dynamics": True}])
+@pytest.mark.parametrize("kw", [{}, {"learn_dynamics": True}, {"view_dims": {"audio": 1}}])
 def test_direct_fit_gives_the_torch_fit(kw):
     """A whole fit by the direct path ends where torch's L-BFGS through autograd ends: the
     same iterations, log joint per block to 1e-6, hyperparameters and latents to 1e-5

@@ -9,6 +9,11 @@ after training (everything fixed):
 
 The dynamics predictive is the same object with inputs X_in, outputs X_out and w = 1:
 p(x_t | x_{t−1}) = N(x_t; μ_x(x_{t−1}), σ²_x(x_{t−1}) I).
+
+A view's GP may read only the first k of the d latent dimensions (``in_dims`` = k; shared
+and private latent spaces, Ek, Rihan, Torr, Rogez & Lawrence 2008): then X and x above are
+their first k columns, and the other d − k dimensions are private to the views that read
+them (:class:`~bayes_talk.models.sgpdm_program.SGPDMConfig` ``view_dims``).
 """
 from __future__ import annotations
 
@@ -34,8 +39,12 @@ class GPPredictor:
         mean: torch.Tensor | None = None,
         alpha_lin: float | None = None,
         what: str = "kernel matrix",
+        in_dims: int | None = None,
     ):
         self.X = X.detach()
+        #: the GP reads the first ``in_dims`` latent dimensions of a test input (the training
+        #: inputs X have just those columns); None: all of them (SGPDMConfig.view_dims)
+        self.in_dims = in_dims
         self.Y = Y.detach()
         self.alpha, self.gamma, self.beta, self.alpha_lin = alpha, gamma, beta, alpha_lin
         D = Y.shape[1]
@@ -64,6 +73,7 @@ class GPPredictor:
         D = Y.shape[1]
         obj.X, obj.Y, obj.L, obj.A = X.detach(), Y.detach(), L.detach(), A.detach()
         obj.alpha, obj.gamma, obj.beta, obj.alpha_lin = alpha, gamma, beta, None
+        obj.in_dims = None
         obj.w = w.detach() if w is not None else torch.ones(D, dtype=torch.float64)
         obj.mean = mean.detach() if mean is not None else torch.zeros(D, dtype=torch.float64)
         return obj
@@ -75,6 +85,8 @@ class GPPredictor:
 
     def mean_var(self, Xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """μ (T×D, with the training mean added back) and σ² (T,) at the rows of Xs."""
+        if self.in_dims is not None:
+            Xs = Xs[..., :self.in_dims]
         Ks = rbf(self.X, Xs, self.alpha, self.gamma, self.alpha_lin)  # N×T
         mu = Ks.mT @ self.A + self.mean
         V = solve_lower(self.L, Ks)

@@ -200,6 +200,16 @@ def _packed_mean_vjp(run_gp, run_lo, run_hi, X, A, offs, alpha, gamma, Xs, G, ou
         predictive_mean_vjp(X[o:o + n], A[o:o + n], alpha[g], gamma[g], Xs[lo:hi], G[lo:hi], out[lo:hi])
 
 
+def pad_inputs(g: np.ndarray, d: int) -> np.ndarray:
+    """A gradient (R, k) in a GP's k input dimensions as one in all d latent dimensions
+    (zeros in the d − k it does not read: GPPredictor.in_dims); ``g`` itself when k = d."""
+    if g.shape[1] == d:
+        return g
+    out = np.zeros((g.shape[0], d))
+    out[:, :g.shape[1]] = g
+    return out
+
+
 class PackedGPs:
     """Several GP predictors of one output dimension D (e.g. every audio GP an utterance
     uses) packed into flat arrays, so one compiled call evaluates rows of all of them.
@@ -210,6 +220,12 @@ class PackedGPs:
     Cholesky factor is read once per run)."""
 
     def __init__(self, gps: list):
+        #: the GPs' inputs are the first ``in_dims`` latent dimensions (None: all); one value
+        #: for the pack (GPPredictor.in_dims)
+        dims = {getattr(g, "in_dims", None) for g in gps}
+        if len(dims) > 1:
+            raise ValueError(f"packed GPs must read the same latent dimensions, found in_dims {sorted(dims, key=str)}")
+        self.in_dims = dims.pop() if dims else None
         self.n = len(gps)
         Ns = np.array([len(g.X) for g in gps], dtype=np.int64)
         self.offs = np.concatenate([[0], np.cumsum(Ns)]).astype(np.int64)
@@ -225,18 +241,23 @@ class PackedGPs:
         self.mean = np.ascontiguousarray(np.stack([g.mean for g in gps]))
         self.D = self.A.shape[1]
 
+    def _take(self, Xs: np.ndarray) -> np.ndarray:
+        return Xs if self.in_dims is None else Xs[:, :self.in_dims]
+
     def loglik(self, runs: Runs, Y: np.ndarray, Xs: np.ndarray, extra: np.ndarray | None = None):
         """Per-row ℓ (R,), ∂ℓ/∂Xs (R, d), ∂ℓ/∂Y (R, D) for rows laid out as ``runs``."""
+        d, Xs = Xs.shape[1], self._take(Xs)
         R = Xs.shape[0]
         ll, gx, gy = np.empty(R), np.empty((R, Xs.shape[1])), np.empty((R, self.D))
         ex = np.zeros(self.D) if extra is None else np.ascontiguousarray(extra, dtype=np.float64)
         _packed_loglik(runs.gp, runs.lo, runs.hi, self.X, self.A, self.L, self.offs, self.loffs, self.alpha,
                        self.gamma, self.beta, self.w2, self.mean, np.ascontiguousarray(Y, dtype=np.float64),
                        np.ascontiguousarray(Xs, dtype=np.float64), ex, ll, gx, gy)
-        return ll, gx, gy
+        return ll, pad_inputs(gx, d), gy
 
     def mean_var(self, runs: Runs, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (R, D) and σ² (R,) for rows laid out as ``runs``."""
+        Xs = self._take(Xs)
         R = Xs.shape[0]
         mu, s = np.empty((R, self.D)), np.empty(R)
         _packed_mean_var(runs.gp, runs.lo, runs.hi, self.X, self.A, self.L, self.offs, self.loffs, self.alpha,
@@ -245,10 +266,11 @@ class PackedGPs:
 
     def mean_vjp(self, runs: Runs, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_rm ∂μ_m(x_r)/∂x_r (R, d) for rows laid out as ``runs``."""
+        d, Xs = Xs.shape[1], self._take(Xs)
         out = np.empty(Xs.shape)
         _packed_mean_vjp(runs.gp, runs.lo, runs.hi, self.X, self.A, self.offs, self.alpha, self.gamma,
                          np.ascontiguousarray(Xs, dtype=np.float64), np.ascontiguousarray(G, dtype=np.float64), out)
-        return out
+        return pad_inputs(out, d)
 
 
 class Runs:

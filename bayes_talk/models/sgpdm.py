@@ -56,7 +56,13 @@ from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
 from bayes_talk.models.sgpdm_objective import SGPDMObjective, fit_direct
 from bayes_talk.models.sgpdm_objective import supports as objective_supports
-from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, pca_scores, sgpdm_model
+from bayes_talk.models.sgpdm_program import (
+    FitHistory,
+    SGPDMConfig,
+    pca_scores,
+    sgpdm_model,
+    view_latents,
+)
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
 from bayes_talk.models.sgpdm_program import sgpdm_log_joint as program_log_joint
 
@@ -95,12 +101,14 @@ class SGPDM:
                  back_constraint: str | None = _DEFAULTS.back_constraint, bc_hidden: int = _DEFAULTS.bc_hidden,
                  init: str = _DEFAULTS.init, init_scale: float | None = _DEFAULTS.init_scale,
                  learn_w: bool = _DEFAULTS.learn_w, max_iter: int = _DEFAULTS.max_iter,
-                 tol: float = _DEFAULTS.tol, seed: int = _DEFAULTS.seed):
+                 tol: float = _DEFAULTS.tol, seed: int = _DEFAULTS.seed,
+                 view_dims: dict[str, int] | None = _DEFAULTS.view_dims):
         self.latent_dim, self.dynamics, self.learn_dynamics = latent_dim, dynamics, learn_dynamics
         self.dyn_alpha, self.dyn_gamma, self.dyn_beta, self.dyn_linear = dyn_alpha, dyn_gamma, dyn_beta, dyn_linear
         self.balanced, self.back_constraint, self.bc_hidden = balanced, back_constraint, bc_hidden
         self.init, self.init_scale, self.learn_w = init, init_scale, learn_w
         self.max_iter, self.tol, self.seed = max_iter, tol, seed
+        self.view_dims = None if view_dims is None else {str(v): int(k) for v, k in dict(view_dims).items()}
         self.view_names: list[str] = []
         self.history = FitHistory()
         self._fitted = False
@@ -157,6 +165,13 @@ class SGPDM:
         bc = self.config.back_constraint
         if bc is not None and bc not in arrs:
             raise ValueError(f"back_constraint view {bc!r} is not among the views {list(arrs)}")
+        for v, k in (self.view_dims or {}).items():
+            if v not in arrs:
+                raise ValueError(f"view_dims names view {v!r}, which is not among the views {list(arrs)}")
+            if not 1 <= k <= d:
+                raise ValueError(f"view_dims[{v!r}] = {k}: a view reads 1 to latent_dim = {d} latent dimensions")
+        if self.view_dims and bc is not None:
+            raise ValueError("view_dims (private latent dimensions) cannot be combined with a back-constraint")
         return arrs, seq_lengths
 
     def _init_latents(self, centred: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -168,6 +183,17 @@ class SGPDM:
         else:
             Z = np.hstack([Y / np.maximum(Y.std(0), 1e-12) for Y in centred.values()])
             X = pca_scores(Z, d)
+        k = min((cfg.view_dims or {}).values(), default=d)
+        if k < d:
+            # private dimensions k..d−1 (SGPDMConfig.view_dims): the shared ones as above at
+            # k, the private ones the principal components of what the shared ones leave of
+            # the views that read them (each standardised; least squares on the shared scores)
+            X = X[:, :k] if cfg.init == "pca-concat" else np.mean([pca_scores(Y, k) for Y in centred.values()], axis=0)
+            X = X / np.maximum(X.std(0), 1e-12)
+            readers = [Y / np.maximum(Y.std(0), 1e-12) for v, Y in centred.items() if (cfg.view_dims or {}).get(v, d) > k]
+            R = np.hstack(readers)
+            R = R - X @ np.linalg.lstsq(X, R, rcond=None)[0]
+            X = np.hstack([X, pca_scores(R, d - k)])
         scale = cfg.init_scale
         if scale is None:
             scale = math.sqrt(cfg.dyn_alpha) if cfg.dynamics else 1.0
@@ -376,10 +402,12 @@ class SGPDM:
         self.hyper_ = {k: (v.numpy().copy() if v.ndim else float(v)) for k, v in h.items()}
         X = torch.as_tensor(self.X_)
         self.predictors_, self.dynamics_predictor_ = {}, None  # old N×N factors go first
+        dims = self.view_dims or {}
         self.predictors_ = {
             v: GPPredictor(
-                X, self._Y[v], float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]), float(h[f"beta/{v}"]),
-                h[f"w/{v}"], torch.as_tensor(self.means_[v]), what=f"{v} kernel matrix",
+                view_latents(X, self.config, v), self._Y[v], float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]),
+                float(h[f"beta/{v}"]), h[f"w/{v}"], torch.as_tensor(self.means_[v]), what=f"{v} kernel matrix",
+                in_dims=dims.get(v) if dims.get(v, X.shape[1]) < X.shape[1] else None,
             )
             for v in self.view_names
         }

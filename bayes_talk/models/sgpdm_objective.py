@@ -123,12 +123,13 @@ class SGPDMObjective:
                 total = total + float(lp.sum())
                 gw -= w / scale**2
             a, gm, b = float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]), float(h[f"beta/{v}"])
-            r = rbf_matrix_normal_grad(X, a, gm, b, Y * w)
+            k = (cfg.view_dims or {}).get(v, d)     # the view's GP reads X[:, :k] (SGPDMConfig.view_dims)
+            r = rbf_matrix_normal_grad(np.ascontiguousarray(X[:, :k]), a, gm, b, Y * w)
             if r is None:
                 return None
             ll, gx_v, ga, gg, gb, gV = r
             total = total + (N * float(np.log(w).sum()) + ll)
-            gX += gx_v
+            gX[:, :k] += gx_v
             gw += N / w + (Y * gV).sum(0)
             gh.update({f"alpha/{v}": ga, f"gamma/{v}": gg, f"beta/{v}": gb, f"w/{v}": gw})
         if self.learned:

@@ -18,7 +18,7 @@ from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_loglik, observation_loglik
 
 __all__ = ["FitHistory", "SGPDMConfig", "median_sq_dist", "pca_scores", "sgpdm_log_joint", "sgpdm_model",
-           "trace_log_joint"]
+           "trace_log_joint", "view_latents"]
 
 @dataclass
 class SGPDMConfig:
@@ -42,6 +42,14 @@ class SGPDMConfig:
     learn_w: learn the per-dimension output scales W (else W = 1/std of the data, fixed).
     max_iter: L-BFGS iterations; tol: stop when an outer step improves L by < tol·|L|.
     seed: seeds the back-constraint weights and anything random in fitting.
+    view_dims: view name → k, the number of leading latent dimensions that view's GP reads
+        (views not named read all d). A view given k < d leaves the last d − k dimensions
+        *private* to the other views: shared and private latent spaces (Ek, Rihan, Torr,
+        Rogez & Lawrence 2008, "Ambiguity modeling in latent spaces"). With
+        ``{"audio": k}`` the audio constrains only the shared dimensions, and at synthesis
+        the face's private dimensions are left to the dynamics and the entry density, so
+        the posterior spreads where the audio does not determine the face. None: every view
+        reads all d (the papers' model).
     """
 
     latent_dim: int = 8
@@ -60,6 +68,15 @@ class SGPDMConfig:
     max_iter: int = 300
     tol: float = 1e-9
     seed: int = 0
+    view_dims: dict[str, int] | None = None
+
+
+def view_latents(X, cfg: SGPDMConfig, view: str):
+    """The columns of the latents X (N, d) that ``view``'s GP reads (``cfg.view_dims``)."""
+    k = (cfg.view_dims or {}).get(view)
+    if k is None:
+        return X
+    return X[:, :k].contiguous() if isinstance(X, torch.Tensor) else np.ascontiguousarray(X[:, :k])
 
 
 def pca_scores(Y: np.ndarray, d: int) -> np.ndarray:
@@ -126,7 +143,7 @@ def sgpdm_model(
             )
         pyro.sample(
             f"Y/{v}",
-            GPObservation(X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
+            GPObservation(view_latents(X, cfg, v), hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
                           what=f"{v} kernel matrix"),
             obs=Y,
         )
@@ -177,7 +194,7 @@ def sgpdm_log_joint(
         w = hyper[f"w/{v}"]
         if cfg.learn_w:
             total = total + _half_normal_log_prob(w)
-        total = total + observation_loglik(Y, X, hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
+        total = total + observation_loglik(Y, view_latents(X, cfg, v), hyper[f"alpha/{v}"], hyper[f"gamma/{v}"], hyper[f"beta/{v}"], w,
                                            None, f"{v} kernel matrix")
     if learned:
         total = total + -sum(torch.log(hyper[k]) for k in learned)

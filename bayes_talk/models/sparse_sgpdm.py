@@ -94,6 +94,9 @@ class SparseSGPDM(SGPDM):
         self.gamma_init_frames = gamma_init_frames
         super().__init__(**base)
         cfg = self.config
+        if cfg.view_dims:
+            raise ValueError(f"the sparse SGPDM reads all latent dimensions in every view; view_dims={cfg.view_dims} "
+                             "(private latent dimensions) needs the exact SGPDM")
         if cfg.back_constraint is not None:
             raise ValueError("SparseSGPDM has no back-constraint (the MLP would map every training frame); "
                              "set back_constraint=None")

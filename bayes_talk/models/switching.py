@@ -140,6 +140,11 @@ class SwitchingConfig:
         residual face z_t − c_t (c_t out-of-fold on the training frames, as the view) and
         synthesis adds c_t back to every predictive component. The smoothness factor and
         its motion variance then act on the residual. False (the default) models z_t itself.
+    private_dims: p, latent dimensions of every state's SGPDM that the audio GP does not
+        read (SGPDMConfig.view_dims = {"audio": d − p}): they are private to the face
+        (shared and private latent spaces, Ek et al. 2008), so the synthesis posterior over
+        them is set by the dynamics, the entry density and the smoothness factor, not by
+        the audio. 0 (the default): the papers' model, every view reads all d.
     """
 
     states: str = "vlmm"
@@ -156,6 +161,7 @@ class SwitchingConfig:
     right_context: bool = False
     context_view: int = 0
     context_mean: bool = False
+    private_dims: int = 0
 
 
 def _fit_state(job: tuple) -> tuple[dict, dict]:
@@ -194,7 +200,8 @@ class SwitchingModel:
                  min_frames_per_state: int = _DEFAULTS.min_frames_per_state, max_iter: int = _DEFAULTS.max_iter,
                  fallback_frames: int = _DEFAULTS.fallback_frames, seed: int = _DEFAULTS.seed,
                  audio_context: int = _DEFAULTS.audio_context, right_context: bool = _DEFAULTS.right_context,
-                 context_view: int = _DEFAULTS.context_view, context_mean: bool = _DEFAULTS.context_mean):
+                 context_view: int = _DEFAULTS.context_view, context_mean: bool = _DEFAULTS.context_mean,
+                 private_dims: int = _DEFAULTS.private_dims):
         if states not in ("vlmm", "phone"):
             raise ValueError(f"states must be 'vlmm' or 'phone', got {states!r}")
         if not isinstance(right_context, (bool, np.bool_)):
@@ -213,6 +220,10 @@ class SwitchingModel:
                              f"found context_view={context_view!r}")
         self.context_view = context_view
         self.context_mean = bool(context_mean)
+        if not isinstance(private_dims, (int, np.integer)) or not 0 <= private_dims < latent_dim:
+            raise ValueError(f"private_dims must be an integer in 0..latent_dim-1 = {latent_dim - 1} (the audio "
+                             f"reads at least one latent dimension), got {private_dims!r}")
+        self.private_dims = int(private_dims)
         self.context_ = ContextView(context_view)
         self.models_: dict[tuple[str, ...], SGPDM] = {}
         #: training frames per phone (the unseen-phone policy, data.phones.substitute_unseen)
@@ -256,9 +267,11 @@ class SwitchingModel:
 
     # ------------------------------------------------------------------ training
     def _state_cfg(self) -> dict:
-        return asdict(SGPDMConfig(latent_dim=self.config.latent_dim, dynamics=True, learn_dynamics=False,
-                                  back_constraint=None, init="pca-average", max_iter=self.config.max_iter,
-                                  seed=self.config.seed))
+        cfg = self.config
+        private = {"audio": cfg.latent_dim - cfg.private_dims} if cfg.private_dims else None
+        return asdict(SGPDMConfig(latent_dim=cfg.latent_dim, dynamics=True, learn_dynamics=False,
+                                  back_constraint=None, init="pca-average", max_iter=cfg.max_iter,
+                                  seed=cfg.seed, view_dims=private))
 
     def fit(self, train: Sequence[Utterance], executor=None) -> SwitchingModel:
         """Train the state model (VLMM or phones) and one SGPDM per state.

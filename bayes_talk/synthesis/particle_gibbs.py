@@ -33,7 +33,7 @@ from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.joint import UtteranceDensity
-from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
+from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
 def _runs(g: int, n: int) -> Runs:
@@ -127,7 +127,7 @@ class MixtureProposal:
         self.ff, self.rho, self.hs = ff, float(rho), hs
         self.centres, self.logw, self.smooth_pred = {}, {}, {}
         for b in plan.blocks:
-            Xtr0 = numpy_gp(b.model.predictors_["audio"]).X
+            Xtr0 = np.asarray(b.model.X_, dtype=np.float64)   # the training latents (all d dimensions)
             for t in range(b.start, b.stop):
                 Xtr = Xtr0 if extra_centres is None else np.vstack([Xtr0, extra_centres[:, t]])
                 ll = ff.audio_loglik(t, Xtr)

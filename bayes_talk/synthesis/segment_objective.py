@@ -31,6 +31,7 @@ from scipy.linalg.lapack import dtrtrs
 from bayes_talk import settings
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.predictive_fused import (
+    pad_inputs,
     predictive_loglik,
     predictive_mean_var,
     predictive_mean_vjp,
@@ -64,8 +65,15 @@ class _NumpyGP:
         self.w2 = (p.w * p.w).numpy().copy()
         self.mean = p.mean.numpy().copy()
         self._no_extra = np.zeros(self.A.shape[1])
+        #: the first ``in_dims`` latent dimensions are the GP's inputs (None: all; GPPredictor)
+        self.in_dims = getattr(p, "in_dims", None)
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
+
+    def take(self, Xs: np.ndarray) -> np.ndarray:
+        """The columns of latent rows ``Xs`` that are this GP's inputs (all, or the first
+        :attr:`in_dims`)."""
+        return Xs if self.in_dims is None else Xs[:, :self.in_dims]
 
     @property
     def L(self) -> np.ndarray:
@@ -90,6 +98,7 @@ class _NumpyGP:
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
+        Xs = self.take(Xs)
         if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             mu, s = np.empty((Xs.shape[0], self.A.shape[1])), np.empty(Xs.shape[0])
@@ -102,13 +111,14 @@ class _NumpyGP:
 
     def mean_vjp(self, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_tm ∂μ_m(x_t)/∂x_t for each row (T×d): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
+        d, Xs = Xs.shape[1], self.take(Xs)
         if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             out = np.empty(Xs.shape)
             predictive_mean_vjp(self.X, self.A, self.alpha, self.gamma, Xs, np.ascontiguousarray(G, dtype=np.float64), out)
-            return out
+            return pad_inputs(out, d)
         c = self.kernel(Xs) * (G @ self.A.T)
-        return -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)
+        return pad_inputs(-self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X), d)
 
     def loglik(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None,
                rowwise: bool = False):
@@ -120,8 +130,9 @@ class _NumpyGP:
         (then by :meth:`loglik_numpy`, the reference)."""
         if not settings.get("fused"):
             return self.loglik_numpy(Y, Xs, extra_var, rowwise)
+        d = Xs.shape[1]
         Y = np.ascontiguousarray(Y, dtype=np.float64)
-        Xs = np.ascontiguousarray(Xs, dtype=np.float64)
+        Xs = np.ascontiguousarray(self.take(Xs), dtype=np.float64)
         T = Xs.shape[0]
         ll = np.empty(T)
         gx = np.empty((T, Xs.shape[1]))
@@ -129,11 +140,12 @@ class _NumpyGP:
         extra = self._no_extra if extra_var is None else np.ascontiguousarray(extra_var, dtype=np.float64)
         predictive_loglik(self.X, self.A, self.Lc, self.mean, self.alpha, self.gamma, self.beta,
                           self.w2, Y, Xs, extra, ll, gx, gy)
-        return (ll if rowwise else float(ll.sum())), gx, gy
+        return (ll if rowwise else float(ll.sum())), pad_inputs(gx, d), gy
 
     def loglik_numpy(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None,
                      rowwise: bool = False):
         """:meth:`loglik` by NumPy and LAPACK (dtrtrs): the reference of the compiled path."""
+        d, Xs = Xs.shape[1], self.take(Xs)
         k = self.kernel(Xs)                                           # T×N
         mu = k @ self.A + self.mean                                  # T×D
         V = self._solve(k.T)                                          # N×T: L⁻¹k
@@ -154,7 +166,7 @@ class _NumpyGP:
         g_s = np.where(s_raw > floor, g_s, 0.0)
         c = k * (g_mu @ self.A.T - 2.0 * g_s[:, None] * Kk)          # T×N
         g_x = -self.gamma * (c.sum(-1)[:, None] * Xs - c @ self.X)   # T×d
-        return ll, g_x, -g_mu
+        return ll, pad_inputs(g_x, d), -g_mu
 
 
 def numpy_gp(p: GPPredictor) -> _NumpyGP:
@@ -367,7 +379,11 @@ def maximise_segment(
         mu, cov = first
         first_p = (np.asarray(mu), np.linalg.inv(cov), float(np.linalg.slogdet(cov)[1]))
 
-    if settings.get("fused"):
+    # the compiled objective reads every GP on all d latent dimensions: a model with private
+    # latent dimensions (a GP with ``in_dims``) takes the term-by-term reference
+    private = any(getattr(p, "in_dims", None) is not None
+                  for p in (obs, dynamics, None if smooth is None else smooth[0]))
+    if settings.get("fused") and not private:
         objective = compiled_segment_objective(Y, obs, dynamics, first_p, smooth)
     else:
         def objective(X):
