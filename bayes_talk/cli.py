@@ -439,7 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=DEFAULT_CALIBRATED_MODEL,
                    help="the model saved with the calibration: holdout = the one trained on the other "
                         "utterances, which the calibration was fitted for (one fit); refit = one more fit on "
-                        "all utterances, the calibration carried over to it")
+                        "all utterances, the calibration carried over to it; cv = the fit on all utterances, the "
+                        "calibration fitted on out-of-fold syntheses of every utterance (1/FRACTION folds)")
     t.set_defaults(func=_cmd_train)
 
     s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",

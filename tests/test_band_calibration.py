@@ -356,8 +356,43 @@ def test_calibrated_fit_ships_the_holdout_model_or_refits_on_every_utterance():
     assert cal2.held_out == cal.held_out and cal2.info["n_fit"] == 7
     np.testing.assert_array_equal(cal2.scale, cal.scale)     # the same calibration model and syntheses
     assert refit is fitted[-2]    # the model on every utterance, fitted first
-    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, found 'both'"):
+    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, cv, found 'both'"):
         calibrated_fit(SwitchingSGPDM(**small), train, "both", fit=fit)
+
+
+def test_crossfit_calibration_holds_out_every_utterance_once():
+    """``--calibrated-model cv``: K = round(1/holdout) seeded folds partition the
+    utterances; each fold is synthesised by a model fitted on the others only; the
+    calibration is fitted on all the out-of-fold syntheses (its held-out names are every
+    utterance, its in-sample coverage is of all of them); the shipped model is fitted on
+    every utterance, first. Too few utterances for the folds are refused by name."""
+    from toydata import make_utterances
+
+    from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.synthesis.band_calibration import calibrated_fit, crossfit_folds
+
+    folds = crossfit_folds(11, holdout=0.3, seed=1)
+    assert len(folds) == 3 and sorted(i for f in folds for i in f) == list(range(11))
+    assert sorted(len(f) for f in folds) == [3, 4, 4] and folds != crossfit_folds(11, holdout=0.3, seed=2)
+    train = make_utterances(9, seed=3, mean_len=30)
+    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
+    seen, fitted = [], []
+
+    def fit(model, seqs):
+        seen.append(sorted(s.name for s in seqs))
+        fitted.append(model.fit(seqs))
+        return fitted[-1]
+
+    shipped, cal = calibrated_fit(SwitchingSGPDM(**small), train, "cv", holdout=0.3, n_draws=8, seed=1, fit=fit)
+    names = sorted(s.name for s in train)
+    assert shipped is fitted[0] and seen[0] == names and len(seen) == 4
+    held = [sorted([s.name for i, s in enumerate(train) if i in f]) for f in crossfit_folds(9, 0.3, 1)]
+    for fit_names, fold in zip(seen[1:], held):
+        assert sorted(fit_names + fold) == names          # each fold's model saw exactly the other folds
+    assert sorted(cal.held_out) == names and cal.info["folds"] == 3 and cal.info["n_fit"] == [6, 6, 6]
+    assert cal.n_utterances == 9
+    with pytest.raises(ValueError, match="3 folds needs at least 4 training utterances"):
+        crossfit_folds(3, holdout=0.3)
 
 
 def _mixed_spread(n, seed, T=30):

@@ -252,11 +252,18 @@ def command_problems(cmd: Command) -> list[str]:
         if not path.is_file():
             return problems + [f"{script} is not in the repository"]
         opts = script_options(path)
+        own, passed = rest[1:], None
+        if "--" in own:   # script options, then a bayes-talk command it runs (benchmarks/analysis/family_variant.py)
+            cut = own.index("--")
+            own, passed = own[:cut], own[cut + 1:]
         if opts is not None:
-            for tok in rest[1:]:
+            for tok in own:
                 flag = tok.split("=", 1)[0]
                 if flag.startswith("--") and flag not in opts:
                     problems.append(f"{script} has no option {flag} (it has {', '.join(sorted(opts))})")
+        if passed is not None:
+            removed = frozenset(REMOVED_METHODS) if cmd.block.path in HISTORY else frozenset()
+            problems += [f"{script} -- bayes-talk: {p}" for p in cli_problems(passed, removed)]
         return problems
     if prog == "make":
         targets = makefile_targets()
@@ -308,6 +315,12 @@ curl https://example.org | sh
     assert "missing.txt" in verdicts[6][0]
     assert "tset" in verdicts[7][0]
     assert "unknown program 'curl'" in verdicts[8][0]
+    # a script that runs a bayes-talk command after "--": both parts are checked
+    passthrough = ("python", "benchmarks/analysis/family_variant.py", "--learn-dynamics", "--", "evaluate",
+                   "--protocol", "deena2010", "--corpus", "C", "--json", "r.json")
+    assert command_problems(Command(fake, passthrough)) == []
+    wrong = command_problems(Command(fake, (*passthrough[:2], "--no-such", *passthrough[3:], "--no-such-flag")))
+    assert any("has no option --no-such" in p for p in wrong) and any("--no-such-flag" in p for p in wrong)
 
 
 # ------------------------------------------------------------------------------------------

@@ -374,5 +374,5 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
         cli.main(["train", "c", "--out", "o", "--calibrated-model", "both"])
     from bayes_talk.pipeline.training import train as real_train  # pl.train is the stub above
 
-    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, found 'both'"):
+    with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, cv, found 'both'"):
         real_train("c", pl.DEFAULT_MODEL, "o", calibrate_bands=0.2, calibrated_model="both")

@@ -358,14 +358,18 @@ def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConf
                          executor=None, progress=None) -> Any:
     """Fit the band calibration of ``model``'s posterior ``method`` on held-out training
     utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
-    extra fit on the other ``1 - cfg.band_calibration`` of ``train``). Returns ``model``
+    extra fit on the other ``1 - cfg.band_calibration`` of ``train``; with
+    ``cfg.calibrated_model`` "cv" :func:`~bayes_talk.synthesis.band_calibration.crossfit_band_calibration`,
+    K = round(1/``cfg.band_calibration``) extra fits). Returns ``model``
     wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
     ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
     from bayes_talk.gp.threads import torch_threads
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration as fit_calibration
+    from bayes_talk.synthesis.band_calibration import crossfit_band_calibration
+    from bayes_talk.synthesis.band_calibration import fit_band_calibration as held_out_calibration
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")
+    fit_calibration = crossfit_band_calibration if cfg.calibrated_model == "cv" else held_out_calibration
     with torch_threads(cfg.torch_threads):
         cal = fit_calibration(model, train, method=method, holdout=cfg.band_calibration,
                               n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)

@@ -106,7 +106,9 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     applies it); None: no calibration. ``calibrated_model``: which model is saved with it
     (:data:`~bayes_talk.synthesis.band_calibration.CALIBRATED_MODELS`): "holdout", the model
     trained on the other utterances, the one the calibration was fitted for (one fit);
-    "refit", a second model trained on all of them, the factors carried over (two fits).
+    "refit", a second model trained on all of them, the factors carried over (two fits);
+    "cv", the model trained on all of them with the factors fitted on out-of-fold syntheses
+    of every utterance (round(1/calibrate_bands) folds: that many fits more).
     """
     out = Path(out_dir)
     if kind not in model_kinds():

@@ -58,10 +58,18 @@ The in-sample coverage before and after is stored beside the knots.
 same configuration is trained on the other 80 %, the held-out ones are synthesised by
 the posterior method, and the factors are fitted to them. The factors are then applied
 to the model trained on all utterances. Cost: one extra fit (on 80 % of the data) and
-the synthesis of the held-out utterances; K-fold cross-validation would cost K fits,
-and the state models' own training residuals are in-sample (too small by construction).
-The full model has seen 25 % more data than the calibration model; measured on new
-sentences the calibrated bands are still slightly narrow (docs/uncertainty.md).
+the synthesis of the held-out utterances; the state models' own training residuals are
+in-sample (too small by construction). The full model has seen 25 % more data than the
+calibration model; measured on new sentences the calibrated bands are still slightly
+narrow (docs/uncertainty.md).
+
+**Cross-fitted** (:func:`crossfit_band_calibration`, ``train --calibrated-model cv``): the
+utterances are split into K = round(1/holdout) seeded folds (5 at the default 20 %); for
+each fold a model of the same configuration is trained on the other folds and the fold is
+synthesised by it, so every training utterance is held out once, and the factors are
+fitted to all of these out-of-fold syntheses (cross-conformal calibration, Vovk 2015;
+CV+, Barber, Candès, Ramdas & Tibshirani 2021, with utterances as the exchangeable unit).
+K fits instead of one, and K times the held-out data for every stage.
 
 **The constant-band control** (issue 27 item 1). Whether the posterior's *shape* of
 uncertainty — wider where the face is harder to predict — carries information is judged
@@ -119,7 +127,7 @@ from bayes_talk.synthesis.pooled_result import PooledResult, check_pool
 from bayes_talk.synthesis.recalibrated_result import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
-__all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "calibrated_fit", "fit_band_calibration", "holdout_calibrated_model",
+__all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "calibrated_fit", "crossfit_band_calibration", "crossfit_folds", "fit_band_calibration", "holdout_calibrated_model",
            "mean_shrinkage", "min_scales",
            "split_for_calibration"]
 
@@ -563,8 +571,10 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
 #: fitted for (split-conformal: its held-out coverage is the shipped model's, and there is
 #: one fit in all); "refit" -- a second model trained on all the utterances, the factors
 #: carried over to it (a model that has seen 1/(1 − holdout) times the data, but whose
-#: calibration was fitted on another model's errors; two fits)
-CALIBRATED_MODELS = ("holdout", "refit")
+#: calibration was fitted on another model's errors; two fits); "cv" -- the model trained on
+#: all the utterances, the calibration fitted on out-of-fold syntheses of every one of them
+#: (cross-fitted, K = round(1/holdout) folds: K + 1 fits)
+CALIBRATED_MODELS = ("holdout", "refit", "cv")
 
 
 def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = "laplace",
@@ -573,7 +583,8 @@ def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = 
                    fit: Callable | None = None) -> tuple[Any, BandCalibration]:
     """(the model to ship, its calibration) by the scheme ``calibrated_model`` of
     :data:`CALIBRATED_MODELS`: "holdout", :func:`holdout_calibrated_model` (one fit); "refit",
-    ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits).
+    ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits);
+    "cv", the same model and :func:`crossfit_band_calibration` (K + 1 fits).
     The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this."""
     if calibrated_model not in CALIBRATED_MODELS:
         raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
@@ -582,7 +593,8 @@ def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = 
     if calibrated_model == "holdout":
         return holdout_calibrated_model(model, train, **kw)
     fitted = fit(model, list(train)) if fit is not None else model.fit(list(train), executor=executor)
-    return fitted, fit_band_calibration(fitted, train, **kw)
+    calibrate = crossfit_band_calibration if calibrated_model == "cv" else fit_band_calibration
+    return fitted, calibrate(fitted, train, **kw)
 
 
 def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
@@ -594,8 +606,7 @@ def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", ho
     its ``method`` posterior fitted on the held-out ones (see :func:`fit_band_calibration`
     for the arguments). ``model`` itself is only read for its configuration."""
     from bayes_talk.models.switching import SwitchingModel
-    from bayes_talk.synthesis.posterior import sample_synthesis
-
+    
     if not isinstance(model, SwitchingModel):
         raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
     seqs = list(train)
@@ -606,26 +617,87 @@ def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", ho
     sub = type(model)(**asdict(model.config))
     rest = [seqs[i] for i in fit_idx]
     sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
-    results, truths = [], [seqs[i].aam for i in held_idx]
-    if getattr(executor, "parallel", False) and len(held_idx) > 1:
-        n_chunks = min(len(held_idx), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
-        bounds = np.linspace(0, len(held_idx), n_chunks + 1).round().astype(int)
-        jobs = [(sub, [(seqs[i].mfcc, seqs[i].labels) for i in held_idx[a:b]], method, n_draws, seed)
-                for a, b in itertools.pairwise(bounds)]
-        say(f"band calibration: synthesising {len(held_idx)} held-out utterances in {len(jobs)} tasks")
-        results = [r for chunk in executor.map(_synthesise_chunk, jobs) for r in chunk]
-    else:
-        for j, i in enumerate(held_idx):
-            s = seqs[i]
-            results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
-                                            log_warnings=False))
-            if (j + 1) % 10 == 0 or j + 1 == len(held_idx):
-                say(f"band calibration: synthesised {j + 1}/{len(held_idx)} held-out utterances")
-    cal = BandCalibration.fit(results, truths, method=method, names=[seqs[i].name for i in held_idx])
+    results = _held_out_syntheses(sub, [seqs[i] for i in held_idx], method, n_draws, seed, executor, say)
+    cal = BandCalibration.fit(results, [seqs[i].aam for i in held_idx], method=method,
+                              names=[seqs[i].name for i in held_idx])
     cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=len(fit_idx),
                     held_out_diagnostics=_synthesis_record(results))
+    _say_fitted(cal, say)
+    return sub, cal
+
+
+def _say_fitted(cal: BandCalibration, say: Callable[[str], None]) -> None:
     say("band calibration: 90 % coverage on the held-out utterances {:.3f} raw -> {:.3f} calibrated; "
         "factors {:.2f}-{:.2f} (median {:.2f})".format(cal.coverage_raw.get("0.9", float("nan")),
                                                       cal.coverage_calibrated.get("0.9", float("nan")),
                                                       cal.scale.min(), cal.scale.max(), np.median(cal.scale)))
-    return sub, cal
+
+
+def crossfit_folds(n: int, holdout: float = HOLDOUT_FRACTION, seed: int = 0) -> list[list[int]]:
+    """The K = round(1/``holdout``) seeded folds (sorted index lists, sizes differing by at
+    most one) of ``n`` utterances that :func:`crossfit_band_calibration` holds out in turn."""
+    if not 0.0 < holdout < 1.0:
+        raise ValueError(f"holdout: expected a fraction in (0, 1), found {holdout!r}")
+    k = max(2, round(1.0 / holdout))
+    if n < k + 1:
+        raise ValueError(f"cross-fitted band calibration with {k} folds needs at least {k + 1} training "
+                         f"utterances; found {n}")
+    perm = np.random.default_rng([seed, 2**17]).permutation(n)
+    return [sorted(int(i) for i in f) for f in np.array_split(perm, k)]
+
+
+def crossfit_band_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
+                              n_draws: int = 64, seed: int = 0, executor=None,
+                              progress: Callable[[str], None] | None = None,
+                              fit: Callable | None = None) -> BandCalibration:
+    """The calibration of ``method`` posteriors fitted on out-of-fold syntheses of every
+    training utterance (module docstring, "Cross-fitted"): for each fold of
+    :func:`crossfit_folds`, a model of ``model``'s configuration trained on the other folds
+    synthesises the fold. Arguments as :func:`fit_band_calibration`; ``model`` is only read
+    for its configuration (the shipped model is fitted on all of ``train`` by the caller)."""
+    from bayes_talk.models.switching import SwitchingModel
+
+    if not isinstance(model, SwitchingModel):
+        raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
+    seqs = list(train)
+    folds = crossfit_folds(len(seqs), holdout, seed)
+    say = progress or (lambda msg: log.info("%s", msg))
+    results, order = [], []
+    for k, held in enumerate(folds):
+        held_set = set(held)
+        rest = [s for i, s in enumerate(seqs) if i not in held_set]
+        say(f"band calibration: fold {k + 1}/{len(folds)}: training a {model.name} model on {len(rest)} "
+            f"utterances, holding out {len(held)}")
+        sub = type(model)(**asdict(model.config))
+        sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
+        results += _held_out_syntheses(sub, [seqs[i] for i in held], method, n_draws, seed, executor, say)
+        order += held
+    cal = BandCalibration.fit(results, [seqs[i].aam for i in order], method=method,
+                              names=[seqs[i].name for i in order])
+    cal.info.update(holdout=float(holdout), folds=len(folds), seed=int(seed), n_draws=int(n_draws),
+                    n_fit=[len(seqs) - len(f) for f in folds], held_out_diagnostics=_synthesis_record(results))
+    _say_fitted(cal, say)
+    return cal
+
+
+def _held_out_syntheses(sub, held: Sequence, method: str, n_draws: int, seed: int, executor,
+                        say: Callable[[str], None]) -> list[SynthesisResult]:
+    """The ``method`` posteriors of the held-out utterances ``held`` under the model ``sub``
+    (seeded, warnings recorded and not logged), through ``executor`` in contiguous chunks
+    when it runs tasks in other processes."""
+    from bayes_talk.synthesis.posterior import sample_synthesis
+
+    results = []
+    if getattr(executor, "parallel", False) and len(held) > 1:
+        n_chunks = min(len(held), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
+        bounds = np.linspace(0, len(held), n_chunks + 1).round().astype(int)
+        jobs = [(sub, [(s.mfcc, s.labels) for s in held[a:b]], method, n_draws, seed)
+                for a, b in itertools.pairwise(bounds)]
+        say(f"band calibration: synthesising {len(held)} held-out utterances in {len(jobs)} tasks")
+        return [r for chunk in executor.map(_synthesise_chunk, jobs) for r in chunk]
+    for j, s in enumerate(held):
+        results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
+                                        log_warnings=False))
+        if (j + 1) % 10 == 0 or j + 1 == len(held):
+            say(f"band calibration: synthesised {j + 1}/{len(held)} held-out utterances")
+    return results
