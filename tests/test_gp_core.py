@@ -348,11 +348,18 @@ def _both_paths(fn):
 
 def test_fused_default_equals_torch_path_on_the_two_view_sgpdm_log_joint():
     """The default (fused) path against the torch path on the whole objective of a
-    two-view SGPDM with learned dynamics and two sequences: value and every gradient."""
+    two-view SGPDM with learned dynamics and two sequences: value and every gradient.
+
+    The dynamics noise is 1e-4 (β_x = 1e4), not the default 1e-6: at β_x = 1e6 the dynamics
+    term itself is conditioned so that both paths are 3e-13 (fused) and 5e-13 (torch)
+    relative from its 40-digit value (mpmath, session 14), and the two paths differ by
+    1.1e-13 to 7.4e-13 relative at the points of 2, 3 and 5 iterations, on one thread or two;
+    the 1e-13 below held there only at the point that two-thread rounding happened to
+    reach. At β_x = 1e4 they differ by at most 3.6e-15 (gradients 8.4e-14) at those points."""
     from bayes_talk import settings
 
     audio, video = _toy(40)
-    m = SGPDM(latent_dim=3, max_iter=3, learn_dynamics=True)
+    m = SGPDM(latent_dim=3, max_iter=3, learn_dynamics=True, dyn_beta=1e4)
     with settings.override(direct_fit=False):  # the point this comparison was written at
         m.fit({"audio": audio, "visual": video}, seq_lengths=[15, 25])
     free = m._free_tensors()
@@ -464,3 +471,57 @@ def test_fit_through_the_direct_log_joint_equals_the_pyro_fit(monkeypatch):
     assert a.history.log_joint == b.history.log_joint
     for k in a.hyper_:
         assert np.array_equal(np.asarray(a.hyper_[k]), np.asarray(b.hyper_[k])), k
+
+
+def test_small_problems_run_on_one_thread_whatever_torch_is_given():
+    """Below ``THREADED_MIN_N`` points a term (its LAPACK calls and compiled passes) and the
+    SGPDM log joint run on one thread (session 14), so on two torch threads they give the
+    one-thread numbers bit for bit (MKL's two-thread ``dpotrf`` differs in the last bits
+    here); the log joint through the Pyro trace still equals the direct one bit for bit."""
+    import bayes_talk.models.sgpdm as sgpdm_mod
+    from bayes_talk.gp import fused
+    from bayes_talk.gp.threads import THREADED_MIN_N, problem_threads, torch_threads
+    from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
+
+    N = 300
+    assert N < THREADED_MIN_N
+    rng = np.random.default_rng(3)
+    Y = np.tanh(rng.normal(size=(N, 4)) @ rng.normal(size=(4, 40))) + 0.1 * rng.normal(size=(N, 40))
+    m = SGPDM(latent_dim=4, dynamics=False, learn_w=False, max_iter=1).fit({"y": Y})
+    X = torch.as_tensor(rng.normal(size=(N, 4))).requires_grad_(True)
+    lg = torch.tensor([0.1, -0.7, 2.5], dtype=f64, requires_grad=True)
+    V = torch.as_tensor(Y)
+
+    def evaluate() -> dict[str, list]:
+        ll = fused.rbf_matrix_normal(X, lg[0].exp(), lg[1].exp(), lg[2].exp(), V)
+        out = {"term": [float(ll), *torch.autograd.grad(ll, (X, lg))]}
+        for path, fn in (("direct", sgpdm_log_joint), ("pyro", trace_log_joint)):
+            sgpdm_mod.program_log_joint = fn
+            free = m._free_tensors()
+            for t in free:
+                t.grad = None
+            lj = m.log_joint()
+            lj.backward()
+            out[path] = [float(lj.detach()), *(t.grad.clone() for t in free)]
+        return out
+
+    def same(a: list, b: list) -> bool:
+        return len(a) == len(b) and all((x == y) if isinstance(x, float) else torch.equal(x, y) for x, y in zip(a, b))
+
+    prev = sgpdm_mod.program_log_joint
+    results = {}
+    try:
+        for n in (1, 2):
+            with torch_threads(n):
+                with problem_threads(N):
+                    assert torch.get_num_threads() == 1
+                with problem_threads(THREADED_MIN_N):
+                    assert torch.get_num_threads() == n
+                assert torch.get_num_threads() == n
+                results[n] = evaluate()
+    finally:
+        sgpdm_mod.program_log_joint = prev
+    for n in (1, 2):
+        assert same(results[n]["direct"], results[n]["pyro"])
+    for key in ("term", "direct", "pyro"):
+        assert same(results[1][key], results[2][key]), key

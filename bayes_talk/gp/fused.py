@@ -25,8 +25,11 @@ Everything N×N lives in ONE Fortran-ordered buffer per term (32 MB at N = 2000)
 
 No N×N matrix is symmetrised, copied or allocated twice; the floor is LAPACK's
 ``dpotrf`` + ``dpotri`` (N³ flops), taken from the MKL inside torch where it is exported
-(:mod:`bayes_talk.gp.lapack`). The compiled passes run on ``torch.get_num_threads()``
-threads (from N = :data:`THREADED_MIN_N`; the calling thread and a small pool of plain
+(:mod:`bayes_talk.gp.lapack`). Below N = :data:`~bayes_talk.gp.threads.THREADED_MIN_N`
+a term runs on the calling thread only (its LAPACK calls on one MKL thread, whatever torch
+was given: threads cost more than they gain there). The compiled passes run on
+``torch.get_num_threads()`` threads (from N = :data:`~bayes_talk.gp.threads.THREADED_MIN_N`;
+the calling thread and a small pool of plain
 threads running GIL-free numba code) over a fixed set of :data:`N_CHUNKS` column chunks
 (balanced: columns j and N−1−j together) whose partial sums are added in chunk order,
 so their results do not depend on the number of threads. (numba's own OpenMP threading
@@ -52,6 +55,7 @@ import torch
 
 from bayes_talk import settings
 from bayes_talk.gp.lapack import potrf_lower, potri_lower, potrs_lower
+from bayes_talk.gp.threads import THREADED_MIN_N
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -151,13 +155,18 @@ def _gradient_chunks(X, buf, A, alpha, n_chunks, acc, dl, sums, first, step):
         _gradient_chunk(X, buf, A, alpha, n_chunks, c, acc[c], dl[c], sums[c])
 
 
-#: below this N the compiled passes run on the calling thread only
-THREADED_MIN_N = 400
 _POOL: tuple[tuple[int, int], ThreadPoolExecutor] | None = None
 
 
 def _threads() -> int:
     return max(1, min(torch.get_num_threads(), os.cpu_count() or 1))
+
+
+def _term_threads(N: int) -> int:
+    """The threads of a term of size N: below :data:`~bayes_talk.gp.threads.THREADED_MIN_N`
+    its compiled passes and its LAPACK calls run on the calling thread only (one MKL
+    thread), from it on :func:`_threads`."""
+    return _threads() if N >= THREADED_MIN_N else 1
 
 
 def _run_chunked(fn, N: int, n_chunks: int, *args) -> None:
@@ -166,7 +175,7 @@ def _run_chunked(fn, N: int, n_chunks: int, *args) -> None:
     threads (plain threads running GIL-free compiled code, so no OpenMP runtime meets
     torch's or MKL's; a thread that the OS holds back leaves its share to the others)."""
     global _POOL
-    n = _threads() if N >= THREADED_MIN_N else 1
+    n = _term_threads(N)
     if n == 1:
         fn(*args, 0, 1)
         return
@@ -216,14 +225,14 @@ class _Buffer:
         self.stage = "K"
 
     def factor(self) -> bool:
-        ok = potrf_lower(self.m) == 0
+        ok = potrf_lower(self.m, _term_threads(self.m.shape[0])) == 0
         self.stage = "L"
         return ok
 
     def inverse(self) -> np.ndarray:
         """The buffer with K⁻¹ in its lower triangle (``dpotri`` on L, once)."""
         if self.stage == "L":
-            info = potri_lower(self.m)
+            info = potri_lower(self.m, _term_threads(self.m.shape[0]))
             if info != 0:
                 raise np.linalg.LinAlgError(f"dpotri failed (LAPACK info {info})")
             self.stage = "Kinv"
@@ -287,7 +296,7 @@ def _factor_solve(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
         return None
     L = buf.m
     logdet = 2.0 * np.log(np.diagonal(L)).sum()
-    if potrs_lower(L, A) != 0:
+    if potrs_lower(L, A, _term_threads(N)) != 0:
         return None
     return buf, A, -0.5 * D * logdet - 0.5 * float((V * A).sum()) - 0.5 * N * D * LOG_2PI
 

@@ -23,9 +23,12 @@ The default is ``torch-mkl`` when available, else ``scipy``; the switch ``lapack
 :func:`set_provider` chooses scipy.
 :func:`provider` names the one in use.
 
-Threads: MKL inside torch follows ``torch.set_num_threads``, except ``dpotri``, which
-runs on at most ``potri_threads`` MKL threads (:mod:`bayes_talk.settings`; default 1,
-environment variable ``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). Measured on this shared 2-core machine
+Threads: MKL inside torch follows ``torch.set_num_threads``; each routine takes
+``threads``, the most MKL threads for that call (set thread-locally with
+``MKL_Set_Num_Threads_Local`` and restored; None: torch's count), and ``dpotri`` runs on
+at most ``potri_threads`` MKL threads besides (:mod:`bayes_talk.settings`; default 1,
+environment variable ``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). The scipy provider
+ignores ``threads`` (its OpenBLAS keeps its own count). Measured on this shared 2-core machine
 with other processes on both cores (one thread; median of 7): MKL ``dpotrf`` + ``dpotri``
 at N = 2000 took 0.14 + 0.19 s on one thread, and 0.19 + 1.65 s on two threads (at
 N = 1000 0.05 s against 3.6 s): MKL's two-thread ``dpotri`` collapses when the second
@@ -33,7 +36,9 @@ core is taken, its ``dpotrf`` does not. On an idle multi-core machine raise it.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -90,8 +95,24 @@ def _data(a: np.ndarray):
     return a.ctypes.data_as(_ptr)
 
 
-def _square_in_place(a: np.ndarray, routine: str, scipy_call) -> int:
-    """``routine`` ('L') on the square array ``a`` in place; LAPACK's ``info``."""
+@contextlib.contextmanager
+def _mkl_threads(lib, threads: int | None) -> Iterator[None]:
+    """At most ``threads`` MKL threads for this thread's calls in the block (None, or no
+    MKL: unchanged)."""
+    set_local = getattr(lib, "MKL_Set_Num_Threads_Local", None) if lib is not None else None
+    if set_local is None or threads is None:
+        yield
+        return
+    prev = set_local(max(1, min(threads, torch.get_num_threads())))
+    try:
+        yield
+    finally:
+        set_local(prev)
+
+
+def _square_in_place(a: np.ndarray, routine: str, scipy_call, threads: int | None) -> int:
+    """``routine`` ('L') on the square array ``a`` in place, on at most ``threads`` MKL
+    threads; LAPACK's ``info``."""
     _check(a, routine)
     lib = _lib()
     if lib is None:
@@ -100,35 +121,33 @@ def _square_in_place(a: np.ndarray, routine: str, scipy_call) -> int:
             a[...] = out
         return int(info)
     n_, info = _c_int(a.shape[0]), _c_int(0)
-    getattr(lib, routine + "_")(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
+    with _mkl_threads(lib, threads):
+        getattr(lib, routine + "_")(b"L", ctypes.byref(n_), _data(a), ctypes.byref(n_), ctypes.byref(info), _LEN1)
     return info.value
 
 
-def potrf_lower(a: np.ndarray) -> int:
+def potrf_lower(a: np.ndarray, threads: int | None = None) -> int:
     """Overwrite the lower triangle of the N×N array ``a`` with L, K = L Lᵀ (``dpotrf``,
     'L'); the strict upper triangle is not touched. Returns LAPACK's ``info`` (0: success,
-    k > 0: the leading minor of order k is not positive definite)."""
-    return _square_in_place(a, "dpotrf", lambda a: lapack.dpotrf(a, lower=1, clean=0, overwrite_a=1))
+    k > 0: the leading minor of order k is not positive definite). ``threads``: the most
+    MKL threads (module docstring)."""
+    return _square_in_place(a, "dpotrf", lambda a: lapack.dpotrf(a, lower=1, clean=0, overwrite_a=1), threads)
 
 
-def potri_lower(a: np.ndarray) -> int:
+def potri_lower(a: np.ndarray, threads: int | None = None) -> int:
     """Overwrite the lower triangle of ``a`` (holding L) with that of K⁻¹ (``dpotri``,
-    'L'); the strict upper triangle is not touched. Returns ``info``."""
-    lib = _lib()
-    threads = settings.get("potri_threads")
-    set_local = getattr(lib, "MKL_Set_Num_Threads_Local", None) if lib is not None else None
-    if set_local is None or threads is None:
-        return _square_in_place(a, "dpotri", lambda a: lapack.dpotri(a, lower=1, overwrite_c=1))
-    prev = set_local(max(1, min(threads, torch.get_num_threads())))
-    try:
-        return _square_in_place(a, "dpotri", None)
-    finally:
-        set_local(prev)
+    'L'); the strict upper triangle is not touched. Returns ``info``. Runs on at most
+    ``threads`` and at most ``potri_threads`` MKL threads (module docstring)."""
+    cap = settings.get("potri_threads")
+    if cap is not None:
+        threads = cap if threads is None else min(cap, threads)
+    return _square_in_place(a, "dpotri", lambda a: lapack.dpotri(a, lower=1, overwrite_c=1), threads)
 
 
-def potrs_lower(L: np.ndarray, b: np.ndarray) -> int:
+def potrs_lower(L: np.ndarray, b: np.ndarray, threads: int | None = None) -> int:
     """Overwrite ``b`` (N×D, Fortran order) with K⁻¹ b, K = L Lᵀ and L in the lower
-    triangle of ``L`` (``dpotrs``, 'L'). Returns ``info``."""
+    triangle of ``L`` (``dpotrs``, 'L'). Returns ``info``. ``threads``: the most MKL
+    threads (module docstring)."""
     _check(L, "potrs factor")
     _check(b, "potrs right-hand side")
     lib = _lib()
@@ -138,6 +157,7 @@ def potrs_lower(L: np.ndarray, b: np.ndarray) -> int:
             b[...] = out
         return int(info)
     n_, d_, info = _c_int(L.shape[0]), _c_int(b.shape[1]), _c_int(0)
-    lib.dpotrs_(b"L", ctypes.byref(n_), ctypes.byref(d_), _data(L), ctypes.byref(n_),
-                 _data(b), ctypes.byref(n_), ctypes.byref(info), _LEN1)
+    with _mkl_threads(lib, threads):
+        lib.dpotrs_(b"L", ctypes.byref(n_), ctypes.byref(d_), _data(L), ctypes.byref(n_),
+                     _data(b), ctypes.byref(n_), ctypes.byref(info), _LEN1)
     return info.value

@@ -59,6 +59,33 @@ def fix_mkl_thread_count() -> bool:
 MKL_THREADS_FIXED = fix_mkl_thread_count()
 
 
+#: a GP problem of fewer points runs on one thread (:func:`problem_threads`; the terms of
+#: :mod:`bayes_talk.gp.fused` also follow it). Measured (docs/scaling.md, session 14): on a
+#: quiet 2-core machine two threads gain nothing on one observation term below about 800
+#: points (1.47× slower at 200, 0.97-1.12 at 300-600, 0.90 at 800, 0.83 at 1,000), and with
+#: the other core busy every parallel region of a small problem waits milliseconds for its
+#: second thread.
+THREADED_MIN_N = 800
+
+
+@contextlib.contextmanager
+def problem_threads(n_points: int) -> Iterator[None]:
+    """The block (a GP objective on ``n_points`` points) on one torch and MKL thread when
+    ``n_points`` < :data:`THREADED_MIN_N`, else on torch's thread count. Only the calling
+    thread's count is set (``torch.set_num_threads``: OpenMP's and MKL's thread-local
+    counts), and restored; no BLAS other than torch's MKL is touched (unlike
+    :func:`torch_threads`, so it costs microseconds and fits inside an objective)."""
+    prev = torch.get_num_threads()
+    if n_points >= THREADED_MIN_N or prev == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(prev)
+
+
 @contextlib.contextmanager
 def torch_threads(n: int = 1) -> Iterator[None]:
     """Run the block with ``n`` torch intra-op threads and ``n`` BLAS threads (numpy/scipy,

@@ -54,6 +54,7 @@ from bayes_talk.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split
+from bayes_talk.gp.threads import problem_threads
 from bayes_talk.models.sgpdm_objective import SGPDMObjective, fit_direct
 from bayes_talk.models.sgpdm_objective import supports as objective_supports
 from bayes_talk.models.sgpdm_program import (
@@ -216,9 +217,11 @@ class SGPDM:
 
     def log_joint(self) -> torch.Tensor:
         """Log joint of the Pyro program at the current parameters (= the MAP objective;
-        :func:`~bayes_talk.models.sgpdm_program.sgpdm_log_joint`)."""
-        return program_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
-                                 self._learned_thetas())
+        :func:`~bayes_talk.models.sgpdm_program.sgpdm_log_joint`); on one thread below
+        :data:`~bayes_talk.gp.threads.THREADED_MIN_N` frames (:func:`~bayes_talk.gp.threads.problem_threads`)."""
+        with problem_threads(sum(self.seq_lengths_)):
+            return program_log_joint(self._Y, self._latents(), self._hyper(), self.seq_lengths_, self.config,
+                                     self._learned_thetas())
 
     def trace(self) -> pyro.poutine.Trace:
         """The executed Pyro trace; ``trace().nodes[site]['log_prob_sum']`` per term."""
