@@ -37,8 +37,6 @@ FAST: dict[str, dict] = {
                          "context_view": 2},
     "ssgpdm-phone-ctx-mean": {"latent_dim": 2, "max_iter": 15, "max_frames_per_state": 60, "fallback_frames": 80,
                               "context_view": 2},
-    "ssgpdm-phone-ctx-private": {"latent_dim": 3, "max_iter": 15, "max_frames_per_state": 60, "fallback_frames": 80,
-                                 "context_view": 2, "private_dims": 1},
     "sgplvm": {"latent_dim": 2, "max_frames": 150, "max_iter": 15, "validation_frames": 50},
     "voice-puppetry": {"n_states": 4, "n_iter": 5},
     "slds": {"n_iter": 5},

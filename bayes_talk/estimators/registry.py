@@ -47,7 +47,6 @@ ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
     "ssgpdm-phone-rc": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "ssgpdm-phone-ctx": (SwitchingSGPDM, {"states": "phone", "right_context": True}),
     "ssgpdm-phone-ctx-mean": (SwitchingSGPDM, {"states": "phone", "right_context": True, "context_mean": True}),
-    "ssgpdm-phone-ctx-private": (SwitchingSGPDM, {"states": "phone", "right_context": True, "context_mean": True}),
     "sgplvm": (SGPLVM, {}),
     **{name: (cls, {}) for name, cls in BASELINES.items()},
     "zero": (ZeroModel, {}),
@@ -71,8 +70,6 @@ DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
 #: one: the one setting of it (deena2010's families keep the per-frame MFCCs, 0, the
 #: SwitchingConfig default)
 AUDIO_CONTEXT = 2
-#: latent dimensions private to the face in ``ssgpdm-phone-ctx-private`` (SwitchingConfig.private_dims)
-PRIVATE_DIMS = 2
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     "ssgpdm-phone-rc": {"audio_context": AUDIO_CONTEXT},
     # the default's states and audio, with the phonetic-context view of labels ±8 frames
@@ -84,10 +81,6 @@ FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     # frames, was the smallest of all states and their bands the most over-confident:
     # docs/results.md "Session 9")
     "ssgpdm-phone-ctx-mean": {"audio_context": AUDIO_CONTEXT, "context_view": 8, "min_frames_per_state": 60},
-    # the default's model with latent dimensions private to the face: the audio GP of every
-    # state reads the first d − 2 (SwitchingConfig.private_dims; docs/switching.md)
-    "ssgpdm-phone-ctx-private": {"audio_context": AUDIO_CONTEXT, "context_view": 8, "min_frames_per_state": 60,
-                                 "private_dims": PRIVATE_DIMS},
 }
 
 
@@ -149,9 +142,6 @@ _NAMED: tuple[Method, ...] = (
     _switching("ssgpdm-phone-ctx-mean-posterior", "ssgpdm-phone-ctx-mean",
                "SSGPDM-phoneme + right context + audio ±2, phonetic-context view ±8 as the visual mean "
                "function, posterior (ours)", "laplace"),
-    _switching("ssgpdm-phone-ctx-private-posterior", "ssgpdm-phone-ctx-private",
-               "SSGPDM-phoneme + right context + audio ±2, phonetic-context view ±8 as the visual mean "
-               "function, 2 latent dimensions private to the face, posterior (ours)", "laplace"),
     _switching("ssgpdm-vlmm-rc-optimise", "ssgpdm-vlmm-rc", "SSGPDM-VLMM + right context, seq. optimisation",
                "optimise"),
     _switching("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc",

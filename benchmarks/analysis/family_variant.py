@@ -4,7 +4,7 @@ Two kinds of change, neither of which the command line offers:
 
 * ``--family-defaults FAMILY=JSON``: update the family's constructor defaults
   (``bayes_talk.estimators.registry.FAMILY_DEFAULTS``), e.g.
-  ``ssgpdm-phone-ctx-private='{"latent_dim": 8}'``;
+  ``ssgpdm-phone-ctx-mean='{"private_dims": 2}'``;
 * ``--learn-dynamics``: every state SGPDM learns its dynamics hyperparameters α_x, γ_x,
   β_x (with their 1/θ prior) instead of fixing them at deena2010's 100:1
   (``SGPDMConfig.learn_dynamics``; ``SwitchingModel._state_cfg`` fixes them).
