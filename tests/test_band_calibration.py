@@ -327,6 +327,22 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
     assert one.pool_weight is not None
 
 
+#: a small phone-state switching model for the calibration schemes' tests
+SMALL_PHONE = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
+
+
+def _recording_fit():
+    """A ``fit(model, utterances)`` for ``calibrated_fit`` that records the utterance names
+    of every fit (``seen``) and the fitted models (``fitted``)."""
+    seen, fitted = [], []
+
+    def fit(model, seqs):
+        seen.append(sorted(s.name for s in seqs))
+        fitted.append(model.fit(seqs))
+        return fitted[-1]
+    return fit, seen, fitted
+
+
 def test_calibrated_fit_ships_the_holdout_model_or_refits_on_every_utterance():
     """``train --calibrated-model``: "holdout" fits once, on the utterances outside the
     held-out fraction, and ships that model with the calibration fitted for it; "refit"
@@ -338,13 +354,8 @@ def test_calibrated_fit_ships_the_holdout_model_or_refits_on_every_utterance():
     from bayes_talk.synthesis.band_calibration import calibrated_fit
 
     train = make_utterances(10, seed=3, mean_len=30)
-    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
-    seen, fitted = [], []
-
-    def fit(model, seqs):
-        seen.append(sorted(s.name for s in seqs))
-        fitted.append(model.fit(seqs))
-        return fitted[-1]
+    small = SMALL_PHONE
+    fit, seen, fitted = _recording_fit()
 
     shipped, cal = calibrated_fit(SwitchingSGPDM(**small), train, "holdout", holdout=0.3, n_draws=16, seed=1, fit=fit)
     assert len(seen) == 1 and len(cal.held_out) == 3 and cal.info["n_fit"] == 7
@@ -375,13 +386,8 @@ def test_crossfit_calibration_holds_out_every_utterance_once():
     assert len(folds) == 3 and sorted(i for f in folds for i in f) == list(range(11))
     assert sorted(len(f) for f in folds) == [3, 4, 4] and folds != crossfit_folds(11, holdout=0.3, seed=2)
     train = make_utterances(9, seed=3, mean_len=30)
-    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
-    seen, fitted = [], []
-
-    def fit(model, seqs):
-        seen.append(sorted(s.name for s in seqs))
-        fitted.append(model.fit(seqs))
-        return fitted[-1]
+    small = SMALL_PHONE
+    fit, seen, fitted = _recording_fit()
 
     shipped, cal = calibrated_fit(SwitchingSGPDM(**small), train, "cv", holdout=0.3, n_draws=8, seed=1, fit=fit)
     names = sorted(s.name for s in train)
