@@ -200,6 +200,12 @@ def _packed_mean_vjp(run_gp, run_lo, run_hi, X, A, offs, alpha, gamma, Xs, G, ou
         predictive_mean_vjp(X[o:o + n], A[o:o + n], alpha[g], gamma[g], Xs[lo:hi], G[lo:hi], out[lo:hi])
 
 
+def take_inputs(Xs: np.ndarray, in_dims: int | None) -> np.ndarray:
+    """The columns of latent rows ``Xs`` (R, d) that a GP reads: the first ``in_dims``, or
+    all of them for None (GPPredictor.in_dims)."""
+    return Xs if in_dims is None else Xs[:, :in_dims]
+
+
 def pad_inputs(g: np.ndarray, d: int) -> np.ndarray:
     """A gradient (R, k) in a GP's k input dimensions as one in all d latent dimensions
     (zeros in the d − k it does not read: GPPredictor.in_dims); ``g`` itself when k = d."""
@@ -241,12 +247,9 @@ class PackedGPs:
         self.mean = np.ascontiguousarray(np.stack([g.mean for g in gps]))
         self.D = self.A.shape[1]
 
-    def _take(self, Xs: np.ndarray) -> np.ndarray:
-        return Xs if self.in_dims is None else Xs[:, :self.in_dims]
-
     def loglik(self, runs: Runs, Y: np.ndarray, Xs: np.ndarray, extra: np.ndarray | None = None):
         """Per-row ℓ (R,), ∂ℓ/∂Xs (R, d), ∂ℓ/∂Y (R, D) for rows laid out as ``runs``."""
-        d, Xs = Xs.shape[1], self._take(Xs)
+        d, Xs = Xs.shape[1], take_inputs(Xs, self.in_dims)
         R = Xs.shape[0]
         ll, gx, gy = np.empty(R), np.empty((R, Xs.shape[1])), np.empty((R, self.D))
         ex = np.zeros(self.D) if extra is None else np.ascontiguousarray(extra, dtype=np.float64)
@@ -257,7 +260,7 @@ class PackedGPs:
 
     def mean_var(self, runs: Runs, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (R, D) and σ² (R,) for rows laid out as ``runs``."""
-        Xs = self._take(Xs)
+        Xs = take_inputs(Xs, self.in_dims)
         R = Xs.shape[0]
         mu, s = np.empty((R, self.D)), np.empty(R)
         _packed_mean_var(runs.gp, runs.lo, runs.hi, self.X, self.A, self.L, self.offs, self.loffs, self.alpha,
@@ -266,7 +269,7 @@ class PackedGPs:
 
     def mean_vjp(self, runs: Runs, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_rm ∂μ_m(x_r)/∂x_r (R, d) for rows laid out as ``runs``."""
-        d, Xs = Xs.shape[1], self._take(Xs)
+        d, Xs = Xs.shape[1], take_inputs(Xs, self.in_dims)
         out = np.empty(Xs.shape)
         _packed_mean_vjp(runs.gp, runs.lo, runs.hi, self.X, self.A, self.offs, self.alpha, self.gamma,
                          np.ascontiguousarray(Xs, dtype=np.float64), np.ascontiguousarray(G, dtype=np.float64), out)

@@ -37,7 +37,7 @@ from bayes_talk import settings
 from bayes_talk.gp.fused import rbf_matrix_normal_grad
 from bayes_talk.gp.lbfgs import LBFGS
 from bayes_talk.gp.terms import LOG_2PI, W_PRIOR_VARIANCE, dynamics_split
-from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig
+from bayes_talk.models.sgpdm_program import FitHistory, SGPDMConfig, view_latents
 
 __all__ = ["SGPDMObjective", "fit_direct", "supports"]
 
@@ -123,8 +123,9 @@ class SGPDMObjective:
                 total = total + float(lp.sum())
                 gw -= w / scale**2
             a, gm, b = float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]), float(h[f"beta/{v}"])
-            k = (cfg.view_dims or {}).get(v, d)     # the view's GP reads X[:, :k] (SGPDMConfig.view_dims)
-            r = rbf_matrix_normal_grad(np.ascontiguousarray(X[:, :k]), a, gm, b, Y * w)
+            Xv = view_latents(X, cfg, v)            # the columns the view's GP reads (SGPDMConfig.view_dims)
+            k = Xv.shape[1]
+            r = rbf_matrix_normal_grad(Xv, a, gm, b, Y * w)
             if r is None:
                 return None
             ll, gx_v, ga, gg, gb, gV = r

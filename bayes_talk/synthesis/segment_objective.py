@@ -35,6 +35,7 @@ from bayes_talk.gp.predictive_fused import (
     predictive_loglik,
     predictive_mean_var,
     predictive_mean_vjp,
+    take_inputs,
 )
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -70,11 +71,6 @@ class _NumpyGP:
         if p.alpha_lin is not None:
             raise NotImplementedError("closed-form objective supports the RBF kernel only")
 
-    def take(self, Xs: np.ndarray) -> np.ndarray:
-        """The columns of latent rows ``Xs`` that are this GP's inputs (all, or the first
-        :attr:`in_dims`)."""
-        return Xs if self.in_dims is None else Xs[:, :self.in_dims]
-
     @property
     def L(self) -> np.ndarray:
         """The Cholesky factor in column-major order (dtrtrs), made on first use."""
@@ -98,7 +94,7 @@ class _NumpyGP:
 
     def mean_var(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (T×D, training mean added) and σ² (T,), as :meth:`GPPredictor.mean_var`."""
-        Xs = self.take(Xs)
+        Xs = take_inputs(Xs, self.in_dims)
         if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             mu, s = np.empty((Xs.shape[0], self.A.shape[1])), np.empty(Xs.shape[0])
@@ -111,7 +107,7 @@ class _NumpyGP:
 
     def mean_vjp(self, Xs: np.ndarray, G: np.ndarray) -> np.ndarray:
         """Σ_m G_tm ∂μ_m(x_t)/∂x_t for each row (T×d): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""
-        d, Xs = Xs.shape[1], self.take(Xs)
+        d, Xs = Xs.shape[1], take_inputs(Xs, self.in_dims)
         if settings.get("fused"):
             Xs = np.ascontiguousarray(Xs, dtype=np.float64)
             out = np.empty(Xs.shape)
@@ -132,7 +128,7 @@ class _NumpyGP:
             return self.loglik_numpy(Y, Xs, extra_var, rowwise)
         d = Xs.shape[1]
         Y = np.ascontiguousarray(Y, dtype=np.float64)
-        Xs = np.ascontiguousarray(self.take(Xs), dtype=np.float64)
+        Xs = np.ascontiguousarray(take_inputs(Xs, self.in_dims), dtype=np.float64)
         T = Xs.shape[0]
         ll = np.empty(T)
         gx = np.empty((T, Xs.shape[1]))
@@ -145,7 +141,7 @@ class _NumpyGP:
     def loglik_numpy(self, Y: np.ndarray, Xs: np.ndarray, extra_var: np.ndarray | None = None,
                      rowwise: bool = False):
         """:meth:`loglik` by NumPy and LAPACK (dtrtrs): the reference of the compiled path."""
-        d, Xs = Xs.shape[1], self.take(Xs)
+        d, Xs = Xs.shape[1], take_inputs(Xs, self.in_dims)
         k = self.kernel(Xs)                                           # T×N
         mu = k @ self.A + self.mean                                  # T×D
         V = self._solve(k.T)                                          # N×T: L⁻¹k
