@@ -62,6 +62,7 @@ from bayes_talk.models.sgpdm_program import (
     SGPDMConfig,
     pca_scores,
     sgpdm_model,
+    view_in_dims,
     view_latents,
 )
 from bayes_talk.models.sgpdm_program import median_sq_dist as _median_sq_dist
@@ -184,14 +185,14 @@ class SGPDM:
         else:
             Z = np.hstack([Y / np.maximum(Y.std(0), 1e-12) for Y in centred.values()])
             X = pca_scores(Z, d)
-        k = min((cfg.view_dims or {}).values(), default=d)
+        k = min((view_in_dims(cfg, v) or d for v in centred), default=d)
         if k < d:
             # private dimensions k..d−1 (SGPDMConfig.view_dims): the shared ones as above at
             # k, the private ones the principal components of what the shared ones leave of
             # the views that read them (each standardised; least squares on the shared scores)
             X = X[:, :k] if cfg.init == "pca-concat" else np.mean([pca_scores(Y, k) for Y in centred.values()], axis=0)
             X = X / np.maximum(X.std(0), 1e-12)
-            readers = [Y / np.maximum(Y.std(0), 1e-12) for v, Y in centred.items() if (cfg.view_dims or {}).get(v, d) > k]
+            readers = [Y / np.maximum(Y.std(0), 1e-12) for v, Y in centred.items() if (view_in_dims(cfg, v) or d) > k]
             R = np.hstack(readers)
             R = R - X @ np.linalg.lstsq(X, R, rcond=None)[0]
             X = np.hstack([X, pca_scores(R, d - k)])
@@ -405,12 +406,11 @@ class SGPDM:
         self.hyper_ = {k: (v.numpy().copy() if v.ndim else float(v)) for k, v in h.items()}
         X = torch.as_tensor(self.X_)
         self.predictors_, self.dynamics_predictor_ = {}, None  # old N×N factors go first
-        dims = self.view_dims or {}
         self.predictors_ = {
             v: GPPredictor(
                 view_latents(X, self.config, v), self._Y[v], float(h[f"alpha/{v}"]), float(h[f"gamma/{v}"]),
                 float(h[f"beta/{v}"]), h[f"w/{v}"], torch.as_tensor(self.means_[v]), what=f"{v} kernel matrix",
-                in_dims=dims.get(v) if dims.get(v, X.shape[1]) < X.shape[1] else None,
+                in_dims=view_in_dims(self.config, v),
             )
             for v in self.view_names
         }

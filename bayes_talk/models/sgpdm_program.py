@@ -18,7 +18,7 @@ from bayes_talk.gp.distributions import GPDynamics, GPObservation
 from bayes_talk.gp.terms import W_PRIOR_VARIANCE, dynamics_loglik, observation_loglik
 
 __all__ = ["FitHistory", "SGPDMConfig", "median_sq_dist", "pca_scores", "sgpdm_log_joint", "sgpdm_model",
-           "trace_log_joint", "view_latents"]
+           "trace_log_joint", "view_in_dims", "view_latents"]
 
 @dataclass
 class SGPDMConfig:
@@ -71,9 +71,16 @@ class SGPDMConfig:
     view_dims: dict[str, int] | None = None
 
 
-def view_latents(X, cfg: SGPDMConfig, view: str):
-    """The columns of the latents X (N, d) that ``view``'s GP reads (``cfg.view_dims``)."""
+def view_in_dims(cfg: SGPDMConfig, view: str) -> int | None:
+    """k when ``view``'s GP reads only the first k < d latent dimensions (``cfg.view_dims``),
+    None when it reads all d (``GPPredictor.in_dims``)."""
     k = (cfg.view_dims or {}).get(view)
+    return None if k is None or k >= cfg.latent_dim else k
+
+
+def view_latents(X, cfg: SGPDMConfig, view: str):
+    """The columns of the latents X (N, d) that ``view``'s GP reads (:func:`view_in_dims`)."""
+    k = view_in_dims(cfg, view)
     if k is None:
         return X
     return X[:, :k].contiguous() if isinstance(X, torch.Tensor) else np.ascontiguousarray(X[:, :k])
