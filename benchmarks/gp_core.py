@@ -36,11 +36,16 @@ Everything below is measured in one run, on the same machine load:
     as a ratio to the same GPy figure.
 
 Every timing is the median of ``--repeats`` calls after one warm-up; the
-variants are interleaved within each repeat so they see the same machine load.
+variants are interleaved within each repeat so they see the same machine load. With
+``--block K`` (default 1) each variant runs K times in a row within a repeat and only the
+K-th call is timed: the steady state of an optimiser's loop, where one library's calls follow
+its own. With K = 1 each timed call follows another variant's, so a call pays for what the
+previous one left behind (other BLAS/OpenMP pools still spinning, cold caches); session 15
+measured that penalty side by side (docs/scaling.md).
 A correctness check compares our GPLVM objective with GPy's at one small N, and a
 profile splits one of our evaluations at the largest N into its parts.
 
-Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5]
+Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5] [--block 1]
       [--threads 1] [--sizes 1000,2000] [--no-fused] [--lapack scipy]
 """
 from __future__ import annotations
@@ -267,7 +272,7 @@ RATIO_KEYS = ("ours_pyro", "ours_direct", "ours_np", "ours_raw", "ours_raw_torch
               "sgpdm_full_np", "floor_ours", "floor_gpy")
 
 
-def bench_size(N: int, repeats: int) -> dict:
+def bench_size(N: int, repeats: int, block: int = 1) -> dict:
     t0 = time.perf_counter()
     ours = Ours(N)
     gpy = Gpy(ours)
@@ -285,7 +290,10 @@ def bench_size(N: int, repeats: int) -> dict:
     for r in range(repeats):
         # interleave, rotating the order so no variant always runs first
         for k in order[r % len(order):] + order[: r % len(order)]:
-            w, c = self_timed[k]() if k in self_timed else timed(fns[k])
+            run = self_timed[k] if k in self_timed else (lambda k=k: timed(fns[k]))
+            for _ in range(block - 1):  # untimed calls of the same variant first (--block)
+                run()
+            w, c = run()
             times[k].append(w)
             cpu[k].append(c)
     med = {k: statistics.median(v) for k, v in times.items()}
@@ -445,6 +453,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=here / "results" / "gp_core.json")
     p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--block", type=int, default=1,
+                   help="calls of a variant in a row per repeat, the last one timed (default 1: "
+                        "every timed call follows another variant's)")
     p.add_argument("--no-profile", action="store_true")
     p.add_argument("--no-fused", action="store_true",
                    help="our terms through the torch path instead of bayes_talk/gp/fused.py "
@@ -455,6 +466,8 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
+    if args.block < 1:
+        p.error(f"--block must be >= 1, got {args.block}")
     from bayes_talk import settings
     from bayes_talk.gp import lapack
 
@@ -476,7 +489,7 @@ def main(argv=None) -> int:
         "benchmark": "gp_core",
         "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
         "machine": machine_info(),
-        "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats,
+        "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats, "block": args.block,
                      "warmup": 1, "sizes": list(sizes),
                      "threads_limit": args.threads,
                      "fused": bool(settings.get("fused")), "lapack_provider": lapack.provider()},
@@ -487,7 +500,7 @@ def main(argv=None) -> int:
           f"{'pyro/gpy':>8} {'direct/gpy':>10} {'raw/gpy':>8} {'full/gpy':>8} {'torch/gpy':>9} {'floor/gpy':>9} "
           f"{'gpyfloor/gpy':>12}")
     for N in sizes:
-        r = bench_size(N, args.repeats)
+        r = bench_size(N, args.repeats, args.block)
         result["sizes"].append(r)
         s, q = r["seconds"], r["ratio_to_gpy"]
         print(f"{N:>5} {s['gpy']['median']:>9.4f} {s['ours_pyro']['median']:>10.4f} "
