@@ -31,7 +31,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.synthesis.diagnostics import chain_diagnostics
+from bayes_talk.synthesis.diagnostics import chain_diagnostics, frame_update_diagnostics
 from bayes_talk.synthesis.posterior import sample_synthesis
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
@@ -104,6 +104,9 @@ def main() -> None:
                                      "pg_h", "pg_mode_centres", "pg_particles", "pg_every", "pg_backward", "pg_frame_tries")},
             # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
             "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
+            # pg-nuts: how often the sweeps after the warm-up changed each frame (per chain)
+            **{k: d.get(k) for k in ("pg_frame_update_rate_min", "pg_frame_update_rate_mean",
+                                     "pg_frames_never_updated") if k in d},
             "lp_mean_per_chain": np.asarray(r.sample_stats["lp"]).mean(1).tolist() if "lp" in r.sample_stats else None}
         if args.save_draws:
             np.savez(args.save_draws, latents=r.latent_draws, lp=np.asarray(r.sample_stats.get("lp", np.nan)))
@@ -138,14 +141,15 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     zm, _ = visual_predictive(plan, S)
     lat = chain_diagnostics(S.reshape(S.shape[0], S.shape[1], -1))
     aam = chain_diagnostics(zm.reshape(zm.shape[0], zm.shape[1], -1))
-    rate = out["frame_update_rate"]
+    ud = frame_update_diagnostics(out["frame_update_rate"], prefix="")
     return {"wall_seconds": time.perf_counter() - t0, "sampler_seconds": out["seconds"],
             "latents": {k: float(lat[k]) for k in KEYS}, "aam_mean": {k: float(aam[k]) for k in KEYS},
             "n_particles": args.pg_particles, "bandwidths": list(h), "lookahead": args.pg_lookahead,
             "map_centre": args.pg_map_centre, "sweeps_per_chain": int(S.shape[1]),
-            "n_chains": int(S.shape[0]), "frames_never_updated": int(np.sum(rate.mean(0) == 0)),
-            "frame_update_rate_min": float(rate.min()), "frame_update_rate_mean": float(rate.mean()),
-            "frame_update_rate_per_frame": rate.mean(0).tolist(), "lp_mean_per_chain": out["lp"].mean(1).tolist(),
+            "n_chains": int(S.shape[0]), "frames_never_updated": len(ud["frames_never_updated"]),
+            "frame_update_rate_min": ud["frame_update_rate_min"], "frame_update_rate_mean": ud["frame_update_rate_mean"],
+            "frame_update_rate_per_frame": np.mean(ud["frame_update_rate"], axis=0).tolist(),
+            "lp_mean_per_chain": out["lp"].mean(1).tolist(),
             "map_log_density": float(lap.diagnostics["map_log_density"])}
 
 

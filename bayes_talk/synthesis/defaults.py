@@ -38,10 +38,13 @@ VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
 #: emcee burn-in steps
 EMCEE_WARMUP = 500
 
-#: the convergence diagnostics (:func:`~bayes_talk.synthesis.diagnostics.convergence_problems`)
-#: a method can have: Pareto k̂ of the importance weights p/q of iid proposal draws; R-hat and
-#: bulk/tail ESS across chains; NUTS divergences and E-BFMI; emcee's chain length ≥ 50 τ
-DIAGNOSTICS = ("khat", "rhat_ess", "divergences_bfmi", "autocorrelation")
+#: the diagnostics a method can have: those checked by
+#: :func:`~bayes_talk.synthesis.diagnostics.convergence_problems` — Pareto k̂ of the importance
+#: weights p/q of iid proposal draws; R-hat, bulk/tail ESS and MCSE across chains (latents and
+#: AAM parameters, per frame); NUTS divergences and E-BFMI; emcee's chain length ≥ 50 τ — and
+#: the per-frame update rate of particle Gibbs sweeps
+#: (:func:`~bayes_talk.synthesis.diagnostics.frame_update_rate`; reported, no threshold)
+DIAGNOSTICS = ("khat", "rhat_ess", "divergences_bfmi", "autocorrelation", "frame_update_rate")
 
 
 @dataclass(frozen=True)
@@ -96,7 +99,7 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
                    "non-centred coordinates and the mode jumps",
         "bayes_talk.synthesis.noncentred:nuts_noncentred",
         draws=NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], map_restarts=6,
-        diagnostics=("rhat_ess", "divergences_bfmi"),
+        diagnostics=("rhat_ess", "divergences_bfmi", "frame_update_rate"),
         advice="run more draws/warm-up or more particles (pg_particles); on the toy 78-frame utterance neither "
                "particle Gibbs alone nor NUTS reached R-hat 1.01 (docs/uncertainty.md)",
         options={**NUTS_DEFAULTS, **PG_NUTS_DEFAULTS, "coords": "noncentred"}),

@@ -15,6 +15,12 @@ Every ArviZ call goes through :mod:`bayes_talk.arviz_compat` (ArviZ 0.2x on Pyth
   Vehtari et al. 2024): for draws x_s of an approximation q (Laplace, VI) of p, the log
   weights ln p(x_s) − ln q(x_s); k̂ ≤ 0.7 means importance sampling from q, and so q
   itself for expectations of moderate functions, is reliable; above 0.7 it is not.
+* :func:`frame_update_rate` / :func:`frame_update_diagnostics` - how often a particle Gibbs
+  sweep changed each frame's latent: per chain c and frame t, the fraction
+  r_ct = Σ_s m_cst / Σ_s w_cs of the sweeps counted (w_cs = 1 where a sweep ran at
+  iteration s, m_cst = 1 where it changed x_t), and its minimum, mean and the frames no
+  chain updated. A frame with r_ct = 0 was never moved by the sweeps of chain c (only the
+  other kernels moved it); no threshold, reported only.
 * :func:`convergence_problems` - the failed checks against :data:`THRESHOLDS`, in words;
   :func:`sampler_warning` - those checks as the one warning a synthesis result carries.
 * :func:`inference_data` - ``arviz.from_dict`` for the synthesis result type.
@@ -82,7 +88,8 @@ def frame_diagnostics(samples: np.ndarray, prefix: str = "") -> dict:
     frame — summarised over everything (``{prefix}rhat_max``, ``…ess_bulk_min``,
     ``…ess_tail_min``, ``…mcse_mean_max``, ``…mcse_sd_max``) and per frame, worst over the
     frame's D coordinates (``{prefix}rhat_per_frame``, ``…ess_bulk_per_frame``,
-    ``…ess_tail_per_frame``, ``…mcse_mean_per_frame``: lists of T floats, JSON-ready)."""
+    ``…ess_tail_per_frame``, ``…mcse_mean_per_frame``, ``…mcse_sd_per_frame``: lists of T
+    floats, JSON-ready)."""
     s = np.asarray(samples, dtype=np.float64)
     if s.ndim != 4:
         raise ValueError(f"samples: expected (chains, draws, T, D), got shape {s.shape}")
@@ -92,9 +99,38 @@ def frame_diagnostics(samples: np.ndarray, prefix: str = "") -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)   # all-nan frames (constant draws)
         for k, fn in (("rhat", np.nanmax), ("ess_bulk", np.nanmin), ("ess_tail", np.nanmin),
-                      ("mcse_mean", np.nanmax)):
+                      ("mcse_mean", np.nanmax), ("mcse_sd", np.nanmax)):
             out[f"{prefix}{k}_per_frame"] = [float(v) for v in fn(cd[k].reshape(T, D), axis=1)]
     return out
+
+
+def frame_update_rate(moved: np.ndarray, swept: np.ndarray | None = None) -> np.ndarray:
+    """Per chain and frame, the fraction of particle Gibbs sweeps that changed the frame's
+    latent (the module docstring's r_ct), (C, T): ``moved`` (C, S, T) whether the move after
+    iteration s changed frame t; ``swept`` (C, S) whether a sweep ran then (None: at every
+    iteration). A chain without a sweep has rate nan."""
+    m = np.asarray(moved, dtype=bool)
+    if m.ndim != 3:
+        raise ValueError(f"moved: expected (chains, sweeps, T), got shape {m.shape}")
+    n = np.full(m.shape[:2], True) if swept is None else np.asarray(swept, dtype=bool)
+    if n.shape != m.shape[:2]:
+        raise ValueError(f"swept: expected shape {m.shape[:2]}, got {n.shape}")
+    if np.any(m & ~n[..., None]):
+        raise ValueError("moved: a frame changed at an iteration without a sweep")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return m.sum(1) / n.sum(1)[:, None]
+
+
+def frame_update_diagnostics(rate: np.ndarray, prefix: str = "pg_") -> dict:
+    """JSON-ready summary of :func:`frame_update_rate` (C, T): ``{prefix}frame_update_rate``
+    (C lists of T), ``…_min`` and ``…_mean`` over chains and frames, and
+    ``{prefix}frames_never_updated``: the frames whose rate is 0 in every chain."""
+    r = np.asarray(rate, dtype=np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"rate: expected (chains, T), got shape {r.shape}")
+    return {f"{prefix}frame_update_rate": r.tolist(), f"{prefix}frame_update_rate_min": float(np.min(r)),
+            f"{prefix}frame_update_rate_mean": float(np.mean(r)),
+            f"{prefix}frames_never_updated": [int(t) for t in np.flatnonzero(np.all(r == 0, axis=0))]}
 
 
 def energy_bfmi(energy: np.ndarray) -> np.ndarray:
@@ -183,5 +219,6 @@ def inference_data(posterior: dict, sample_stats: dict | None = None, observed_d
 
 
 __all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
-           "convergence_problems", "energy_bfmi", "frame_diagnostics", "inference_data", "is_sampler_warning", "psis",
+           "convergence_problems", "energy_bfmi", "frame_diagnostics", "frame_update_diagnostics", "frame_update_rate",
+           "inference_data", "is_sampler_warning", "psis",
            "psis_khat", "sampler_warning"]

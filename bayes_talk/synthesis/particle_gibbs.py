@@ -32,6 +32,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
+from bayes_talk.synthesis.diagnostics import frame_update_rate
 from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
@@ -304,7 +305,13 @@ class ParticleGibbsMove:
     invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
     (particle Gibbs ∘ NUTS). ``frame_tries`` = K > 0: after the sweep, a multiple-try
     Metropolis update (:func:`frame_mtm`, K tries) of every isolated frame
-    (:func:`isolated_frames`) — also invariant, so the composition is."""
+    (:func:`isolated_frames`) — also invariant, so the composition is.
+
+    A call returns (u', record): ``record["pg_sweep"]`` True (a sweep ran) and
+    ``record["pg_frame_moved"]`` (T,) whether the move (sweep and frame updates) changed
+    frame t's latent x_t, compared in x, exactly; ``run_nuts`` keeps them per draw
+    (:func:`~bayes_talk.synthesis.diagnostics.frame_update_rate` turns them into the
+    per-frame update rate)."""
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                  h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
@@ -315,38 +322,43 @@ class ParticleGibbsMove:
         self.frame_tries = int(frame_tries)
         self.frames = isolated_frames(self.ff) if self.frame_tries > 0 else []
 
-    def __call__(self, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
-        x_new, moved = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
+        x_new, _ = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
         if self.frames:
-            x_new, m = frame_mtm(self.ff, self.q, x_new, self.frames, self.frame_tries, rng)
-            moved = moved + float(m.any())
-        return u if moved == 0 else np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64)
+            x_new, _ = frame_mtm(self.ff, self.q, x_new, self.frames, self.frame_tries, rng)
+        moved = np.any(x_new != x, axis=1)
+        record = {"pg_sweep": True, "pg_frame_moved": moved}
+        if not moved.any():
+            return u, record
+        return np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64), record
 
 
 def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws: int, warmup: int, seed: int,
                        n_particles: int = 64, rho: float = 0.5, h: float | tuple = 0.05, lookahead: bool = False,
                        extra_centres: np.ndarray | None = None) -> dict:
     """Chains of CSMC-AS sweeps from ``starts`` (chains, T, d): draws (chains, n_draws, T, d)
-    after ``warmup`` sweeps, the per-frame update rate, ln p of each draw, seconds."""
+    after ``warmup`` sweeps, the per-frame update rate (chains, T) over all the sweeps, warm-up
+    included (:func:`~bayes_talk.synthesis.diagnostics.frame_update_rate`), ln p of each draw,
+    seconds."""
     ff = FrameFactors(dens)
     q = MixtureProposal(ff, plan, rho, h, lookahead, extra_centres)
     C = len(starts)
     draws = np.empty((C, n_draws, ff.T, ff.d))
     lp = np.empty((C, n_draws))
-    moved = np.zeros((C, ff.T))
+    moved = np.zeros((C, warmup + n_draws, ff.T), dtype=bool)
     t0 = time.perf_counter()
     for c in range(C):
         rng = np.random.default_rng([seed, c, 0x7067])
         x = np.asarray(starts[c], dtype=np.float64).reshape(ff.T, ff.d)
         for it in range(warmup + n_draws):
             x_new, _ = csmc_as(ff, q, x, n_particles, rng)
-            moved[c] += np.any(x_new != x, axis=1)
+            moved[c, it] = np.any(x_new != x, axis=1)
             x = x_new
             if it >= warmup:
                 draws[c, it - warmup] = x
                 lp[c, it - warmup] = dens(x)[0]
-    return {"samples": draws, "lp": lp, "frame_update_rate": moved / (warmup + n_draws),
+    return {"samples": draws, "lp": lp, "frame_update_rate": frame_update_rate(moved),
             "seconds": time.perf_counter() - t0}
 
 

@@ -50,9 +50,11 @@ their trained MAP values.
    :data:`~bayes_talk.synthesis.defaults.VI_DEFAULTS`); iid draws of q, judged like Laplace
    by PSIS k̂ of p/q. A middle ground in cost between Laplace and the samplers.
 
-Every run reports rank R-hat, bulk/tail ESS and MCSE (NUTS, emcee), divergences, step
-size, tree depth, the acceptance statistic and E-BFMI (NUTS), k̂ (Laplace, VI), and one
-warning naming the failed thresholds (:func:`_convergence_warnings`).
+Every run reports rank R-hat, bulk/tail ESS and MCSE of the latents and of the AAM
+parameters, overall and per frame (NUTS, pg-nuts, emcee), divergences, step size, tree
+depth, the acceptance statistic and E-BFMI (NUTS, pg-nuts), the per-frame update rate of
+the particle Gibbs sweeps (pg-nuts), k̂ (Laplace, VI), and one warning naming the failed
+thresholds (:func:`_convergence_warnings`).
 
 The visual prediction of frame t is the mixture over draws s of
 N(μ_Z(x_t^s), σ²_Z(x_t^s)/w²) under the frame's state model, returned as the one result
@@ -78,10 +80,11 @@ from bayes_talk.synthesis.defaults import (
     check_method,
 )
 from bayes_talk.synthesis.diagnostics import (
-    chain_diagnostics,
     convergence_problems,
     energy_bfmi,
     frame_diagnostics,
+    frame_update_diagnostics,
+    frame_update_rate,
     psis,
     sampler_warning,
 )
@@ -294,15 +297,14 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 kw["max_steps"] = max(first, min(EMCEE_MAX_STEPS_FACTOR * first, fits))
             draws = run_emcee(g, np.zeros(T * d), n_draws=per_walker, seed=seed, n_walkers=W, ball=0.1,
                               n_keep=n_keep, **kw)
-        Xs = g.to_x(draws.samples)
+        Xs = g.to_x(draws.samples).reshape(draws.samples.shape[0], draws.samples.shape[1], T, d)
         diag.update(_sampler_diagnostics(draws, Xs))
         sample_stats = draws.sample_stats
     Xs = Xs.reshape(Xs.shape[0], Xs.shape[1], T, d)
     zm, zv = visual_predictive(plan, Xs)
     if "rhat_ess" in spec.diagnostics:
-        # what users consume: the AAM parameters' means at the draws, per frame, beside the latents
+        # what users consume: the AAM parameters' means at the draws, per frame, beside the latents'
         diag.update(frame_diagnostics(zm, "aam_"))
-        diag.update({k: v for k, v in frame_diagnostics(Xs).items() if k.endswith("_per_frame")})
     if spec.diagnostics:
         warn += _convergence_warnings(method, diag)
     return SynthesisResult(method, Xs, zm, zv, mp, plan.segments, plan.model_states, diag, int(seed),
@@ -348,11 +350,16 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
     """Summary diagnostics of a NUTS or emcee run (JSON-ready scalars and short lists).
 
     R-hat, ESS and MCSE are those of the latent draws the user receives (``latents``,
-    (chains, draws, T·d): X = X_MAP + L z), not of the whitened coordinates z the sampler
-    moved in (the map is affine, but ESS and R-hat are per coordinate)."""
-    cd = chain_diagnostics(latents.reshape(latents.shape[0], latents.shape[1], -1))
-    out = {k: cd[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "mcse_sd_max",
-                              "n_chains", "n_draws")}
+    (chains, draws, T, d): X = X_MAP + L z, or x(ε)), overall and per frame
+    (:func:`~bayes_talk.synthesis.diagnostics.frame_diagnostics`), not of the coordinates
+    the sampler moved in (the maps are not the identity, and ESS and R-hat are per
+    coordinate). NUTS: divergences, step sizes, the acceptance statistic, tree depths,
+    gradients, E-BFMI per chain, mode jumps, per-chain seconds; with particle Gibbs sweeps
+    (``pg_frame_moved`` in the per-draw statistics) the per-frame update rate of the sweeps
+    after the warm-up (:func:`~bayes_talk.synthesis.diagnostics.frame_update_diagnostics`).
+    emcee: acceptance and the autocorrelation time."""
+    out = frame_diagnostics(latents)
+    out.update(n_chains=int(latents.shape[0]), n_draws=int(latents.shape[1]))
     st, ss = draws.stats, draws.sample_stats
     if draws.method == "nuts":
         out["divergences"] = int(sum(st["divergences"]))
@@ -374,8 +381,13 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
         out["mode_jump_acceptance"] = acc / att if att else None
         out["mode_jumps_accepted_per_chain"] = st["jumps_accepted"]
         out["pilot"] = st.get("pilot", 0)
+        out["chain_seconds"] = st["chain_seconds"]
+        if "pg_frame_moved" in ss:
+            out["pg_sweeps_per_chain"] = [int(n) for n in ss["pg_sweep"].sum(1)]
+            out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
+        out["acceptance_min"] = float(st["acceptance_min"])
         for k in ("autocorr_time_max", "autocorr_time_mean", "autocorr_steps", "autocorr_tol", "autocorr_ok",
                   "steps", "thin", "n_walkers", "warmup"):
             out[k] = st[k]

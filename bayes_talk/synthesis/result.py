@@ -71,7 +71,8 @@ class SynthesisResult:
     seconds: wall time of the synthesis.
     warnings: the failed convergence checks, in words.
     sample_stats: per-draw sampler statistics, each (C, S) (ArviZ names: ``diverging``,
-        ``tree_depth``, ``step_size``, ``energy``, ``acceptance_rate``, ``lp``), or empty.
+        ``tree_depth``, ``step_size``, ``energy``, ``acceptance_rate``, ``lp``), or
+        (C, S, T) per draw and frame (the particle Gibbs sweeps' ``pg_frame_moved``), or empty.
     mean_function: (T, D) the explicit mean function c_t already included in every μ^k
         (``SwitchingConfig.context_mean``: μ^k = c_t + μ_Z(x^k)), or None (zero). The band
         calibration's mean stage shrinks μ^k − c_t, not μ^k.
@@ -115,8 +116,9 @@ class SynthesisResult:
                 raise ValueError(f"mean_function: expected shape {self.draw_mean.shape[2:]}, found "
                                  f"{self.mean_function.shape}")
         for k, v in self.sample_stats.items():
-            if np.shape(v) != (C, S):
-                raise ValueError(f"sample_stats[{k!r}]: expected shape ({C}, {S}), found {np.shape(v)}")
+            if np.shape(v) not in ((C, S), (C, S, T)):
+                raise ValueError(f"sample_stats[{k!r}]: expected shape ({C}, {S}) or ({C}, {S}, {T}), found "
+                                 f"{np.shape(v)}")
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -325,7 +327,8 @@ class SynthesisResult:
         has latents, and ``aam_mean`` / ``aam_gp_var`` (chain, draw, frame, aam_param), the
         components μ^k and v^k of (1) (deterministic functions of the latent draw);
         ``posterior_predictive`` — ``aam``: draws of (1), ⌈n_predictive / K⌉ per component;
-        ``sample_stats`` — :attr:`sample_stats` when a sampler recorded them;
+        ``sample_stats`` — :attr:`sample_stats` when a sampler recorded them (chain, draw),
+        those per frame (chain, draw, frame);
         ``observed_data`` — ``aam``, the truth (T, D), when given. The method, seed,
         diagnostics, warnings and segmentation are attributes of the posterior group
         (JSON strings where not scalars), so they survive ``to_netcdf``.
@@ -346,6 +349,7 @@ class SynthesisResult:
             kw["observed_data"] = {"aam": self._check_y(truth)}
         if self.sample_stats:
             kw["sample_stats"] = {k: np.asarray(v) for k, v in self.sample_stats.items()}
+            dims.update({k: ["frame"] for k, v in kw["sample_stats"].items() if v.ndim == 3})
         per = max(1, -(-int(n_predictive) // self.n_draws))
         # (a point method has one draw: the adapter silences ArviZ's "More chains" warning only)
         idata = from_dict(posterior, posterior_predictive={"aam": self.predictive_draws(per)},

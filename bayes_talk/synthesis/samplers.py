@@ -56,7 +56,8 @@ class Draws:
     acceptance fraction, Hessian eigenvalue floor, ...). seconds: wall time.
     sample_stats: per-draw statistics (chains, draws) under ArviZ's names (NUTS:
     ``acceptance_rate``, ``n_steps``, ``tree_depth``, ``diverging``, ``energy``, ``lp``,
-    ``step_size``), for ``InferenceData.sample_stats``."""
+    ``step_size``, and ``jumps``; with a particle Gibbs sweep also ``pg_sweep`` and
+    ``pg_frame_moved`` (chains, draws, T); emcee: ``lp``), for ``InferenceData.sample_stats``."""
 
     method: str
     samples: np.ndarray
@@ -130,9 +131,12 @@ class _RecordingNUTS:
                 return z, accepted
 
             def _extra(self, z):
-                """Another posterior-invariant kernel (e.g. a particle Gibbs sweep) on the state."""
+                """Another posterior-invariant kernel (e.g. a particle Gibbs sweep) on the state;
+                a move returning (x', record) has its record kept for this iteration."""
                 x = z["x"].detach().numpy()
-                x_new = np.asarray(extra_move(x, rng), dtype=np.float64)
+                out = extra_move(x, rng)
+                x_new, self._extra_record = out if isinstance(out, tuple) else (out, None)
+                x_new = np.asarray(x_new, dtype=np.float64)
                 if np.array_equal(x_new, x):
                     return z
                 z = {"x": torch.as_tensor(x_new)}
@@ -142,6 +146,7 @@ class _RecordingNUTS:
 
             def sample(self, params):
                 m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
+                self._extra_record = None
                 z = super().sample(params)
                 z, accepted = self._jump(z) if n_jump else (z, 0)
                 if extra_move is not None and self._t % extra_every == 0:
@@ -160,14 +165,30 @@ class _RecordingNUTS:
                     rec["energy"].append(self._energy_now)
                     rec["lp"].append(-float(self._potential_energy_last))
                     rec["jumps"].append(accepted)
+                    if extra_move is not None:
+                        rec["extra"].append(self._extra_record)
                 return z
 
         k = Kernel(potential_fn=potential, **kw)
         k.warmup_end = None
         k.jump_counts = [0, 0]  # attempted, accepted (warm-up included)
         k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp",
-                                         "jumps")}
+                                         "jumps", *(("extra",) if extra_move is not None else ()))}
         return k
+
+
+def _extra_records(records: list) -> dict:
+    """The per-iteration records of an ``extra_move`` (one dict of arrays, or None where the
+    move did not run or returned no record) as arrays (draws, ...): each key stacked over the
+    iterations, zeros (False) where there was no record; {} when there was none at all."""
+    have = [r for r in records if r is not None]
+    if not have:
+        return {}
+    out = {}
+    for key in have[0]:
+        blank = np.zeros_like(np.asarray(have[0][key]))
+        out[key] = np.stack([blank if r is None else np.asarray(r[key]) for r in records])
+    return out
 
 
 def _nuts_chain(task) -> dict:
@@ -198,6 +219,7 @@ def _nuts_chain(task) -> dict:
                     num_chains=1, disable_progbar=not progress.enabled())
         log.info("NUTS chain %d: %d warm-up + %d draws", c + 1, warmup, n_draws)
         mcmc.run()
+    kernel.records.update(_extra_records(kernel.records.pop("extra", [])))
     return {"samples": mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1),
             "step_size": float(kernel.step_size), "records": kernel.records, "jump_counts": kernel.jump_counts,
             "warmup_seconds": (kernel.warmup_end or t_chain) - t_chain, "n_gradients": counter[0],
@@ -227,11 +249,15 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     ``extra_move(x, rng) -> x'`` (picklable): a further posterior-invariant kernel applied
     after the NUTS transition and the jumps of every ``extra_every``-th iteration (the
     particle Gibbs sweep of :mod:`bayes_talk.synthesis.particle_gibbs`); a composition of
-    invariant kernels is invariant.
+    invariant kernels is invariant. A move may return ``(x', record)``, ``record`` a dict of
+    arrays of fixed shapes: each key becomes a per-draw statistic (chains, n_draws, ...) of
+    ``Draws.sample_stats``, zero (False) at the iterations where the move did not run (the
+    sweep's ``pg_sweep`` and ``pg_frame_moved``).
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
-    ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``step_size``; ``Draws.stats`` the
-    per-chain totals (``divergences``, ``step_size``, ``max_tree_depth_hits``)."""
+    ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``jumps`` (mode jumps accepted),
+    ``step_size`` (and the extra move's records); ``Draws.stats`` the per-chain totals
+    (``divergences``, ``step_size``, ``max_tree_depth_hits``, ``chain_seconds``, …)."""
     if chains < 1 or n_draws < 1 or warmup < 0:
         raise ValueError(f"NUTS needs chains >= 1, draws >= 1, warmup >= 0; got {chains}, {n_draws}, {warmup}")
     if not 0 < target_accept < 1:
