@@ -1,4 +1,5 @@
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -13,38 +14,52 @@ SHARED_CORPUS_SEED = 3
 
 
 @pytest.fixture(scope="session")
-def shared_built_corpus(tmp_path_factory) -> Path:
-    """A built corpus of 10 utterances (seed 3), built once per test run through the
-    command line and shared by the files that read one (test_pipeline, test_bad_inputs,
-    test_registry): a corpus build is the largest set-up cost of the suite (issue 29). Treat
-    it as read-only: a test that changes a corpus works on a copy (``shutil.copytree``); the
-    feature cache that loading writes into it is the only change, and it is the same for
-    every reader (written atomically).
-
-    Under pytest-xdist (``make test`` runs ``pytest -n 2``) every worker process has its own
-    session; the first to ask builds the corpus in the directory the workers share
-    (the parent of their base temporary directories), under a file lock, and the others
-    wait for it and read it, so it is built once per run, not once per worker."""
+def built_once(tmp_path_factory):
+    """``built_once(name, build, leaf="out") -> Path``: the directory ``build(path)`` makes
+    (``path`` named ``leaf``), made once per
+    test run and shared (issue 29). Under pytest-xdist (``make test`` runs ``pytest -n 2``)
+    every worker process has its own session; the first to ask builds ``name`` in the
+    directory the workers share (the parent of their base temporary directories), under a
+    file lock, and the others wait for it and read it, so it is built once per run, not once
+    per worker (the pattern of pytest-xdist's documentation). Without xdist it is built in
+    this session's temporary directory. ``name`` must say everything ``build`` depends on;
+    the result is read-only (a test that changes it works on a copy, ``shutil.copytree``)."""
     from filelock import FileLock
 
+    def get(name: str, build, leaf: str = "out") -> Path:
+        if os.environ.get("PYTEST_XDIST_WORKER") is None:
+            out = tmp_path_factory.mktemp(name) / leaf
+            build(out)
+            return out
+        shared = tmp_path_factory.getbasetemp().parent / name
+        out, done = shared / leaf, shared / "built"
+        shared.mkdir(exist_ok=True)
+        with FileLock(str(shared / "lock")):
+            if not done.is_file():
+                if out.exists():   # a build that failed half-way in another worker
+                    shutil.rmtree(out)
+                build(out)
+                done.write_text("ok\n")
+        return out
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def shared_built_corpus(built_once) -> Path:
+    """A built corpus of 10 utterances (seed 3), built once per test run through the
+    command line (:func:`built_once`) and shared by the files that read one (test_pipeline,
+    test_bad_inputs, test_registry): a corpus build is the largest set-up cost of the suite
+    (issue 29). Treat it as read-only: a test that changes a corpus works on a copy
+    (``shutil.copytree``); the feature cache that loading writes into it is the only change,
+    and it is the same for every reader (written atomically)."""
     from bayes_talk.cli import main
 
     def build(out: Path) -> None:
         assert main(["-q", "corpus", "build", str(out), "--n-utterances", str(SHARED_CORPUS_UTTERANCES),
                      "--seed", str(SHARED_CORPUS_SEED)]) == 0
 
-    if os.environ.get("PYTEST_XDIST_WORKER") is None:
-        out = tmp_path_factory.mktemp("shared") / "corpus"
-        build(out)
-        return out
-    shared = tmp_path_factory.getbasetemp().parent / "shared_built_corpus"
-    out, done = shared / "corpus", shared / "built"
-    shared.mkdir(exist_ok=True)
-    with FileLock(str(shared / "lock")):
-        if not done.is_file():
-            build(out)
-            done.write_text("ok\n")
-    return out
+    return built_once(f"corpus_cli_n{SHARED_CORPUS_UTTERANCES}_seed{SHARED_CORPUS_SEED}", build, leaf="corpus")
 
 
 #: settings of the toy switching model the synthesis-posterior test files share

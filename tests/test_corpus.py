@@ -27,15 +27,19 @@ def _files(d: Path) -> dict[str, bytes]:
 
 
 @pytest.fixture(scope="module")
-def big(tmp_path_factory) -> Path:
-    """40 utterances, seed 0 (the acceptance corpus), built in 2 worker processes."""
-    return build_corpus(tmp_path_factory.mktemp("big") / "c", n_utterances=40, seed=0, n_workers=2)
+def big(built_once) -> Path:
+    """40 utterances, seed 0 (the acceptance corpus), built in 2 worker processes, once per
+    test run (its tests may run on both pytest-xdist workers; conftest.built_once). Read-only:
+    nothing is loaded from it here (``big_corpus`` loads a copy)."""
+    return built_once("corpus_big_n40_seed0", lambda out: build_corpus(out, n_utterances=40, seed=0, n_workers=2),
+                      leaf="c")
 
 
 @pytest.fixture(scope="module")
-def big_corpus(big):
-    """``big`` loaded once (cold cache: featurised in worker processes)."""
-    return load_corpus(big, n_workers=2)
+def big_corpus(big, tmp_path_factory):
+    """A copy of ``big`` loaded once (cold cache: featurised in worker processes; the copy
+    keeps the shared build free of a feature cache, so every worker's load is cold)."""
+    return load_corpus(shutil.copytree(big, tmp_path_factory.mktemp("big") / "c"), n_workers=2)
 
 
 @pytest.fixture(scope="module")

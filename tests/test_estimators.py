@@ -59,10 +59,24 @@ def data():
     return make_utterances(8, seed=0), make_utterances(2, seed=5), make_utterances(8, seed=9)
 
 
+class _FittedOnDemand(dict):
+    """Family name -> its estimator with :data:`FAST` settings fitted on the training toy
+    data, fitted the first time a test asks for it: under pytest-xdist the parametrised tests
+    of one module run on both workers, and each worker fits only the families its own tests
+    read (the whole registry fitted in each worker cost 20-30 s twice; issue 29)."""
+
+    def __init__(self, train):
+        super().__init__()
+        self.train = train
+
+    def __missing__(self, name: str):
+        self[name] = model = make_estimator(name, **FAST[name]).fit(self.train)
+        return model
+
+
 @pytest.fixture(scope="module")
 def fitted(data):
-    train = data[0]
-    return {name: make_estimator(name, **FAST[name]).fit(train) for name in ESTIMATORS}
+    return _FittedOnDemand(data[0])
 
 
 def _bundle_files(root: Path) -> list[Path]:

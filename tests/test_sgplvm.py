@@ -1,9 +1,11 @@
 """deena2009's single-model SGPLVM: latent collapse of the MAP fit and early stopping."""
 from __future__ import annotations
 
+import copy
 import logging
 
 import numpy as np
+import pytest
 from toydata import make_utterances
 
 from bayes_talk.estimators.sgplvm import SGPLVM
@@ -15,7 +17,19 @@ def _rms(model, seqs):
     return float(np.mean([np.sqrt(((model.predict(s) - s.aam) ** 2).mean()) for s in seqs]))
 
 
-def test_long_map_fit_collapses_and_early_stopping_prevents_it(caplog):
+#: the early-stopped SGPLVM of the toy training set both tests below read (one fit, ~10 s)
+EARLY = {"latent_dim": 3, "max_frames": 200, "max_iter": 1000, "validation_frames": 60}
+
+
+@pytest.fixture(scope="module")
+def early_stopped() -> SGPLVM:
+    """``SGPLVM(**EARLY)`` fitted (one torch thread) on ``make_utterances(8, seed=0)``.
+    Read-only: a test that changes it works on a deep copy."""
+    with torch_threads(1):
+        return SGPLVM(**EARLY).fit(make_utterances(8, seed=0))
+
+
+def test_long_map_fit_collapses_and_early_stopping_prevents_it(caplog, early_stopped):
     train, test = make_utterances(8, seed=0), make_utterances(4, seed=1)
     zero = float(np.mean([np.sqrt(((s.aam - s.aam.mean(0)) ** 2).mean()) for s in test]))
     with torch_threads(1):
@@ -26,7 +40,7 @@ def test_long_map_fit_collapses_and_early_stopping_prevents_it(caplog):
             # have collapsed further (0.00161 torch, 0.00177 fused)
             full = SGPLVM(latent_dim=3, max_frames=200, max_iter=600, validation_frames=0).fit(train)
         assert "collapsed" in caplog.text
-        early = SGPLVM(latent_dim=3, max_frames=200, max_iter=1000, validation_frames=60).fit(train)
+    early = early_stopped
     # the converged MAP shrinks the latents to the dynamics-noise scale (std 1e-3)
     assert full.model_.X_.std(0).mean() < 3e-3
     h = early.model_.history
@@ -49,10 +63,10 @@ def test_validation_chunks_are_disjoint_from_training_chunks():
     assert small.validation_chunks_ and set(small.validation_chunks_).isdisjoint(small.training_chunks_)
 
 
-def test_variance_calibrated_on_held_out_chunks_and_saved(tmp_path):
+def test_variance_calibrated_on_held_out_chunks_and_saved(tmp_path, early_stopped):
     train, test = make_utterances(8, seed=0), make_utterances(4, seed=1)
     with torch_threads(1):
-        m = SGPLVM(latent_dim=3, max_frames=200, max_iter=1000, validation_frames=60).fit(train)
+        m = copy.deepcopy(early_stopped)   # its variance scales are switched below
         c = m.model_.var_scale_["visual"]
         assert c.shape == (5,) and np.all(c > 0)
         # on the held-out chunks the calibrated variance matches the squared error on average

@@ -25,6 +25,11 @@ with the raw MFCCs; and give simulated audio back to the samplers with ``audio_v
 (:func:`~bayes_talk.synthesis.posterior.sample_synthesis`,
 :func:`~bayes_talk.synthesis.joint.make_plan`), so that it is not spliced and projected a
 second time.
+
+Both simulations run on one torch thread (:func:`~bayes_talk.gp.threads.torch_threads`, as
+the samplers do): every site is a small GP predictive, and a second thread cost more than it
+gave (200 prior simulations of a 20-frame toy plan: 6x slower on two threads with the other
+core busy, the same numbers).
 """
 from __future__ import annotations
 
@@ -35,6 +40,7 @@ import pyro
 import torch
 from pyro.infer import Predictive
 
+from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.joint import UtterancePlan, synthesis_model
 
 
@@ -59,7 +65,7 @@ def prior_predictive(plan: UtterancePlan, n: int, seed: int = 0, with_smoothness
         raise ValueError(f"n must be >= 1, got {n}")
     sm = _smooth_sites(plan) if with_smoothness else {}
     pyro.set_rng_seed(seed)
-    with torch.no_grad():
+    with torch.no_grad(), torch_threads(1):
         out = Predictive(synthesis_model, num_samples=n, return_sites=["X"] + _audio_sites(plan) + list(sm))(plan, None)
     X = out["X"].detach().numpy().reshape(n, plan.n_frames, plan.latent_dim)
     if not with_smoothness:
@@ -75,7 +81,7 @@ def posterior_predictive(plan: UtterancePlan, latents: np.ndarray, seed: int = 0
     the plan's audio view: compare with ``plan.audio``."""
     X = np.asarray(latents, dtype=np.float64).reshape(-1, plan.n_frames, plan.latent_dim)
     pyro.set_rng_seed(seed)
-    with torch.no_grad():
+    with torch.no_grad(), torch_threads(1):
         out = Predictive(synthesis_model, posterior_samples={"X": torch.as_tensor(X)},
                          return_sites=_audio_sites(plan))(plan, None)
     return _stack_audio(plan, out)
