@@ -471,7 +471,11 @@ def test_map_restarts_keep_the_highest_converged_mode_and_are_repeatable(toy):
         f, _ = dens(best.latents)
     assert mp.converged and len(found) == 2
     candidates = [mp] + [r for r in found if r.converged]
-    assert best.log_density == max(r.log_density for r in candidates) >= mp.log_density
+    # the highest, up to the documented margin: a restart that ends higher by at most MAP_DTOL
+    # nats (the same mode, reached again) does not replace the start
+    assert any(best is r for r in candidates)
+    assert best.log_density >= max(r.log_density for r in candidates) - MAP_DTOL
+    assert best.log_density >= mp.log_density
     assert f == pytest.approx(best.log_density, rel=1e-12)
     assert best.log_density == again.log_density and np.array_equal(best.latents, again.latents)
     assert [r.log_density for r in found] == [r.log_density for r in found_again]

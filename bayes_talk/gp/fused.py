@@ -96,7 +96,7 @@ def _build_chunks(X, alpha, gamma, noise, buf, n_chunks, first, step):
         _build_chunk(X, alpha, gamma, noise, buf, n_chunks, c)
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def _dot_rows(A: np.ndarray, i: int, j: int) -> float:
     """a_i · a_j for rows of the C-ordered A (vectorised: reassociation allowed)."""
     s = 0.0

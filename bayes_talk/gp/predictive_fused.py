@@ -18,6 +18,16 @@ same arithmetic row by row (forward and back substitution through L, O(N²) per 
 temporaries. Single-threaded and in a fixed order: the result does not depend on the thread
 count. :class:`~bayes_talk.synthesis.segment_objective._NumpyGP` uses it unless
 ``BAYES_TALK_FUSED=0`` (then the NumPy/LAPACK path, the reference a test compares with).
+
+Floating-point flags: the loops here, in :mod:`bayes_talk.gp.fused` and in
+:mod:`bayes_talk.synthesis.noncentred` are compiled with ``fastmath={"reassoc"}`` (so the
+reductions vectorise), not with ``"contract"`` too: with both, the machine code numba
+compiled in a process and the code it loaded from its on-disk cache (``cache=True``) gave
+different last bits (session 16: the segment objective, the packed predictives), so a
+synthesis or a chain run in a fresh worker process differed from the same run in the
+process that compiled first. Reassociation alone, or no flag, gives the same bits either
+way (tests/test_compiled_determinism.py) at the same speed (measured within ±20 % at
+N = 40-300 on a loaded machine; no flags at all was 1.3-2× slower there).
 """
 from __future__ import annotations
 
@@ -29,7 +39,7 @@ import numpy as np
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> np.ndarray:
     """k(Xs, X) (T×N) from the differences x − X_i."""
     T, d = Xs.shape
@@ -45,7 +55,7 @@ def kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> np
     return k
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
     """V = k L⁻ᵀ (T×N): each row solves L v = k_t. Row i of L is applied to every input
     while it is in cache, so L is read once per call, not once per input."""
@@ -61,7 +71,7 @@ def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
     return v
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndarray,
                       alpha: float, gamma: float, beta: float, w2: np.ndarray, Y: np.ndarray, Xs: np.ndarray,
                       extra: np.ndarray, ll: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
@@ -123,7 +133,7 @@ def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndar
             gx[t, j] *= -gamma
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def predictive_mean_var(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndarray, alpha: float,
                         gamma: float, beta: float, Xs: np.ndarray, mu: np.ndarray, s: np.ndarray) -> None:
     """μ = kᵀA + ȳ (into mu, (T, D)) and s = max(α − ‖L⁻¹k‖² + β⁻¹, β⁻¹) (into s, (T,))."""
@@ -146,7 +156,7 @@ def predictive_mean_var(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.nd
                 mu[t, m] += ki * A[i, m]
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def predictive_mean_vjp(X: np.ndarray, A: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray,
                         G: np.ndarray, out: np.ndarray) -> None:
     """Σ_m G_tm ∂μ_m(x_t)/∂x_t (into out, (T, d)): −γ Σ_i k_i (A G_t)_i (x_t − X_i)."""

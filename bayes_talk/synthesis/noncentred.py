@@ -45,7 +45,7 @@ from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.whitening import Potential
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc"})
 def _mean_var_vjp(X, A, L, alpha, gamma, beta, Xs, G, gs, out):
     """Σ_m G_tm ∂μ_m/∂x_t + gs_t ∂s/∂x_t (into out, (T, d)): −γ Σ_i k_i ((A G_t)_i − 2 gs_t u_i)(x_t − X_i),
     u = K⁻¹k (gs taken as 0 where s is floored at β⁻¹)."""
