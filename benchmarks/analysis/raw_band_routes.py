@@ -31,6 +31,7 @@ same with or without the calibration).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -51,31 +52,42 @@ from bayes_talk.pipeline.trained import load_trained
 SCALES = (1.0, 1.49, 2.0, 2.5, 3.0, 3.35, 4.0, 5.0)
 
 
-def tempered(model_dir: Path, corpus_dir: Path, n: int, etas: list[float]) -> dict:
-    """The raw decomposition with the audio terms raised to each power η (module docstring)."""
+@contextlib.contextmanager
+def tempered_audio(eta: float):
+    """Inside the block, the synthesis density's audio terms are η · ln p(y_t | x_t) (and
+    their gradients η · ∂/∂x): an in-process patch of ``joint._Terms.audio_grad``, restored
+    on exit. Everything that builds an :class:`UtteranceDensity` inside the block (the Laplace
+    posterior, ``evaluate`` run in this process with ``--executor local``) sees it."""
     from bayes_talk.synthesis import joint
 
     original = joint._Terms.audio_grad
-    out = {}
-    try:
-        for eta in etas:
-            def audio_grad(self, R, k, eta=eta):
-                ll, gx = original(self, R, k)
-                return eta * ll, eta * gx
 
-            joint._Terms.audio_grad = audio_grad
-            r = decompose(model_dir, corpus_dir, n)
-            pp = r["per_param"]
-            used = np.array(pp["gp_var"]) > 0
-            summary = {k: v for k, v in r.items() if not isinstance(v, dict)}
-            summary.update(r["pooled"])
-            summary.update({"mse_mean": float(np.mean(np.array(pp["mse"])[used])),
-                            "gp_var_mean": float(np.mean(np.array(pp["gp_var"])[used])),
-                            "spread_var_mean": float(np.mean(np.array(pp["latent_spread_var"])[used]))})
-            out[str(eta)] = summary
-            print(eta, json.dumps(summary), flush=True)
+    def audio_grad(self, R, k):
+        ll, gx = original(self, R, k)
+        return eta * ll, eta * gx
+
+    joint._Terms.audio_grad = audio_grad
+    try:
+        yield
     finally:
         joint._Terms.audio_grad = original
+
+
+def tempered(model_dir: Path, corpus_dir: Path, n: int, etas: list[float]) -> dict:
+    """The raw decomposition with the audio terms raised to each power η (module docstring)."""
+    out = {}
+    for eta in etas:
+        with tempered_audio(eta):
+            r = decompose(model_dir, corpus_dir, n)
+        pp = r["per_param"]
+        used = np.array(pp["gp_var"]) > 0
+        summary = {k: v for k, v in r.items() if not isinstance(v, dict)}
+        summary.update(r["pooled"])
+        summary.update({"mse_mean": float(np.mean(np.array(pp["mse"])[used])),
+                        "gp_var_mean": float(np.mean(np.array(pp["gp_var"])[used])),
+                        "spread_var_mean": float(np.mean(np.array(pp["latent_spread_var"])[used]))})
+        out[str(eta)] = summary
+        print(eta, json.dumps(summary), flush=True)
     return out
 
 
