@@ -427,8 +427,14 @@ def machine_info() -> dict:
     try:
         from threadpoolctl import threadpool_info
 
-        info["blas"] = [{k: d.get(k) for k in ("internal_api", "num_threads", "version", "filepath")}
-                        for d in threadpool_info()]
+        root = Path(__file__).resolve().parents[1]
+
+        def where(path):   # a library inside the repository (its .venv) by a relative path
+            p = Path(path) if path else None
+            return str(p.relative_to(root)) if p is not None and p.is_relative_to(root) else path
+
+        info["blas"] = [{**{k: d.get(k) for k in ("internal_api", "num_threads", "version")},
+                         "filepath": where(d.get("filepath"))} for d in threadpool_info()]
     except ImportError:
         pass
     return info
