@@ -131,8 +131,8 @@ def test_the_synthesis_density_leaves_the_private_dimension_to_the_prior(toy_vlm
     # ... and ln p minus the prior terms is that audio sum. The two sides are differences of
     # numbers of size |ln p| ≈ 2·10⁴ whose dynamics terms divide GP means' round-off by the
     # dynamics noise (10⁻⁶): ~10⁻⁸ absolute is round-off here (measured 1.5·10⁻⁸ on an
-    # AVX-512 machine, 0 on others); a private dimension seen by the audio GPs would move the
-    # audio sum by O(1) for this 0.05 shift.
+    # AVX-512 machine, under 10⁻⁹ where the old check passed); a private dimension seen by
+    # the audio GPs would move the audio sum by O(1) for this 0.05 shift.
     for Z in (X, Xp):
         lp = dens(Z)[0]
         audio_part = lp - float(SwitchingLatents(plan).log_prob(torch.as_tensor(Z)))
