@@ -14,6 +14,11 @@ TEST_WORKERS ?= 2
 # once and the short tests fill the workers' gaps around them; worksteal: an idle worker
 # takes tests queued for the other instead of waiting at the end (ignored with -n 0)
 TEST_DIST ?= worksteal
+# BLAS/OpenMP threads per test process: with two workers on two cores, one each (two each
+# would put four threads on two cores, each small kernel waiting for its second thread:
+# 810 -> 630 CPU-s and 416 -> 322 s on a quiet 2-core machine, session 17). Tests that are
+# about threads set their own counts (gp/threads.torch_threads).
+TEST_THREADS ?= 1
 
 .PHONY: demo test bench lint clean-venv
 
@@ -28,7 +33,7 @@ demo: $(STAMP)
 	$(PY) -m bayes_talk.cli demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist $(TEST_DIST) --nbmake --nbmake-timeout=600 notebooks tests   # tests/ and every notebook executed
+	OMP_NUM_THREADS=$(TEST_THREADS) MKL_NUM_THREADS=$(TEST_THREADS) OPENBLAS_NUM_THREADS=$(TEST_THREADS) $(PY) -m pytest -q -n $(TEST_WORKERS) --dist $(TEST_DIST) --nbmake --nbmake-timeout=600 notebooks tests   # tests/ and every notebook executed
 
 bench: $(STAMP)
 	mkdir -p benchmarks/results

@@ -82,26 +82,75 @@ def test_lbfgs_port_walks_torchs_path():
     assert fun(mine.x)[0] < 0.05 * fun(x0)[0]  # it did travel downhill (a path worth comparing)
 
 
-def _fit(direct: bool, kw: dict, max_iter: int = 60):
+def _fit(direct: bool, kw: dict, max_iter: int = 60, audio_scale: float = 1.0):
     audio, video = _toy(40)
     with settings.override(direct_fit=direct):
-        return SGPDM(latent_dim=2, max_iter=max_iter, **kw).fit({"audio": audio, "visual": video}, seq_lengths=[15, 25])
+        return SGPDM(latent_dim=2, max_iter=max_iter, **kw).fit({"audio": audio * audio_scale, "visual": video},
+                                                                 seq_lengths=[15, 25])
+
+
+def _fit_distances(a, b) -> dict:
+    """How far fit ``a`` is from fit ``b``: the log joint per block (relative, per element),
+    the latents (relative to b's largest), each hyperparameter (relative, per element)."""
+    lj_a, lj_b = np.asarray(a.history.log_joint), np.asarray(b.history.log_joint)
+    out = {"log_joint": float(np.max(np.abs(lj_a - lj_b) / np.abs(lj_b))),
+           "X": float(np.max(np.abs(a.X_ - b.X_)) / np.max(np.abs(b.X_)))}
+    for k, v in b.hyper_.items():
+        v, u = np.asarray(v), np.asarray(a.hyper_[k])
+        out[k] = float(np.max(np.abs(u - v) / np.abs(v)))
+    return out
+
+
+#: the data perturbations that measure the torch path's own rounding sensitivity
+ROUNDING_SCALES = (1 + 1e-14, 1 - 1e-14)
+#: how many times that sensitivity the direct path may be from torch's fit (measured: 0.65-0.85)
+SENSITIVITY_MULTIPLE = 4.0
+#: below this relative distance two fits count as equal whatever the sensitivity (round-off)
+ROUND_OFF = 1e-12
 
 
 @pytest.mark.parametrize("kw", [{}, {"learn_dynamics": True}, {"view_dims": {"audio": 1}}])
 def test_direct_fit_gives_the_torch_fit(kw):
-    """A whole fit by the direct path ends where torch's L-BFGS through autograd ends: the
-    same iterations, log joint per block to 1e-6, hyperparameters and latents to 1e-5
-    relative. The two paths round differently (summation order, fused multiply-adds) and
-    an unconverged L-BFGS amplifies rounding: measured here 1e-8 and 4e-7; on the
-    switching states of data/s8/train250 torch's own path moves by 1e-6 when the initial
-    latents are scaled by 1 + 1e-14, and by up to 1e-4 with the fused switch off."""
+    """A whole fit by the direct path ends where torch's L-BFGS through autograd ends, to
+    within the torch fit's own sensitivity to rounding: the same iterations, and the log joint
+    per block, the latents and every hyperparameter no further from torch's fit than 4× the
+    distance torch's fit moves when the audio is scaled by 1 ± 1e-14 (a change of the data
+    far below meaning). The two paths round differently (summation order, fused multiply-adds)
+    and an unconverged L-BFGS amplifies rounding, by an amount that depends on the machine's
+    arithmetic: with ``learn_dynamics`` the torch path's log joint moves by 1.3e-6 relative on
+    one machine (AMD EPYC, AVX-512) and the direct path differs from it by 1.0e-6, so a fixed
+    1e-6 was not a property of the code. Measured ratio direct / sensitivity: 0.65-0.85 for
+    every quantity; a wrong gradient or objective puts the direct path orders of magnitude
+    outside (checked by ``test_a_perturbed_direct_objective_is_caught``)."""
+    _assert_direct_fit_within_rounding_of_torch(kw)
+
+
+def _assert_direct_fit_within_rounding_of_torch(kw):
     a, b = _fit(True, kw), _fit(False, kw)
     assert a.history.n_iter == b.history.n_iter
-    np.testing.assert_allclose(a.history.log_joint, b.history.log_joint, rtol=1e-6)
-    np.testing.assert_allclose(a.X_, b.X_, rtol=0, atol=1e-5 * np.abs(b.X_).max())
-    for k, v in b.hyper_.items():
-        np.testing.assert_allclose(np.asarray(a.hyper_[k]), np.asarray(v), rtol=1e-5, err_msg=k)
+    sensitivity: dict = {}
+    for scale in ROUNDING_SCALES:
+        moved = _fit_distances(_fit(False, kw, audio_scale=scale), b)
+        sensitivity = {k: max(sensitivity.get(k, 0.0), v) for k, v in moved.items()}
+    distance = _fit_distances(a, b)
+    too_far = {k: (d, sensitivity[k]) for k, d in distance.items()
+               if d > max(SENSITIVITY_MULTIPLE * sensitivity[k], ROUND_OFF)}
+    assert not too_far, f"direct path outside {SENSITIVITY_MULTIPLE}x torch's rounding sensitivity " \
+                        f"(distance, sensitivity): {too_far}"
+
+
+def test_a_perturbed_direct_objective_is_caught(monkeypatch):
+    """The comparison above can fail: a direct objective whose gradient is off by 1e-7
+    relative (far smaller than any modelling error) ends outside the rounding band."""
+    orig = SGPDMObjective.__call__
+
+    def perturbed(self, x):
+        value = orig(self, x)
+        return None if value is None else (value[0], value[1] * (1 + 1e-7))
+
+    monkeypatch.setattr(SGPDMObjective, "__call__", perturbed)
+    with pytest.raises(AssertionError, match="rounding sensitivity"):
+        _assert_direct_fit_within_rounding_of_torch({})
 
 
 def test_direct_path_is_used_by_default_and_not_when_switched_off(monkeypatch):
