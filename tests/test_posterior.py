@@ -423,6 +423,77 @@ def test_joint_map_improves_algorithm_1_and_reports_convergence(toy):
     assert r.latent_draws.shape == (1, 1) + r.map_latents.shape
 
 
+def test_along_dynamics_puts_every_dynamics_step_at_its_gp_mean_and_keeps_the_other_frames(toy):
+    """UtteranceDensity.along_dynamics: x_t = μ_x(x_{t−1}) (the state's torch dynamics
+    predictor) for every step inside a block and across a linked boundary, in time order, and
+    every other frame (unlinked block starts) exactly as given; the dynamics terms are then at
+    their maximum given each previous frame, so ln p of the carried path is above the start's
+    when the start is off the dynamics. dynamics_rms_z is the root mean square of
+    (x_tm − μ_m)·w_m/σ over those steps by the torch predictor, and 0 on the carried path."""
+    model, test = toy
+    rng = np.random.default_rng(3)
+    for s in test:
+        plan = make_plan(model, s.mfcc, s.labels)
+        dens = UtteranceDensity(plan)
+        X0 = model.synthesize(s.mfcc, s.labels).latents + 0.05 * rng.standard_normal((plan.n_frames, plan.latent_dim))
+        with torch_threads(1):
+            Xr = dens.along_dynamics(X0)
+        stepped = np.zeros(plan.n_frames, bool)
+        z2 = []
+        for b in plan.blocks:
+            dyn = b.model.dynamics_predictor_
+            lo = b.start - 1 if b.linked else b.start
+            if dyn is None or b.stop - lo < 2:
+                continue
+            for t in range(lo + 1, b.stop):
+                mu, _ = dyn.mean_var(torch.as_tensor(Xr[t - 1:t]))
+                np.testing.assert_allclose(Xr[t], mu.numpy()[0], rtol=1e-10, atol=1e-12)
+                stepped[t] = True
+                mu0, var0 = dyn.mean_var(torch.as_tensor(X0[t - 1:t]))
+                z2.extend(((X0[t] - mu0.numpy()[0]) * dyn.w.numpy()) ** 2 / var0.item())
+        assert stepped.any() and not stepped.all()
+        np.testing.assert_array_equal(Xr[~stepped], X0[~stepped])
+        assert dens(Xr)[0] > dens(X0)[0]
+        assert dens.dynamics_rms_z(X0) == pytest.approx(np.sqrt(np.mean(z2)), rel=1e-9)
+        assert dens.dynamics_rms_z(X0) > 10 and dens.dynamics_rms_z(Xr) < 1e-6
+
+
+def test_joint_map_starts_from_the_path_carried_along_the_dynamics_only_when_the_path_is_off_them(toy, monkeypatch):
+    """maximise_utterance starts its L-BFGS at the path carried along the dynamics means when
+    the given path is off the dynamics (RMS z > CARRY_RMS_Z) and carrying it raises ln p, and at
+    the given path otherwise: a path a few sds off the dynamics is kept although carrying it
+    would raise ln p, and so is a mode. ``start_log_density`` is ln p at the given path,
+    ``carried`` says which start was used."""
+    import bayes_talk.synthesis.joint_map as jm
+
+    model, test = toy
+    s = test[1]
+    dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels))
+    X0 = model.synthesize(s.mfcc, s.labels).latents
+    X0 = X0 + 0.05 * np.random.default_rng(4).standard_normal(X0.shape)
+    starts = []
+    real = jm._lbfgs_stage
+    monkeypatch.setattr(jm, "_lbfgs_stage", lambda dens, x, f, g, *a: starts.append(x.copy()) or real(dens, x, f, g, *a))
+    with torch_threads(1):
+        Xr = dens.along_dynamics(X0)
+        assert dens.dynamics_rms_z(X0) > jm.CARRY_RMS_Z
+        r = maximise_utterance(dens, X0)
+        assert r.carried and r.start_log_density == dens(X0)[0] < dens(Xr)[0]
+        np.testing.assert_array_equal(starts[-1], Xr.reshape(-1))
+
+        Xs = Xr + 3.0 / dens.dynamics_rms_z(X0) * (X0 - Xr)      # a few sds off the dynamics
+        assert 1.0 < dens.dynamics_rms_z(Xs) <= jm.CARRY_RMS_Z
+        assert dens(dens.along_dynamics(Xs))[0] > dens(Xs)[0]
+        rs = maximise_utterance(dens, Xs, max_iter=0, lbfgs_iter=1)
+        np.testing.assert_array_equal(starts[-1], Xs.reshape(-1))
+        assert not rs.carried
+
+        r2 = maximise_utterance(dens, r.latents)             # at a mode: on the dynamics, kept
+        np.testing.assert_array_equal(starts[-1], r.latents.reshape(-1))
+        assert not r2.carried
+    assert r.log_density >= dens(Xr)[0] and r2.log_density >= r.log_density
+
+
 def test_a_converged_joint_map_has_its_gradient_or_decrement_within_tolerance(toy):
     """Issue 9: a converged MAP has gradient norm below tolerance. Started from Algorithm 1's
     path perturbed by N(0, 0.1²) — a start where −∇² ln p has negative eigenvalues — the joint
@@ -506,6 +577,9 @@ def test_map_restarts_from_laplace_draws_climb_out_of_a_lower_mode():
         def __call__(self, X):
             f, r, gs = self._parts(X)
             return f, (r[0] * gs[0] + r[1] * gs[1]).reshape(self.T, self.d)
+
+        def dynamics_rms_z(self, X):        # no dynamics steps: the start is kept
+            return float("nan")
 
         def hessian(self, X):
             _, r, gs = self._parts(X)

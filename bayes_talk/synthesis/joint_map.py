@@ -27,6 +27,12 @@ MAP_LBFGS_ITER = 100
 MAP_GTOL = 1e-3
 #: ... or when the Newton decrement (nats still to gain) is at most this
 MAP_DTOL = 1e-6
+#: the MAP starts from Algorithm 1's path carried along the dynamics means when that path's
+#: dynamics steps are further than this, in root mean square, from the dynamics GP's mean in
+#: units of its predictive sd (``UtteranceDensity.dynamics_rms_z``): a path of the model's
+#: dynamics has about 1; measured, Algorithm 1's paths have 0.1-2.7 on the default family and
+#: the toy models of the tests, 66-95 on the VLMM family (docs/uncertainty.md, session 18)
+CARRY_RMS_Z = 10.0
 #: restarts of the joint MAP from draws of its Laplace approximation, per round (at most
 #: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
 #: held-out utterance restarts found one 27 nats above the first, docs/uncertainty.md), and
@@ -44,10 +50,11 @@ class MapResult:
     grad_norm: float  # max |∂ ln p/∂x| at the result
     n_iter: int
     converged: bool
-    start_log_density: float  # at Algorithm 1's path
+    start_log_density: float  # at Algorithm 1's path (X0)
     hessian: np.ndarray | None = None  # ∇² ln p at the result
     decrement: float = float("nan")  # ½ gᵀ(−∇² ln p)⁻¹ g at the result (nats)
     hessian_modified: int = 0  # eigenvalues of −∇² ln p floored (not a strict maximum if > 0)
+    carried: bool = False  # started from X0 carried along the dynamics means (CARRY_RMS_Z)
 
 
 def floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
@@ -65,8 +72,19 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
                        lbfgs_iter: int = MAP_LBFGS_ITER) -> MapResult:
     """The joint MAP from X0 (Algorithm 1's path), in two stages.
 
+    0. The start. When X0 is off the model's dynamics — its standardised dynamics residuals
+       have a root mean square above ``CARRY_RMS_Z`` (10 predictive sds; a path of the
+       dynamics has about 1) — and X0 carried along the dynamics means
+       (:meth:`UtteranceDensity.along_dynamics`: each dynamics step x_t ← μ_x(x_{t−1}),
+       block starts kept) has the higher ln p, the MAP starts there. With the dynamics noise
+       at 10⁻⁶ such a path is 10⁵–10⁶ nats below the modes (the VLMM family's Algorithm 1
+       paths: 66–95 sds), and from it the MAP used to stop at its iteration cap; carried, it
+       starts within a few hundred nats of a mode. A path on the dynamics (the default
+       family's and the tests' toy models': 0.1–2.7 sds) is left as it is, so which of the
+       nearby modes the MAP finds is unchanged there (docs/uncertainty.md, session 18).
+
     1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
-       Laplace precision at X0, x = X0 + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues
+       Laplace precision at the start x₀, x = x₀ + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues
        floored, negative ones by their modulus): cheap steps that bring the badly scaled
        latent directions (posterior sds spanning orders of magnitude) to the mode's basin.
     2. A trust-region Newton method with the exact Hessian (scipy's ``trust-exact``: the
@@ -90,8 +108,14 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
     f0, g0 = dens(x0)
     n_iter = 0
     x, f, g = x0, f0, g0.reshape(-1)
+    carried = False
+    if dens.dynamics_rms_z(x0) > CARRY_RMS_Z:
+        xr = dens.along_dynamics(x0).reshape(-1)
+        fr, gr = dens(xr)
+        if np.isfinite(fr) and fr > f0:
+            x, f, g, carried = xr, fr, gr.reshape(-1), True
     if lbfgs_iter > 0:
-        x, f, g, n_iter = _lbfgs_stage(dens, x0, f0, g, lbfgs_iter, gtol)
+        x, f, g, n_iter = _lbfgs_stage(dens, x, f, g, lbfgs_iter, gtol)
     H = dens.hessian(x)
     state = _newton_state(H, g, gtol, dtol)
     if not state["converged"] and max_iter > 0:
@@ -137,7 +161,7 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
             state = _newton_state(H, g, gtol, dtol)
         n_iter += int(res.nit)
     return MapResult(x.reshape(dens.T, dens.d), float(f), state["grad_norm"], n_iter, state["converged"],
-                     float(f0), H, state["decrement"], state["n_mod"])
+                     float(f0), H, state["decrement"], state["n_mod"], carried)
 
 
 def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarray, max_iter: int,

@@ -212,6 +212,8 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
                        audio_view=audio_view).latents
     mp = maximise_utterance(dens, start, max_iter=map_iter)
+    start_carried, start_rms_z = mp.carried, dens.dynamics_rms_z(start)
+    start_rms_z = start_rms_z if np.isfinite(start_rms_z) else None      # no dynamics steps
     first_log_density = mp.log_density
     modes: list = []
     if map_restarts:
@@ -221,6 +223,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     diag: dict = {"map_converged": mp.converged, "map_grad_norm": mp.grad_norm, "map_iter": mp.n_iter,
                   "map_decrement": mp.decrement,
                   "map_log_density": mp.log_density, "algorithm1_log_density": mp.start_log_density,
+                  "algorithm1_dynamics_rms_z": start_rms_z, "map_start_carried": start_carried,
                   "hessian_modified": n_mod, "dim": T * d, "n_segments": len(plan.blocks),
                   "map_restarts": map_restarts, "map_first_log_density": first_log_density,
                   "map_restart_log_densities": [r.log_density for r in modes]}
