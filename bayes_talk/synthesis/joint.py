@@ -363,40 +363,6 @@ class UtteranceDensity:
             lp += tm.smooth_grad(np.concatenate([rows(tm.s_idx - 1), rows(tm.s_idx)], 1), K)[0].reshape(-1, K).sum(0)
         return lp
 
-    def dynamics_rms_z(self, X: np.ndarray) -> float:
-        """Root mean square of the standardised dynamics residuals of a path,
-        z_tm = (x_tm − μ_x,m(x_{t−1})) / σ_x,m(x_{t−1}) over every dynamics step and latent
-        dimension (σ²_x,m = s(x_{t−1})/w_m², the terms of ln p): about 1 for a path of the
-        model's own dynamics, below 1 near a mode, NaN without dynamics steps."""
-        tm = self.terms
-        if not len(tm.d_dst):
-            return float("nan")
-        X = np.asarray(X, dtype=np.float64).reshape(self.T, self.d)
-        mu, s = tm.dyn_gps.mean_var(tm.d_runs, X[tm.d_src])
-        z2 = (X[tm.d_dst] - mu) ** 2 / (s[:, None] / tm.dyn_gps.w2[tm.d_runs.row_gp()])
-        return float(np.sqrt(z2.mean()))
-
-    def along_dynamics(self, X: np.ndarray) -> np.ndarray:
-        """X with every dynamics step replaced by the dynamics GP's mean, in time order:
-        x_t ← μ_x(x_{t−1}) for each step x_{t−1} → x_t (inside blocks and across linked
-        boundaries), every other frame (block starts, frames of models without dynamics)
-        kept. This maximises each dynamics factor N(x_t; μ_x(x_{t−1}), σ²_x(x_{t−1})) given
-        the frame before it (its σ² does not depend on x_t): with the dynamics noise at
-        10⁻⁶ the density's paths are, to within 10⁻³, these functions of their blocks'
-        first frames, and a path that leaves them (Algorithm 1's, built block by block with
-        the state models' own objectives) is 10⁵–10⁶ nats down on the dynamics terms alone
-        (docs/uncertainty.md)."""
-        X = np.array(X, dtype=np.float64).reshape(self.T, self.d)
-        tm = self.terms
-        if not len(tm.d_dst):
-            return X
-        row_gp = tm.d_runs.row_gp()
-        for j in np.argsort(tm.d_dst, kind="stable"):
-            t = tm.d_dst[j]
-            mu, _ = tm.dyn_gps.mean_var(Runs(row_gp[j:j + 1], np.zeros(1), np.ones(1)), X[t - 1:t])
-            X[t] = mu[0]
-        return X
-
     def hessian(self, X: np.ndarray, h: float = 1e-6) -> np.ndarray:
         """Dense (T·d)×(T·d) Hessian of ln p at X (block-tridiagonal, symmetrised), term by
         term (class docstring)."""

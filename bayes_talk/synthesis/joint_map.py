@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.defaults import INFERENCE
 from bayes_talk.synthesis.joint import UtteranceDensity
 
@@ -29,7 +30,7 @@ MAP_GTOL = 1e-3
 MAP_DTOL = 1e-6
 #: the MAP starts from Algorithm 1's path carried along the dynamics means when that path's
 #: dynamics steps are further than this, in root mean square, from the dynamics GP's mean in
-#: units of its predictive sd (``UtteranceDensity.dynamics_rms_z``): a path of the model's
+#: units of its predictive sd (:func:`dynamics_rms_z`): a path of the model's
 #: dynamics has about 1; measured, Algorithm 1's paths have 0.1-2.7 on the default family and
 #: the toy models of the tests, 66-95 on the VLMM family (docs/uncertainty.md, session 18)
 CARRY_RMS_Z = 10.0
@@ -67,6 +68,39 @@ def floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, n
     return np.maximum(np.abs(lam), lo), U, n_mod
 
 
+def dynamics_rms_z(dens: UtteranceDensity, X: np.ndarray) -> float:
+    """Root mean square of the standardised dynamics residuals of a path,
+    z_tm = (x_tm − μ_x,m(x_{t−1})) / σ_x,m(x_{t−1}) over every dynamics step of the density
+    (inside blocks and across linked boundaries) and latent dimension, σ²_x,m = s(x_{t−1})/w_m²
+    as in its dynamics terms: about 1 for a path of the model's own dynamics, below 1 near a
+    mode; NaN without dynamics steps."""
+    tm = dens.terms
+    if not len(tm.d_dst):
+        return float("nan")
+    X = np.asarray(X, dtype=np.float64).reshape(dens.T, dens.d)
+    mu, s = tm.dyn_gps.mean_var(tm.d_runs, X[tm.d_src])
+    z2 = (X[tm.d_dst] - mu) ** 2 / (s[:, None] / tm.dyn_gps.w2[tm.d_runs.row_gp()])
+    return float(np.sqrt(z2.mean()))
+
+
+def along_dynamics(dens: UtteranceDensity, X: np.ndarray) -> np.ndarray:
+    """X with every dynamics step of the density replaced by the dynamics GP's mean, in time
+    order: x_t ← μ_x(x_{t−1}) for each step x_{t−1} → x_t (inside blocks and across linked
+    boundaries), every other frame (block starts, frames of models without dynamics) kept.
+    This maximises each dynamics factor N(x_t; μ_x(x_{t−1}), σ²_x(x_{t−1})) given the frame
+    before it (its σ² does not depend on x_t)."""
+    X = np.array(X, dtype=np.float64).reshape(dens.T, dens.d)
+    tm = dens.terms
+    if not len(tm.d_dst):
+        return X
+    row_gp = tm.d_runs.row_gp()
+    for j in np.argsort(tm.d_dst, kind="stable"):
+        t = tm.d_dst[j]
+        mu, _ = tm.dyn_gps.mean_var(Runs(row_gp[j:j + 1], np.zeros(1), np.ones(1)), X[t - 1:t])
+        X[t] = mu[0]
+    return X
+
+
 def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = MAP_MAX_ITER,
                        gtol: float = MAP_GTOL, dtol: float = MAP_DTOL,
                        lbfgs_iter: int = MAP_LBFGS_ITER) -> MapResult:
@@ -75,7 +109,7 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
     0. The start. When X0 is off the model's dynamics — its standardised dynamics residuals
        have a root mean square above ``CARRY_RMS_Z`` (10 predictive sds; a path of the
        dynamics has about 1) — and X0 carried along the dynamics means
-       (:meth:`UtteranceDensity.along_dynamics`: each dynamics step x_t ← μ_x(x_{t−1}),
+       (:func:`along_dynamics`: each dynamics step x_t ← μ_x(x_{t−1}),
        block starts kept) has the higher ln p, the MAP starts there. With the dynamics noise
        at 10⁻⁶ such a path is 10⁵–10⁶ nats below the modes (the VLMM family's Algorithm 1
        paths: 66–95 sds), and from it the MAP used to stop at its iteration cap; carried, it
@@ -109,8 +143,8 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
     n_iter = 0
     x, f, g = x0, f0, g0.reshape(-1)
     carried = False
-    if dens.dynamics_rms_z(x0) > CARRY_RMS_Z:
-        xr = dens.along_dynamics(x0).reshape(-1)
+    if dynamics_rms_z(dens, x0) > CARRY_RMS_Z:
+        xr = along_dynamics(dens, x0).reshape(-1)
         fr, gr = dens(xr)
         if np.isfinite(fr) and fr > f0:
             x, f, g, carried = xr, fr, gr.reshape(-1), True

@@ -15,13 +15,24 @@ This script runs that protocol, captures every joint-MAP problem (the density an
     from Algorithm 1's path (what the library does);
 ``carried``
     from the higher of that path and the path carried along the dynamics means (each
-    dynamics step x_t ← μ_x(x_{t−1}) in time order, block starts kept; ``along_dynamics``
-    below), the rule measured as a library change in session 17 and not adopted
+    dynamics step x_t ← μ_x(x_{t−1}) in time order, block starts kept; the library's
+    ``joint_map.along_dynamics``), the rule measured as a library change in session 17 and not adopted
     (docs/experiments.md, "Where the joint MAP starts").
+
+Since session 18 the library carries the start when Algorithm 1's path is off the dynamics
+(RMS standardised residual > ``CARRY_RMS_Z``); ``algorithm1`` is then run with that rule
+switched off, and each problem also records the start's RMS z and what the library does
+(``library``).
 
 For each: log density at the start and at the end, converged, iterations, seconds.
 
     python benchmarks/analysis/map_start.py --json benchmarks/results/map_start_nb03_s17.json
+
+With ``--model-dir`` and ``--test-corpus`` the problems are those of ``bayes-talk synth``
+(Laplace, the default) on the first ``--n`` utterances of a corpus instead of notebook 03's:
+
+    python benchmarks/analysis/map_start.py --model-dir data/model_vlmm_nocal \
+        --test-corpus data/dev40 --n 10 --json benchmarks/results/map_start_dev_vlmm_s18.json
 """
 from __future__ import annotations
 
@@ -39,22 +50,8 @@ sys.path.insert(0, str(ROOT))
 from bayes_talk.data.corpus import build_corpus
 from bayes_talk.evaluation.harness import evaluate
 from bayes_talk.files import write_json
-from bayes_talk.gp.predictive_fused import Runs
-from bayes_talk.synthesis import posterior
-from bayes_talk.synthesis.joint_map import maximise_utterance
-
-
-def along_dynamics(dens, X: np.ndarray) -> np.ndarray:
-    """X with every dynamics step of the density replaced by the dynamics GP's mean given the
-    frame before it, in time order; every other frame kept."""
-    X = np.array(X, dtype=np.float64).reshape(dens.T, dens.d)
-    tm = dens.terms
-    row_gp = tm.d_runs.row_gp()
-    for j in np.argsort(tm.d_dst, kind="stable"):
-        t = tm.d_dst[j]
-        mu, _ = tm.dyn_gps.mean_var(Runs(row_gp[j:j + 1], np.zeros(1), np.ones(1)), X[t - 1:t])
-        X[t] = mu[0]
-    return X
+from bayes_talk.synthesis import joint_map, posterior
+from bayes_talk.synthesis.joint_map import along_dynamics, dynamics_rms_z, maximise_utterance
 
 
 def capture(n_utterances: int, seed: int, work: Path) -> list:
@@ -75,32 +72,72 @@ def capture(n_utterances: int, seed: int, work: Path) -> list:
     return problems
 
 
-def run(dens, start: np.ndarray, kw: dict) -> dict:
+def capture_synth(model_dir: Path, corpus: Path, n: int, work: Path) -> list:
+    """(density, Algorithm 1's path, keyword arguments) of the joint MAP of ``bayes-talk synth``
+    on each of the first n utterances of a corpus (their own label files)."""
+    from bayes_talk.cli import main as cli
+
+    problems = []
+
+    def recording(dens, X0, **kw):
+        problems.append((dens, np.array(X0), kw))
+        return maximise_utterance(dens, X0, **kw)
+
+    posterior.maximise_utterance = recording
+    try:
+        for i, wav in enumerate(sorted((corpus / "utterances").glob("*.wav"))[:n]):
+            n_before = len(problems)
+            assert cli(["-q", "synth", str(model_dir), "--audio", str(wav), "--labels", str(wav.with_suffix(".lab")),
+                        "--out", str(work / f"o{i}"), "--no-video"]) == 0
+            del problems[n_before + 1:]          # the first MAP of each synthesis (restarts are not the start)
+    finally:
+        posterior.maximise_utterance = maximise_utterance
+    return problems
+
+
+def run(dens, start: np.ndarray, kw: dict, carry: bool = True) -> dict:
     t0 = time.perf_counter()
-    r = maximise_utterance(dens, start, **kw)
+    saved = joint_map.CARRY_RMS_Z
+    joint_map.CARRY_RMS_Z = saved if carry else np.inf
+    try:
+        r = maximise_utterance(dens, start, **kw)
+    finally:
+        joint_map.CARRY_RMS_Z = saved
     return {"start_log_density": float(dens(start)[0]), "log_density": r.log_density, "converged": r.converged,
-            "iterations": r.n_iter, "grad_norm": r.grad_norm, "seconds": time.perf_counter() - t0}
+            "iterations": r.n_iter, "grad_norm": r.grad_norm, "carried": r.carried,
+            "seconds": time.perf_counter() - t0}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-utterances", type=int, default=14, help="notebook 03's corpus size")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--model-dir", type=Path, help="a trained model: its synth problems instead of notebook 03's")
+    ap.add_argument("--test-corpus", type=Path, help="with --model-dir: the utterances to synthesise")
+    ap.add_argument("--n", type=int, default=10, help="with --model-dir: the first N utterances")
     ap.add_argument("--json", required=True)
     a = ap.parse_args(argv)
+    if (a.model_dir is None) != (a.test_corpus is None):
+        ap.error("--model-dir and --test-corpus go together")
     rows = []
+    kinds = ("algorithm1", "carried", "library")
     with tempfile.TemporaryDirectory(prefix="bt_map_start_") as tmp:
-        for dens, X0, kw in capture(a.n_utterances, a.seed, Path(tmp)):
+        problems = (capture_synth(a.model_dir, a.test_corpus, a.n, Path(tmp)) if a.model_dir
+                    else capture(a.n_utterances, a.seed, Path(tmp)))
+        for dens, X0, kw in problems:
             Xr = along_dynamics(dens, X0)
             carried_start = Xr if dens(Xr)[0] > dens(X0)[0] else X0
-            rows.append({"frames": dens.T, "latent_dim": dens.d,
-                         "algorithm1": run(dens, X0, kw), "carried": run(dens, carried_start, kw)})
+            rows.append({"frames": dens.T, "latent_dim": dens.d, "start_rms_z": dynamics_rms_z(dens, X0),
+                         "algorithm1": run(dens, X0, kw, carry=False), "carried": run(dens, carried_start, kw, carry=False),
+                         "library": run(dens, X0, kw)})
             r = rows[-1]
-            print({k: (round(r[k]["log_density"], 2), r[k]["converged"], round(r[k]["seconds"], 1))
-                   for k in ("algorithm1", "carried")}, flush=True)
-    out = {"benchmark": "map_start", "n_utterances": a.n_utterances, "seed": a.seed, "problems": rows,
-           "total_seconds": {k: sum(r[k]["seconds"] for r in rows) for k in ("algorithm1", "carried")},
-           "converged": {k: sum(r[k]["converged"] for r in rows) for k in ("algorithm1", "carried")},
+            print(round(r["start_rms_z"], 2), {k: (round(r[k]["log_density"], 2), r[k]["converged"],
+                                                   round(r[k]["seconds"], 1)) for k in kinds}, flush=True)
+    out = {"benchmark": "map_start", "problems": rows,
+           **({"model_dir": str(a.model_dir), "test_corpus": str(a.test_corpus), "n": a.n} if a.model_dir
+              else {"n_utterances": a.n_utterances, "seed": a.seed}),
+           "total_seconds": {k: sum(r[k]["seconds"] for r in rows) for k in kinds},
+           "converged": {k: sum(r[k]["converged"] for r in rows) for k in kinds},
            "command": "python benchmarks/analysis/map_start.py " + " ".join(argv if argv is not None else sys.argv[1:])}
     write_json(a.json, out)
     print(out["total_seconds"], out["converged"])
