@@ -1,7 +1,8 @@
 """The joint MAP of the whole-utterance synthesis density (the first step of every
 posterior method of :mod:`bayes_talk.synthesis.posterior`; issue 9).
 
-:func:`maximise_utterance` starts at deena2010's Algorithm 1 path and maximises
+:func:`maximise_utterance` starts at deena2010's Algorithm 1 path (carried along the dynamics
+means when it is off them: :func:`along_dynamics`, :data:`CARRY_RMS_Z`) and maximises
 ln p(X | audio, states) of :class:`~bayes_talk.synthesis.joint.UtteranceDensity`: L-BFGS in
 coordinates whitened by the Laplace precision at the start (posterior scales span orders
 of magnitude), then scipy's ``trust-exact`` with the exact Hessian, which handles the
@@ -31,8 +32,9 @@ MAP_DTOL = 1e-6
 #: the MAP starts from Algorithm 1's path carried along the dynamics means when that path's
 #: dynamics steps are further than this, in root mean square, from the dynamics GP's mean in
 #: units of its predictive sd (:func:`dynamics_rms_z`): a path of the model's
-#: dynamics has about 1; measured, Algorithm 1's paths have 0.1-2.7 on the default family and
-#: the toy models of the tests, 66-95 on the VLMM family (docs/uncertainty.md, session 18)
+#: dynamics has about 1; measured, Algorithm 1's paths have 0.07-0.6 on the default family
+#: (40 development utterances) and 0.1-2.7 on a small phone-state model, 66-95 on a VLMM model
+#: of 12 utterances (docs/experiments.md, "Where the joint MAP starts")
 CARRY_RMS_Z = 10.0
 #: restarts of the joint MAP from draws of its Laplace approximation, per round (at most
 #: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
@@ -112,9 +114,9 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
        (:func:`along_dynamics`: each dynamics step x_t ← μ_x(x_{t−1}),
        block starts kept) has the higher ln p, the MAP starts there. With the dynamics noise
        at 10⁻⁶ such a path is 10⁵–10⁶ nats below the modes (the VLMM family's Algorithm 1
-       paths: 66–95 sds), and from it the MAP used to stop at its iteration cap; carried, it
-       starts within a few hundred nats of a mode. A path on the dynamics (the default
-       family's and the tests' toy models': 0.1–2.7 sds) is left as it is, so which of the
+       paths on a small corpus: 66–95 sds), and from it the MAP used to stop at its iteration
+       cap; carried, it starts within a few hundred nats of a mode. A path on the dynamics
+       (the default family's: 0.07–0.6 sds) is left as it is, so which of the
        nearby modes the MAP finds is unchanged there (docs/uncertainty.md, session 18).
 
     1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
