@@ -297,13 +297,15 @@ class _PickledPool:
         return [pickle.loads(pickle.dumps(run_task(*pickle.loads(pickle.dumps((fn, x)))))) for x in items]
 
 
-def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibration():
-    """Issue 29: with a parallel executor the held-out syntheses go through it in chunks;
-    the calibration (scale, level map, mean shrinkage, control) equals the serial one."""
+@pytest.mark.parametrize("holdout, n_workers, n_held", [(0.3, 2, 3), (0.5, 1, 5)])
+def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibration(holdout, n_workers, n_held):
+    """Issue 29: with a parallel executor the held-out syntheses go through it in chunks
+    balanced by frame count (one utterance each, or 5 utterances in 3 chunks, not in their
+    order); the calibration (scale, level map, mean shrinkage, control) equals the serial one."""
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+    from bayes_talk.synthesis.band_calibration import balanced_chunks, fit_band_calibration
 
     train = make_utterances(10, seed=3, mean_len=30)
     small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
@@ -314,17 +316,46 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
             fitted.append(sub.fit(seqs))
         return fitted[0]
 
-    one = fit_band_calibration(model, train, holdout=0.3, n_draws=16, seed=1, fit=fit_once)
+    one = fit_band_calibration(model, train, holdout=holdout, n_draws=16, seed=1, fit=fit_once)
     pool = _PickledPool()
-    two = fit_band_calibration(model, train, holdout=0.3, n_draws=16, seed=1, executor=pool, fit=fit_once)
-    assert pool.calls == [3]            # 3 held-out utterances, one chunk each
-    assert one.held_out == two.held_out and len(one.held_out) == 3
+    pool.n_workers = n_workers
+    two = fit_band_calibration(model, train, holdout=holdout, n_draws=16, seed=1, executor=pool, fit=fit_once)
+    assert pool.calls == [3]            # 3 chunks: one utterance each, or 5 utterances in 3
+    assert one.held_out == two.held_out and len(one.held_out) == n_held
+    by_name = {u.name: u for u in train}
+    chunks = balanced_chunks([len(by_name[n].mfcc) for n in one.held_out], 3)
+    assert (max(map(len, chunks)) > 1) == (n_held > 3)
+    if n_held > 3:                      # the results go back to their utterances, not in chunk order
+        assert [i for c in chunks for i in c] != list(range(n_held))
     np.testing.assert_array_equal(two.scale, one.scale)
     np.testing.assert_array_equal(two.mean_scale, one.mean_scale)
     np.testing.assert_array_equal(two.level_raw, one.level_raw)
     np.testing.assert_array_equal(two.control_var, one.control_var)
     np.testing.assert_array_equal(two.pool_weight, one.pool_weight)
     assert one.pool_weight is not None
+
+
+def test_balanced_chunks_partition_the_items_by_longest_processing_time_first():
+    """balanced_chunks: every index once, in n non-empty chunks, each sorted, chunks largest
+    total first; totals within the largest item of each other (the LPT bound); a worked
+    example; the same chunks every time; n outside 1..len is a named error."""
+    from bayes_talk.synthesis.band_calibration import balanced_chunks
+
+    assert balanced_chunks([5, 4, 3, 3, 3], 2) == [[1, 2, 4], [0, 3]]     # loads 10 and 8
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        sizes = rng.integers(20, 200, size=int(rng.integers(1, 60))).tolist()
+        n = int(rng.integers(1, len(sizes) + 1))
+        chunks = balanced_chunks(sizes, n)
+        assert chunks == balanced_chunks(sizes, n)
+        assert len(chunks) == n and all(chunks) and all(c == sorted(c) for c in chunks)
+        assert sorted(i for c in chunks for i in c) == list(range(len(sizes)))
+        loads = [sum(sizes[i] for i in c) for c in chunks]
+        assert loads == sorted(loads, reverse=True)
+        assert loads[0] - loads[-1] <= max(sizes)
+    for bad in (0, 6):
+        with pytest.raises(ValueError, match="n_chunks must be in 1..5"):
+            balanced_chunks([1, 2, 3, 4, 5], bad)
 
 
 #: a small phone-state switching model for the calibration schemes' tests

@@ -107,7 +107,6 @@ lines is the mathematics above.
 """
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -530,8 +529,28 @@ def split_for_calibration(n: int, holdout: float = HOLDOUT_FRACTION, seed: int =
 
 
 #: held-out syntheses per worker process when the calibration's syntheses run in parallel
-#: (contiguous chunks: more chunks balance the load, each costs one copy of the model)
+#: (chunks balanced by frame count: more chunks balance the load, each costs one copy of the model)
 SYNTHESIS_CHUNKS_PER_WORKER = 3
+
+
+def balanced_chunks(sizes: Sequence[int], n_chunks: int) -> list[list[int]]:
+    """Indices 0..len(sizes)−1 in ``n_chunks`` non-empty chunks of about equal total size:
+    longest-processing-time-first (Graham 1969), each item, largest first (ties by index),
+    to the chunk with the least total so far (the lowest-numbered among equals). The chunks
+    come largest total first (a pool that hands tasks to idle workers then ends them
+    together) and each lists its indices in increasing order. Deterministic: the same sizes
+    give the same chunks."""
+    n = len(sizes)
+    if n_chunks < 1 or n_chunks > n:
+        raise ValueError(f"balanced_chunks: n_chunks must be in 1..{n} (one item each at least); found {n_chunks}")
+    order = sorted(range(n), key=lambda i: (-int(sizes[i]), i))
+    loads, chunks = [0] * n_chunks, [[] for _ in range(n_chunks)]
+    for i in order:
+        k = min(range(n_chunks), key=lambda c: (loads[c], c))
+        chunks[k].append(i)
+        loads[k] += int(sizes[i])
+    by_load = sorted(range(n_chunks), key=lambda c: (-loads[c], c))
+    return [sorted(chunks[c]) for c in by_load]
 
 
 def _synthesise_chunk(job: tuple) -> list[SynthesisResult]:
@@ -560,7 +579,7 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     the model it was fitted for instead.
 
     When ``executor`` runs tasks in other processes (its ``parallel`` is true) the held-out
-    syntheses go through it too, in contiguous chunks (the model is sent once per chunk);
+    syntheses go through it too, in chunks balanced by frame count (the model is sent once per chunk);
     each synthesis is seeded and single-threaded either way, so the calibration does not
     depend on the executor (issue 29)."""
     return holdout_calibrated_model(model, train, method, holdout, n_draws, seed, executor, progress, fit)[1]
@@ -683,18 +702,19 @@ def crossfit_band_calibration(model, train: Sequence, method: str = "laplace", h
 def _held_out_syntheses(sub, held: Sequence, method: str, n_draws: int, seed: int, executor,
                         say: Callable[[str], None]) -> list[SynthesisResult]:
     """The ``method`` posteriors of the held-out utterances ``held`` under the model ``sub``
-    (seeded, warnings recorded and not logged), through ``executor`` in contiguous chunks
-    when it runs tasks in other processes."""
+    (seeded, warnings recorded and not logged), through ``executor`` when it runs tasks in
+    other processes, in chunks of about equal frame count (:func:`balanced_chunks`; a
+    synthesis's cost grows with its frames), the results in the order of ``held``."""
     from bayes_talk.synthesis.posterior import sample_synthesis
 
     results = []
     if getattr(executor, "parallel", False) and len(held) > 1:
         n_chunks = min(len(held), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
-        bounds = np.linspace(0, len(held), n_chunks + 1).round().astype(int)
-        jobs = [(sub, [(s.mfcc, s.labels) for s in held[a:b]], method, n_draws, seed)
-                for a, b in itertools.pairwise(bounds)]
+        chunks = balanced_chunks([len(s.mfcc) for s in held], n_chunks)
+        jobs = [(sub, [(held[i].mfcc, held[i].labels) for i in c], method, n_draws, seed) for c in chunks]
         say(f"band calibration: synthesising {len(held)} held-out utterances in {len(jobs)} tasks")
-        return [r for chunk in executor.map(_synthesise_chunk, jobs) for r in chunk]
+        by_index = {i: r for c, rs in zip(chunks, executor.map(_synthesise_chunk, jobs)) for i, r in zip(c, rs)}
+        return [by_index[i] for i in range(len(held))]
     for j, s in enumerate(held):
         results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
                                         log_warnings=False))
