@@ -37,6 +37,7 @@ With ``--model-dir`` and ``--test-corpus`` the problems are those of ``bayes-tal
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import tempfile
 import time
@@ -54,8 +55,10 @@ from bayes_talk.synthesis import joint_map, posterior
 from bayes_talk.synthesis.joint_map import along_dynamics, dynamics_rms_z, maximise_utterance
 
 
-def capture(n_utterances: int, seed: int, work: Path) -> list:
-    """(density, Algorithm 1's path, keyword arguments) of every joint MAP the protocol runs."""
+@contextlib.contextmanager
+def recording_maps():
+    """A list that collects (density, Algorithm 1's path, keyword arguments) of every joint MAP
+    the posterior module runs inside the block (the library's function still runs)."""
     problems = []
 
     def recording(dens, X0, **kw):
@@ -64,35 +67,32 @@ def capture(n_utterances: int, seed: int, work: Path) -> list:
 
     posterior.maximise_utterance = recording
     try:
+        yield problems
+    finally:
+        posterior.maximise_utterance = maximise_utterance
+
+
+def capture(n_utterances: int, seed: int, work: Path) -> list:
+    """The joint MAP problems of notebook 03's protocol run (:func:`recording_maps`)."""
+    with recording_maps() as problems:
         corpus = build_corpus(work / "corpus", n_utterances=n_utterances, seed=seed)
         evaluate("deena2010", corpus, work / "quick.json", methods=["ssgpdm-vlmm-posterior"], quick=True,
                  seed=seed, min_utterances=n_utterances)
-    finally:
-        posterior.maximise_utterance = maximise_utterance
     return problems
 
 
 def capture_synth(model_dir: Path, corpus: Path, n: int, work: Path) -> list:
-    """(density, Algorithm 1's path, keyword arguments) of the joint MAP of ``bayes-talk synth``
-    on each of the first n utterances of a corpus (their own label files)."""
+    """The first joint MAP problem of ``bayes-talk synth`` on each of the first n utterances
+    of a corpus (their own label files; restarts are not the start)."""
     from bayes_talk.cli import main as cli
 
-    problems = []
-
-    def recording(dens, X0, **kw):
-        problems.append((dens, np.array(X0), kw))
-        return maximise_utterance(dens, X0, **kw)
-
-    posterior.maximise_utterance = recording
-    try:
-        for i, wav in enumerate(sorted((corpus / "utterances").glob("*.wav"))[:n]):
-            n_before = len(problems)
+    first = []
+    for i, wav in enumerate(sorted((corpus / "utterances").glob("*.wav"))[:n]):
+        with recording_maps() as problems:
             assert cli(["-q", "synth", str(model_dir), "--audio", str(wav), "--labels", str(wav.with_suffix(".lab")),
                         "--out", str(work / f"o{i}"), "--no-video"]) == 0
-            del problems[n_before + 1:]          # the first MAP of each synthesis (restarts are not the start)
-    finally:
-        posterior.maximise_utterance = maximise_utterance
-    return problems
+        first.append(problems[0])
+    return first
 
 
 def run(dens, start: np.ndarray, kw: dict, carry: bool = True) -> dict:
