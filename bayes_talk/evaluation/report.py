@@ -22,7 +22,7 @@ __all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "w
 _COLUMNS = (  # (metric key, column label)
     ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
     ("log_likelihood_per_frame", "log-lik/frame"), ("coverage_50", "cov50"), ("coverage_90", "cov90"),
-    ("crps", "CRPS"), ("nlpd", "NLPD"),
+    ("crps", "CRPS (Gauss.)"), ("nlpd", "NLPD (Gauss.)"),
     ("mse_corrected", "AMSE (bias-corr.)"), ("nmse_corrected", "NMSE (bias-corr.)"),
 )
 
@@ -92,8 +92,11 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
              f"{result.get('n_scored')}. Values are mean ± std over scored test utterances. "
              "AMSE is the mean per-utterance MSE and ACC the mean per-utterance correlation "
              "(deena2010 §5); NMSE divides by the ground-truth variance of the test frames; "
-             "cov50/cov90 are the fractions of entries inside the central 50/90 % Gaussian "
-             "predictive band (ideal 0.5/0.9).\n")
+             "cov50/cov90 are the fractions of entries inside the central 50/90 % band of the "
+             "method's predictive (the mixture's exact interval for the posterior methods; ideal "
+             "0.5/0.9); CRPS (Gauss.) and NLPD (Gauss.) score a Gaussian with the predictive's "
+             "mean and variance per entry: for a mixture predictive its own NLPD and CRPS are in "
+             "the calibration table.\n")
     gen = result.get("generator")
     if gen:
         names = {"espeak": "built-in corpus, espeak-ng speech (face driven by the phones)",
