@@ -77,3 +77,37 @@ def test_posterior_predictive_check_on_the_audio_view(ctx_model):
     assert 0.75 <= ok.coverage[0.9] <= 1.0, ok.to_dict()
     bad = predictive_check(model.audio_input(y), rep)
     assert bad.coverage[0.9] < ok.coverage[0.9] - 0.2, (bad.coverage, ok.coverage)
+
+
+@pytest.fixture(scope="module")
+def ctx_view_model():
+    """The default family's configuration (phone states with right context, audio context
+    ±2, the phonetic-context view as the visual mean), small: its audio view has D_y + D_z
+    columns, not D_y."""
+    train = make_utterances(16, seed=0)
+    model = SwitchingSGPDM(states="phone", right_context=True, context_mean=True, audio_context=2, context_view=2,
+                           seed=0, latent_dim=3, max_iter=20, min_frames_per_state=10, max_frames_per_state=80,
+                           fallback_frames=90).fit(train)
+    return model, make_utterances(1, seed=1, mean_len=20)[0]
+
+
+def test_the_audio_view_of_a_context_view_model_goes_back_into_the_samplers(ctx_view_model):
+    """With the phonetic-context view on, the audio view is wider than the MFCCs
+    (``audio_view_dim`` = D_y + D_z); ``sample_synthesis(..., audio_view=True)`` takes that
+    view (it used to be refused as "expected shape (T, D_y)", so SBC could not run on the
+    default family), gives the synthesis of the MFCCs it came from, and refuses the raw MFCCs
+    as an audio view, naming the shape."""
+    model, utt = ctx_view_model
+    labels, mfcc = utt.labels[:12], utt.mfcc[:12]
+    view = model.audio_input(mfcc, labels)
+    assert view.shape[1] == model.audio_view_dim == model.dims_[0] + model.dims_[1] > model.dims_[0]
+    a = sample_synthesis(model, mfcc, labels, method="laplace", n_draws=16, seed=2, log_warnings=False)
+    b = sample_synthesis(model, view, labels, method="laplace", n_draws=16, seed=2, log_warnings=False,
+                         audio_view=True)
+    np.testing.assert_array_equal(b.map_latents, a.map_latents)
+    np.testing.assert_array_equal(b.mean, a.mean)
+    with pytest.raises(ValueError, match=rf"audio view: expected shape \(T, {model.audio_view_dim}\)"):
+        sample_synthesis(model, mfcc, labels, method="map", log_warnings=False, audio_view=True)
+    post = scaled_laplace(1.0, 16)
+    draws, diag = post(model, view, labels, 5)
+    assert draws.shape == (16, 12 * 3) and diag["map_converged"]     # T·d, latent_dim 3

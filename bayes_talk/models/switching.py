@@ -252,6 +252,12 @@ class SwitchingModel:
             return a
         return np.hstack([a, self.context_.transform(mfcc, labels)])
 
+    @property
+    def audio_view_dim(self) -> int:
+        """Columns of :meth:`audio_input`'s view: D_y (the MFCCs, or their context window
+        projected back to D_y dimensions) plus the phonetic-context view's D_z when it is on."""
+        return int(self.dims_[0]) + self.context_.n_dims
+
     def visual_offset(self, audio_view: np.ndarray) -> np.ndarray:
         """The explicit mean function c_t of the visual mapping (``context_mean``; (T, D_z))
         read off an audio view made by :meth:`audio_input` (its last D_z columns are the

@@ -192,7 +192,7 @@ def sample_synthesis(
     map_restarts = spec.map_restarts if map_restarts is None else int(map_restarts)
     if map_restarts < 0:
         raise ValueError(f"map_restarts must be >= 0, got {map_restarts}")
-    mfcc = check_inputs(model, mfcc, labels)
+    mfcc = check_inputs(model, mfcc, labels, audio_view)
     t0 = time.perf_counter()
     with torch_threads(1):
         res = _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chains, map_iter,

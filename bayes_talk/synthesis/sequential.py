@@ -63,12 +63,15 @@ def lowpass(Z: np.ndarray, cutoff_hz: float, fps: float = 25.0, order: int = 4) 
     return filtfilt(b, a, Z, axis=0)
 
 
-def check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels) -> np.ndarray:
-    """``mfcc`` as float64 (T, D_y), checked against ``model`` and the frame ``labels``."""
+def check_inputs(model: SwitchingModel, mfcc: np.ndarray, labels, audio_view: bool = False) -> np.ndarray:
+    """``mfcc`` as float64 (T, D_y), checked against ``model`` and the frame ``labels``; with
+    ``audio_view`` it is the model's audio view instead (:meth:`SwitchingModel.audio_input`,
+    ``model.audio_view_dim`` columns: D_y plus the phonetic-context view's)."""
     mfcc = np.asarray(mfcc, dtype=np.float64)
-    Dy = model.dims_[0]
+    Dy = model.audio_view_dim if audio_view else model.dims_[0]
     if mfcc.ndim != 2 or mfcc.shape[1] != Dy:
-        raise ValueError(f"audio features: expected shape (T, {Dy}), got {mfcc.shape}")
+        what = "audio view" if audio_view else "audio features"
+        raise ValueError(f"{what}: expected shape (T, {Dy}), got {mfcc.shape}")
     if len(labels) != mfcc.shape[0]:
         raise ValueError(f"audio has {mfcc.shape[0]} frames but the labels have {len(labels)}")
     if not np.all(np.isfinite(mfcc)):
@@ -98,7 +101,7 @@ def synthesize(
     smoothness = DEFAULT_SMOOTHNESS if smoothness is True else "off" if smoothness is False else smoothness
     if smoothness not in SMOOTHNESS:
         raise ValueError(f"smoothness must be one of {SMOOTHNESS}, got {smoothness!r}")
-    mfcc = check_inputs(model, mfcc, labels)
+    mfcc = check_inputs(model, mfcc, labels, audio_view)
     with torch_threads(1):
         return _synthesize(model, mfcc, labels, algorithm, smoothness, lowpass_hz, max_iter, audio_view)
 
