@@ -483,6 +483,7 @@ def test_joint_map_starts_from_the_path_carried_along_the_dynamics_only_when_the
         assert dynamics_rms_z(dens, X0) > jm.CARRY_RMS_Z
         r = maximise_utterance(dens, X0)
         assert r.carried and r.start_log_density == dens(X0)[0] < dens(Xr)[0]
+        assert r.start_rms_z == dynamics_rms_z(dens, X0)
         np.testing.assert_array_equal(starts[-1], Xr.reshape(-1))
 
         Xs = Xr + 3.0 / dynamics_rms_z(dens, X0) * (X0 - Xr)      # a few sds off the dynamics

@@ -58,6 +58,7 @@ class MapResult:
     decrement: float = float("nan")  # ½ gᵀ(−∇² ln p)⁻¹ g at the result (nats)
     hessian_modified: int = 0  # eigenvalues of −∇² ln p floored (not a strict maximum if > 0)
     carried: bool = False  # started from X0 carried along the dynamics means (CARRY_RMS_Z)
+    start_rms_z: float = float("nan")  # dynamics_rms_z at X0 (NaN without dynamics steps)
 
 
 def floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
@@ -144,8 +145,8 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
     f0, g0 = dens(x0)
     n_iter = 0
     x, f, g = x0, f0, g0.reshape(-1)
-    carried = False
-    if dynamics_rms_z(dens, x0) > CARRY_RMS_Z:
+    carried, rms_z = False, dynamics_rms_z(dens, x0)
+    if rms_z > CARRY_RMS_Z:
         xr = along_dynamics(dens, x0).reshape(-1)
         fr, gr = dens(xr)
         if np.isfinite(fr) and fr > f0:
@@ -197,7 +198,7 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
             state = _newton_state(H, g, gtol, dtol)
         n_iter += int(res.nit)
     return MapResult(x.reshape(dens.T, dens.d), float(f), state["grad_norm"], n_iter, state["converged"],
-                     float(f0), H, state["decrement"], state["n_mod"], carried)
+                     float(f0), H, state["decrement"], state["n_mod"], carried, rms_z)
 
 
 def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarray, max_iter: int,

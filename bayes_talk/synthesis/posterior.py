@@ -92,7 +92,6 @@ from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import (
     MAP_GTOL,
     MAP_MAX_ITER,
-    dynamics_rms_z,
     maximise_utterance,
     restart_map,
 )
@@ -213,7 +212,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
                        audio_view=audio_view).latents
     mp = maximise_utterance(dens, start, max_iter=map_iter)
-    start_carried, start_rms_z = mp.carried, dynamics_rms_z(dens, start)
+    start_carried, start_rms_z = mp.carried, mp.start_rms_z
     start_rms_z = start_rms_z if np.isfinite(start_rms_z) else None      # no dynamics steps
     first_log_density = mp.log_density
     modes: list = []
