@@ -27,7 +27,6 @@
 """
 from __future__ import annotations
 
-import functools
 import json
 import time
 from pathlib import Path
@@ -82,7 +81,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     from bayes_talk.evaluation.ceiling import corpus_generator
     from bayes_talk.evaluation.metrics import acc, amse
     from bayes_talk.executor import executor_for
-    from bayes_talk.pipeline import DEFAULT_CALIBRATED_MODEL, aam_offset, fit_model
+    from bayes_talk.pipeline import DEFAULT_CALIBRATED_MODEL, aam_offset
     from bayes_talk.synthesis.band_calibration import calibrated_fit
     from bayes_talk.synthesis.posterior import sample_synthesis
     from bayes_talk.synthesis.sequential import lowpass
@@ -107,8 +106,7 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
     t1 = time.time()
     with executor_for(None, workers) as ex:   # as `bayes-talk train` does
         model, cal = calibrated_fit(make_estimator(DEMO_MODEL, seed=seed), train, DEFAULT_CALIBRATED_MODEL,
-                                    method="laplace", seed=seed, executor=ex,
-                                    fit=functools.partial(fit_model, workers=workers, executor=ex))
+                                    method="laplace", seed=seed, executor=ex)
     train_s = time.time() - t1
     print(f"[demo] trained {len(model.models_)} state models ({DEMO_MODEL}) and fitted the band calibration "
           f"(mean shrinkage, scale, level map, pool) on {cal.n_utterances} held-out training utterances, "

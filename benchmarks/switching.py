@@ -182,7 +182,7 @@ def synth(model, test_seqs, algorithm: str, smoothness: str) -> dict:
 # ---------------------------------------------------------------------------- profile
 def profile_state_fit(model, top: int = 30) -> dict:
     """Refit the state model with the most frames in this process under cProfile."""
-    from bayes_talk.models.switching import FALLBACK, _fit_state
+    from bayes_talk.models.switching import FALLBACK, fit_state
 
     key, m = max(((k, m) for k, m in model.models_.items() if k != FALLBACK),
                  key=lambda km: sum(km[1].seq_lengths_))
@@ -192,7 +192,7 @@ def profile_state_fit(model, top: int = 30) -> dict:
     prof = cProfile.Profile()
     with Phase() as ph:
         prof.enable()
-        _fit_state(job)
+        fit_state(job)
         prof.disable()
     st = pstats.Stats(prof)
     total = st.total_tt

@@ -285,16 +285,38 @@ class _PickledPool:
     n_workers = 2
 
     def __init__(self):
-        self.calls = []
+        self.calls, self.submitted = [], []
 
-    def map(self, fn, items, desc=None, unit="task"):
+    @staticmethod
+    def _run(fn, x):
         import pickle
 
         from bayes_talk.executor import run_task
 
+        return pickle.loads(pickle.dumps(run_task(*pickle.loads(pickle.dumps((fn, x))))))
+
+    def map(self, fn, items, desc=None, unit="task"):
         items = list(items)
         self.calls.append(len(items))
-        return [pickle.loads(pickle.dumps(run_task(*pickle.loads(pickle.dumps((fn, x)))))) for x in items]
+        return [self._run(fn, x) for x in items]
+
+    def submit(self, fn, item):
+        """Queued; computed (through pickle) when its result is first asked for, so in the
+        order the caller collects the results, not the order it queued the tasks."""
+        self.submitted.append(fn.__name__)
+        return _Queued(fn, item)
+
+
+class _Queued:
+    """A task of :class:`_PickledPool`: computed at the first ``result()``."""
+
+    def __init__(self, fn, item):
+        self.job, self.done, self.value = (fn, item), False, None
+
+    def result(self):
+        if not self.done:
+            self.value, self.done = _PickledPool._run(*self.job), True
+        return self.value
 
 
 @pytest.mark.parametrize("holdout, n_workers, n_held", [(0.3, 2, 3), (0.5, 1, 5)])
@@ -320,7 +342,7 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
     pool = _PickledPool()
     pool.n_workers = n_workers
     two = fit_band_calibration(model, train, holdout=holdout, n_draws=16, seed=1, executor=pool, fit=fit_once)
-    assert pool.calls == [3]            # 3 chunks: one utterance each, or 5 utterances in 3
+    assert pool.submitted == ["_synthesise_chunk"] * 3   # one utterance each, or 5 utterances in 3
     assert one.held_out == two.held_out and len(one.held_out) == n_held
     by_name = {u.name: u for u in train}
     chunks = balanced_chunks([len(by_name[n].mfcc) for n in one.held_out], 3)
@@ -333,6 +355,39 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
     np.testing.assert_array_equal(two.control_var, one.control_var)
     np.testing.assert_array_equal(two.pool_weight, one.pool_weight)
     assert one.pool_weight is not None
+
+
+def test_the_refit_scheme_on_workers_gives_the_sequential_model_and_calibration():
+    """Issue 29: ``calibrated_fit(..., "refit")`` on an executor with workers queues the
+    calibration model's state fits, the shipped model's and the held-out syntheses as one
+    queue (refit_beside_calibration); the shipped model (every state's arrays, the views,
+    the entry distributions) and the calibration equal the sequential scheme's."""
+    from toydata import make_utterances
+
+    from bayes_talk.estimators.switching import SwitchingSGPDM
+    from bayes_talk.synthesis.band_calibration import calibrated_fit
+
+    train = make_utterances(10, seed=4, mean_len=30)
+    small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90,
+             "context_view": 2, "context_mean": True}
+    m1, c1 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1)
+    pool = _PickledPool()
+    m2, c2 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1, executor=pool)
+    n_sub = pool.submitted.index("_synthesise_chunk")
+    assert pool.calls == [] and set(pool.submitted[:n_sub]) == {"fit_state"}
+    assert pool.submitted[n_sub:] == ["_synthesise_chunk"] * 3
+    assert n_sub > len(m2.models_)          # both models' states went through the queue
+    meta1, arr1 = m1.state()
+    meta2, arr2 = m2.state()
+    assert meta1 == meta2 and arr1.keys() == arr2.keys()
+    for k in arr1:
+        np.testing.assert_array_equal(arr2[k], arr1[k], err_msg=k)
+    assert list(m2.models_) == list(m1.models_)
+    for k in m1.entry_:
+        np.testing.assert_array_equal(m2.entry_[k][1], m1.entry_[k][1])
+    assert c2.held_out == c1.held_out and c1.info["n_fit"] == c2.info["n_fit"] == 7
+    for name in ("scale", "mean_scale", "level_raw", "control_var", "pool_weight"):
+        np.testing.assert_array_equal(getattr(c2, name), getattr(c1, name), err_msg=name)
 
 
 def test_balanced_chunks_partition_the_items_by_longest_processing_time_first():

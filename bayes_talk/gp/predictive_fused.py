@@ -58,12 +58,25 @@ def kernel_rows(X: np.ndarray, alpha: float, gamma: float, Xs: np.ndarray) -> np
 @numba.njit(cache=True, fastmath={"reassoc"})
 def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
     """V = k L⁻ᵀ (T×N): each row solves L v = k_t. Row i of L is applied to every input
-    while it is in cache, so L is read once per call, not once per input."""
+    while it is in cache, so L is read once per call, not once per input; four inputs at a
+    time share each load of L[i, j] (each input's sum runs in the same order as one at a
+    time, so the bits are the same: tests/test_predictive_fused_blocking.py)."""
     T, N = k.shape
     v = np.empty((T, N))
     for i in range(N):
         piv = L[i, i]
-        for t in range(T):
+        t = 0
+        while t + 4 <= T:
+            a0, a1, a2, a3 = k[t, i], k[t + 1, i], k[t + 2, i], k[t + 3, i]
+            for j in range(i):
+                lij = L[i, j]
+                a0 -= lij * v[t, j]
+                a1 -= lij * v[t + 1, j]
+                a2 -= lij * v[t + 2, j]
+                a3 -= lij * v[t + 3, j]
+            v[t, i], v[t + 1, i], v[t + 2, i], v[t + 3, i] = a0 / piv, a1 / piv, a2 / piv, a3 / piv
+            t += 4
+        for t in range(t, T):
             acc = k[t, i]
             for j in range(i):
                 acc -= L[i, j] * v[t, j]

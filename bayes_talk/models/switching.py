@@ -164,7 +164,22 @@ class SwitchingConfig:
     private_dims: int = 0
 
 
-def _fit_state(job: tuple) -> tuple[dict, dict]:
+@dataclass(frozen=True)
+class StateFitPlan:
+    """The state fits of a :class:`SwitchingModel` still to do (:meth:`SwitchingModel.plan_fit`):
+    ``jobs[i]`` = (audio, visual, subsequence lengths, SGPDM settings) of state ``keys[i]``,
+    largest first, each the argument of :func:`fit_state`."""
+
+    keys: list[tuple[str, ...]]
+    jobs: list[tuple]
+
+
+def _state_order(key: tuple[str, ...]) -> tuple[int, tuple[str, ...]]:
+    """Saved order of the state models: the states sorted, the fallback last."""
+    return (key == FALLBACK, key)
+
+
+def fit_state(job: tuple) -> tuple[dict, dict]:
     """Fit one state's SGPDM (a top-level function so process pools can pickle it)."""
     audio, visual, lengths, cfg_dict = job
     with torch_threads(1):
@@ -280,13 +295,24 @@ class SwitchingModel:
                                   seed=cfg.seed, view_dims=private))
 
     def fit(self, train: Sequence[Utterance], executor=None) -> SwitchingModel:
-        """Train the state model (VLMM or phones) and one SGPDM per state.
+        """Train the state model (VLMM or phones) and one SGPDM per state: :meth:`plan_fit`,
+        the state fits (:func:`fit_state`, through ``executor``), :meth:`finish_fit`.
 
         executor: anything with ``map(fn, iterable)`` that runs ``fn`` in other processes
         (``concurrent.futures.ProcessPoolExecutor``, Dask/Ray process-based executors);
         None fits the states one after another in this process. Thread pools are not
         supported: Pyro keeps one handler stack per process.
         """
+        plan = self.plan_fit(train)
+        mapper: Callable = executor.map if executor is not None else map
+        return self.finish_fit(plan, list(mapper(fit_state, plan.jobs)))
+
+    def plan_fit(self, train: Sequence[Utterance]) -> StateFitPlan:
+        """The part of :meth:`fit` done in this process (the audio and context views, the state
+        model, each state's training frames): fits the views and the state model into this
+        object and returns the state fits still to do, largest first. A caller that runs the
+        state fits itself (e.g. beside another model's, band_calibration) passes their
+        results, in the plan's order, to :meth:`finish_fit`."""
         cfg = self.config
         if not train:
             raise ValueError("no training sequences")
@@ -333,18 +359,23 @@ class SwitchingModel:
                      [b - a for _, a, b in chosen], self._state_cfg()))
         keys.append(FALLBACK)
         log.info("training %d state models (%d states seen)", len(jobs), len(subs))
-        mapper: Callable = executor.map if executor is not None else map
-        # largest first (the fallback, then the capped states): parallel workers finish together
-        order = sorted(range(len(jobs)), key=lambda j: -len(jobs[j][0]))
-        results = [None] * len(jobs)
-        for j, r in zip(order, mapper(_fit_state, [jobs[j] for j in order])):
-            results[j] = r
-        self.models_ = {k: SGPDM.from_state(*r) for k, r in zip(keys, results)}
-        self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         self.n_training_frames_ = n_frames
         self.phone_counts_ = dict(sorted(Counter(lab for s in train for lab in s.labels).items()))
         # per-dimension mean square frame-to-frame motion of the visual features
         self.motion_var_ = np.mean(np.vstack([np.diff(f, axis=0) for f in face if len(f) > 1]) ** 2, 0)
+        # largest first (the fallback, then the capped states): parallel workers finish together
+        order = sorted(range(len(jobs)), key=lambda j: -len(jobs[j][0]))
+        return StateFitPlan([keys[j] for j in order], [jobs[j] for j in order])
+
+    def finish_fit(self, plan: StateFitPlan, results: Sequence[tuple[dict, dict]]) -> SwitchingModel:
+        """The fitted model from :meth:`plan_fit`'s plan and the results of ``fit_state`` on
+        its jobs (same order): each state's SGPDM and its entry distribution (eq. 12), in
+        state order."""
+        if len(results) != len(plan.jobs):
+            raise ValueError(f"finish_fit: the plan has {len(plan.jobs)} state fits, found {len(results)} results")
+        models = dict(zip(plan.keys, results))
+        self.models_ = {k: SGPDM.from_state(*models[k]) for k in sorted(models, key=_state_order)}
+        self.entry_ = {k: self._entry(m) for k, m in self.models_.items()}
         return self
 
     def _cap(self, subs: list, rng: np.random.Generator, cap: int | None = None) -> list:

@@ -16,7 +16,6 @@ synthesis can render without the corpus, and the aligner, and ends with ``bundle
 """
 from __future__ import annotations
 
-import functools
 import inspect
 import os
 from pathlib import Path
@@ -129,13 +128,12 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         # in one of them beside the state models (a plain executor fits it at .result())
         aligner = ex.submit(alignment_commands.fit_alignment, list(corpus.sequences)) if alignment else None
         model, band_cal = new_model(kind, **overrides), None
-        fit = functools.partial(fit_model, workers=workers, executor=ex)
         if calibrate_bands is not None:
             model, band_cal = band_calibration.calibrated_fit(
                 model, corpus.sequences, calibrated_model, holdout=calibrate_bands,
-                seed=model.get_params()["seed"], fit=fit, executor=ex)
+                seed=model.get_params()["seed"], executor=ex)
         else:
-            model = fit(model, list(corpus.sequences))
+            model = fit_model(model, list(corpus.sequences), workers=workers, executor=ex)
         aligner = aligner.result() if aligner is not None else None
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)

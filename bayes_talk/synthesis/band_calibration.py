@@ -604,14 +604,23 @@ def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = 
     :data:`CALIBRATED_MODELS`: "holdout", :func:`holdout_calibrated_model` (one fit); "refit",
     ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits);
     "cv", the same model and :func:`crossfit_band_calibration` (K + 1 fits).
-    The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this."""
+    The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this.
+    With "refit", no ``fit`` and an ``executor`` that runs tasks in other processes, the two
+    fits and the syntheses share the workers' queue (:func:`refit_beside_calibration`: the
+    same model and calibration, in less wall time)."""
     if calibrated_model not in CALIBRATED_MODELS:
         raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
+    if calibrated_model == "refit" and fit is None and getattr(executor, "parallel", False):
+        return refit_beside_calibration(model, train, method, holdout, n_draws, seed, executor, progress)
+    if fit is None:   # through the executor, with a progress bar of the states
+        def fit(m, utterances):
+            from bayes_talk.progress import ProgressMapper
+            return m.fit(utterances, executor=ProgressMapper(executor, "training states", "state"))
     kw = {"method": method, "holdout": holdout, "n_draws": n_draws, "seed": seed, "executor": executor,
           "progress": progress, "fit": fit}
     if calibrated_model == "holdout":
         return holdout_calibrated_model(model, train, **kw)
-    fitted = fit(model, list(train)) if fit is not None else model.fit(list(train), executor=executor)
+    fitted = fit(model, list(train))
     calibrate = crossfit_band_calibration if calibrated_model == "cv" else fit_band_calibration
     return fitted, calibrate(fitted, train, **kw)
 
@@ -637,12 +646,56 @@ def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", ho
     rest = [seqs[i] for i in fit_idx]
     sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
     results = _held_out_syntheses(sub, [seqs[i] for i in held_idx], method, n_draws, seed, executor, say)
-    cal = BandCalibration.fit(results, [seqs[i].aam for i in held_idx], method=method,
-                              names=[seqs[i].name for i in held_idx])
-    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=len(fit_idx),
+    return sub, _holdout_calibration(results, [seqs[i] for i in held_idx], method, holdout, n_draws, seed,
+                                     len(fit_idx), say)
+
+
+def _holdout_calibration(results: Sequence[SynthesisResult], held: Sequence, method: str, holdout: float,
+                         n_draws: int, seed: int, n_fit: int, say: Callable[[str], None]) -> BandCalibration:
+    """The calibration fitted on the syntheses ``results`` of the held-out utterances ``held``,
+    with what it was fitted on recorded in its ``info``."""
+    cal = BandCalibration.fit(results, [s.aam for s in held], method=method, names=[s.name for s in held])
+    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=n_fit,
                     held_out_diagnostics=_synthesis_record(results))
     _say_fitted(cal, say)
-    return sub, cal
+    return cal
+
+
+def refit_beside_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
+                             n_draws: int = 64, seed: int = 0, executor=None,
+                             progress: Callable[[str], None] | None = None) -> tuple[Any, BandCalibration]:
+    """The "refit" scheme of :func:`calibrated_fit` (``model`` fitted on all of ``train``, and
+    :func:`fit_band_calibration` for it) with the executor's workers kept busy (issue 29).
+
+    Done one after the other, the two fits and the syntheses each end with a worker idle
+    while the last task of the phase runs, and each fit's serial part (views, state model,
+    :meth:`~bayes_talk.models.switching.SwitchingModel.plan_fit`) with both idle. Here they
+    form one queue: the calibration model's state fits go to the workers first; this process
+    plans the shipped model meanwhile and queues its state fits behind them; when the
+    calibration model's states are back its held-out syntheses are queued behind the shipped
+    model's states. Every task is the one the sequential scheme runs (the same seeds, one
+    thread each), so the model and the calibration are the sequential scheme's."""
+    from bayes_talk.models.switching import SwitchingModel, fit_state
+    from bayes_talk.progress import bar
+
+    if not isinstance(model, SwitchingModel):
+        raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
+    seqs = list(train)
+    fit_idx, held_idx = split_for_calibration(len(seqs), holdout, seed)
+    say = progress or (lambda msg: log.info("%s", msg))
+    say(f"band calibration: training a {model.name} model on {len(fit_idx)} utterances, "
+        f"holding out {len(held_idx)}; the model on all {len(seqs)} beside it")
+    sub = type(model)(**asdict(model.config))
+    sub_plan = sub.plan_fit([seqs[i] for i in fit_idx])
+    sub_states = [executor.submit(fit_state, job) for job in sub_plan.jobs]
+    plan = model.plan_fit(seqs)
+    states = [executor.submit(fit_state, job) for job in plan.jobs]
+    sub.finish_fit(sub_plan, [p.result() for p in bar(sub_states, len(sub_states),
+                                                      "training states (calibration model)", "state")])
+    held = [seqs[i] for i in held_idx]
+    syntheses = _start_held_out_syntheses(sub, held, method, n_draws, seed, executor, say)
+    model.finish_fit(plan, [p.result() for p in bar(states, len(states), "training states", "state")])
+    return model, _holdout_calibration(syntheses(), held, method, holdout, n_draws, seed, len(fit_idx), say)
 
 
 def _say_fitted(cal: BandCalibration, say: Callable[[str], None]) -> None:
@@ -705,19 +758,34 @@ def _held_out_syntheses(sub, held: Sequence, method: str, n_draws: int, seed: in
     (seeded, warnings recorded and not logged), through ``executor`` when it runs tasks in
     other processes, in chunks of about equal frame count (:func:`balanced_chunks`; a
     synthesis's cost grows with its frames), the results in the order of ``held``."""
+    return _start_held_out_syntheses(sub, held, method, n_draws, seed, executor, say)()
+
+
+def _start_held_out_syntheses(sub, held: Sequence, method: str, n_draws: int, seed: int, executor,
+                              say: Callable[[str], None]) -> Callable[[], list[SynthesisResult]]:
+    """:func:`_held_out_syntheses` in two steps: on an executor with workers the chunks are
+    queued now and the returned function waits for them; otherwise the returned function
+    computes them here, one after another."""
     from bayes_talk.synthesis.posterior import sample_synthesis
 
-    results = []
     if getattr(executor, "parallel", False) and len(held) > 1:
         n_chunks = min(len(held), SYNTHESIS_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
         chunks = balanced_chunks([len(s.mfcc) for s in held], n_chunks)
         jobs = [(sub, [(held[i].mfcc, held[i].labels) for i in c], method, n_draws, seed) for c in chunks]
         say(f"band calibration: synthesising {len(held)} held-out utterances in {len(jobs)} tasks")
-        by_index = {i: r for c, rs in zip(chunks, executor.map(_synthesise_chunk, jobs)) for i, r in zip(c, rs)}
-        return [by_index[i] for i in range(len(held))]
-    for j, s in enumerate(held):
-        results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
-                                        log_warnings=False))
-        if (j + 1) % 10 == 0 or j + 1 == len(held):
-            say(f"band calibration: synthesised {j + 1}/{len(held)} held-out utterances")
-    return results
+        pending = [executor.submit(_synthesise_chunk, job) for job in jobs]
+
+        def collect() -> list[SynthesisResult]:
+            by_index = {i: r for c, p in zip(chunks, pending) for i, r in zip(c, p.result())}
+            return [by_index[i] for i in range(len(held))]
+        return collect
+
+    def serial() -> list[SynthesisResult]:
+        results = []
+        for j, s in enumerate(held):
+            results.append(sample_synthesis(sub, s.mfcc, s.labels, method=method, n_draws=n_draws, seed=seed,
+                                            log_warnings=False))
+            if (j + 1) % 10 == 0 or j + 1 == len(held):
+                say(f"band calibration: synthesised {j + 1}/{len(held)} held-out utterances")
+        return results
+    return serial
