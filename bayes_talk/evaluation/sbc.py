@@ -85,14 +85,21 @@ def default_bins(n_draws: int, n_sims: int) -> int:
     return max(ok)
 
 
+def check_bins(n_draws: int, n_sims: int, bins: int | None = None) -> int:
+    """The number of equal-probability rank bins an SBC of ``n_sims`` simulations and
+    ``n_draws`` ranked draws uses (``bins``, else :func:`default_bins`); a ValueError naming
+    the problem when there is none (so a run can be refused before it simulates)."""
+    B = default_bins(n_draws, n_sims) if bins is None else int(bins)
+    if B < 1 or (n_draws + 1) % B:
+        raise ValueError(f"bins ({B}) must divide n_draws + 1 ({n_draws + 1}) for equal-probability bins")
+    return B
+
+
 def uniformity_test(r: np.ndarray, n_draws: int, bins: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """χ² p-values (K,) of the rank histograms r (N, K) in ``bins`` equal-probability bins of
     {0..L}, their Holm adjustment (K,), and the number of bins."""
     r = np.asarray(r)
-    N = r.shape[0]
-    B = default_bins(n_draws, N) if bins is None else int(bins)
-    if (n_draws + 1) % B:
-        raise ValueError(f"bins ({B}) must divide n_draws + 1 ({n_draws + 1}) for equal-probability bins")
+    B = check_bins(n_draws, r.shape[0], bins)
     if np.any(r < 0) or np.any(r > n_draws):
         raise ValueError(f"ranks must lie in 0..{n_draws}")
     b = (r * B) // (n_draws + 1)
@@ -181,6 +188,7 @@ def run_sbc(simulate: Callable[[np.random.Generator], tuple[np.ndarray, object]]
     (M ≥ n_draws; thinned to ``n_draws`` evenly spaced draws)."""
     if n_sims < 10:
         raise ValueError(f"n_sims must be >= 10, got {n_sims}")
+    check_bins(n_draws, n_sims, bins)   # before the sampler runs n_sims times, not after
     rng = np.random.default_rng(seed)
     truth, draws = [], []
     for i in range(n_sims):
