@@ -22,7 +22,7 @@ draws are thinned evenly from the pooled chains; Talts et al. §4.1). Power of t
     PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
         [--start 10] [--frames 4] [--sims 200] [--nuts-sims N] [--emcee-sims N] [--rank-draws 19]
         [--smoothness frame|off]
-        [--methods nuts,laplace,laplace-halved,laplace-0.85sd,emcee] [--out benchmarks/results/sbc.json]
+        [--methods nuts,laplace,laplace-halved,laplace-0.85sd,emcee] [--workers 2] [--out benchmarks/results/sbc.json]
 
 Without ``--model``: a toy switching model (tests/toydata.py, the test configuration) and
 the labels of a toy utterance. Writes JSON after each sampler (atomic replace).
@@ -43,6 +43,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
+from bayes_talk.executor import executor_for
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -85,6 +86,8 @@ def main() -> None:
     ap.add_argument("--nuts-draws", type=int, default=100, help="NUTS draws per chain")
     ap.add_argument("--methods", default="nuts,laplace,laplace-halved,laplace-0.85sd,emcee")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="worker processes for the simulations' posterior runs (same ranks; default: this process)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "sbc.json")
     args = ap.parse_args()
     if args.model and not args.corpus:
@@ -123,8 +126,9 @@ def main() -> None:
         print(f"{method}: {n} simulations ...", flush=True)
         t0 = time.perf_counter()
         load0 = os.getloadavg()[0]
-        r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed,
-                          smoothness=args.smoothness)
+        with executor_for(None, args.workers) as ex:
+            r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed,
+                              smoothness=args.smoothness, executor=ex)
         out = r.to_dict()   # its "verdict": the combined verdict (sbc_power.combined_verdict)
         if "worst_ess_bulk_min" in r.info and method in ("nuts", "pg-nuts", "emcee"):
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)

@@ -15,6 +15,7 @@ from bayes_talk.evaluation.sbc import (
     holm,
     ranks,
     run_sbc,
+    sampler_posterior,
     scaled_laplace,
     synthesis_sbc,
     uniformity_test,
@@ -125,6 +126,43 @@ def test_sbc_rejects_laplace_with_halved_variance_on_the_synthesis_model(toy):
     assert res.ranks.shape == (40, 15)
     assert not res.passed, res.to_dict()
     assert res.extreme_fraction > 2 * res.extreme_expected
+
+
+class _PickledPool:
+    """A parallel executor stand-in: every task and result goes through pickle, as in a
+    process pool, but runs here, last chunk first (results are still returned in order)."""
+
+    parallel = True
+    n_workers = 2
+
+    def __init__(self):
+        self.tasks = []
+
+    def map(self, fn, items, desc=None, unit="task"):
+        import pickle
+
+        from bayes_talk.executor import run_task
+
+        items = [pickle.dumps((fn, x)) for x in items]
+        self.tasks.append(len(items))
+        out = {j: pickle.loads(pickle.dumps(run_task(*pickle.loads(b)))) for j, b in reversed(list(enumerate(items)))}
+        return [out[j] for j in range(len(items))]
+
+
+@pytest.mark.parametrize("make_posterior", [lambda: scaled_laplace(0.5, n_draws=40),
+                                            lambda: sampler_posterior("laplace", n_draws=40)])
+def test_sbc_through_a_parallel_executor_gives_the_serial_ranks(toy, make_posterior):
+    """The simulations' posterior runs go to the executor in 8 chunks (picklable posteriors)
+    and the ranks, diagnostics and verdict equal the serial run's."""
+    model, test = toy
+    labels = test[0].labels[2:6]
+    one = synthesis_sbc(model, labels, make_posterior(), n_sims=20, n_draws=11, seed=3)
+    pool = _PickledPool()
+    two = synthesis_sbc(model, labels, make_posterior(), n_sims=20, n_draws=11, seed=3, executor=pool)
+    assert pool.tasks == [8]
+    np.testing.assert_array_equal(two.ranks, one.ranks)
+    assert two.to_dict()["p_values"] == one.to_dict()["p_values"]
+    assert {k: v for k, v in two.info.items() if k != "seconds"} == {k: v for k, v in one.info.items() if k != "seconds"}
 
 
 def test_prior_predictive_simulates_the_synthesis_model(toy):

@@ -88,7 +88,10 @@ def default_bins(n_draws: int, n_sims: int) -> int:
 def check_bins(n_draws: int, n_sims: int, bins: int | None = None) -> int:
     """The number of equal-probability rank bins an SBC of ``n_sims`` simulations and
     ``n_draws`` ranked draws uses (``bins``, else :func:`default_bins`); a ValueError naming
-    the problem when there is none (so a run can be refused before it simulates)."""
+    the problem when there is none or there are fewer than 10 simulations (so a run can be
+    refused before it simulates)."""
+    if n_sims < 10:
+        raise ValueError(f"n_sims must be >= 10, got {n_sims}")
     B = default_bins(n_draws, n_sims) if bins is None else int(bins)
     if B < 1 or (n_draws + 1) % B:
         raise ValueError(f"bins ({B}) must divide n_draws + 1 ({n_draws + 1}) for equal-probability bins")
@@ -186,8 +189,6 @@ def run_sbc(simulate: Callable[[np.random.Generator], tuple[np.ndarray, object]]
             bins: int | None = None, alpha: float = ALPHA) -> SBCResult:
     """SBC with ``simulate(rng) -> (θ̃ (K,), ỹ)`` and ``posterior(ỹ, seed) -> draws (M, K)``
     (M ≥ n_draws; thinned to ``n_draws`` evenly spaced draws)."""
-    if n_sims < 10:
-        raise ValueError(f"n_sims must be >= 10, got {n_sims}")
     check_bins(n_draws, n_sims, bins)   # before the sampler runs n_sims times, not after
     rng = np.random.default_rng(seed)
     truth, draws = [], []
@@ -208,40 +209,68 @@ def _smooth_kw(smooth_shift: np.ndarray | None) -> dict:
     return {"smoothness": "off"} if smooth_shift is None else {"smoothness": "frame", "smooth_shift": smooth_shift}
 
 
+@dataclass(frozen=True)
+class _SamplerPosterior:
+    """:func:`sampler_posterior`'s posterior (a module-level class, so that process pools can
+    pickle it)."""
+
+    method: str
+    n_draws: int | None
+    kw: dict
+
+    def __call__(self, model, audio, labels, seed, smooth_shift=None):
+        from bayes_talk.synthesis.posterior import sample_synthesis
+
+        r = sample_synthesis(model, audio, labels, method=self.method, n_draws=self.n_draws, seed=seed,
+                             log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift), **self.kw)
+        return r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1]), r.diagnostics
+
+
+@dataclass(frozen=True)
+class _ScaledLaplace:
+    """:func:`scaled_laplace`'s posterior (picklable, as :class:`_SamplerPosterior`)."""
+
+    scale: float
+    n_draws: int
+
+    def __call__(self, model, audio, labels, seed, smooth_shift=None):
+        from bayes_talk.synthesis.posterior import sample_synthesis
+
+        r = sample_synthesis(model, audio, labels, method="laplace", n_draws=self.n_draws, seed=seed,
+                             log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift))
+        X = r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1])
+        x_map = r.map_latents.reshape(-1)
+        return x_map + np.sqrt(self.scale) * (X - x_map), r.diagnostics
+
+
 def sampler_posterior(method: str, n_draws: int | None = None, **kw) -> SynthesisPosterior:
     """A posterior for :func:`synthesis_sbc`: ``sample_synthesis(method=...)`` on the
     simulated audio as the audio view it is (``audio_view=True``: with ``audio_context`` > 0
     it must not be spliced and projected again), smoothness off when ``smooth_shift`` is None
     and on with the simulated pseudo-observations u otherwise; returns (pooled latent draws
     (M, T·d), diagnostics)."""
-    from bayes_talk.synthesis.posterior import sample_synthesis
-
-    def post(model, audio, labels, seed, smooth_shift=None):
-        r = sample_synthesis(model, audio, labels, method=method, n_draws=n_draws, seed=seed, log_warnings=False,
-                             audio_view=True, **_smooth_kw(smooth_shift), **kw)
-        return r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1]), r.diagnostics
-
-    return post
+    return _SamplerPosterior(method, n_draws, dict(kw))
 
 
 def scaled_laplace(scale: float, n_draws: int = 200) -> SynthesisPosterior:
     """Laplace draws x_MAP + √scale (x − x_MAP): the Laplace posterior with its covariance
     multiplied by ``scale`` (a deliberately wrong posterior for ``scale`` ≠ 1)."""
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    return _ScaledLaplace(float(scale), int(n_draws))
 
-    def post(model, audio, labels, seed, smooth_shift=None):
-        r = sample_synthesis(model, audio, labels, method="laplace", n_draws=n_draws, seed=seed,
-                             log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift))
-        X = r.latent_draws.reshape(-1, r.latent_draws.shape[-2] * r.latent_draws.shape[-1])
-        x_map = r.map_latents.reshape(-1)
-        return x_map + np.sqrt(scale) * (X - x_map), r.diagnostics
 
-    return post
+def _posterior_chunk(job: tuple) -> list[tuple[np.ndarray, dict]]:
+    """The posterior runs of one chunk of SBC simulations (module-level: process pools pickle it)."""
+    post, model, labels, runs = job
+    return [post(model, audio, labels, seed, u) for audio, seed, u in runs]
+
+
+#: SBC simulations' posterior runs per worker process when they run in parallel
+SBC_CHUNKS_PER_WORKER = 4
 
 
 def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior | str = "nuts", n_sims: int = 200,
                   n_draws: int = 19, seed: int = 0, bins: int | None = None, alpha: float = ALPHA,
-                  smoothness: str = "frame", **sampler_kw) -> SBCResult:
+                  smoothness: str = "frame", executor=None, **sampler_kw) -> SBCResult:
     """SBC of the synthesis model of ``model`` on the frame labels ``labels`` (T frames; keep T
     small: every simulation runs the sampler once). ``posterior``: a method name for
     :func:`sampler_posterior` (with ``sampler_kw``) or a callable
@@ -252,13 +281,20 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     (None with ``smoothness="off"``), to be passed on as ``sample_synthesis(...,
     smoothness="frame", smooth_shift=u)``. ``n_draws`` (L): draws
     ranked per simulation, after thinning. ``info`` records the sampler diagnostics
-    (worst R-hat, smallest bulk ESS, k̂, divergences over the simulations) and seconds."""
+    (worst R-hat, smallest bulk ESS, k̂, divergences over the simulations) and seconds.
+
+    ``executor`` (bayes_talk.executor, e.g. ``ProcessExecutor(2)``): when it runs tasks in
+    other processes, the simulations' posterior runs go to it in contiguous chunks (a
+    posterior must then be picklable: :func:`sampler_posterior` and :func:`scaled_laplace`
+    are). Each run is seeded by its simulation (seed + 1000 + i), so the ranks do not depend
+    on the executor."""
     import time
 
     from bayes_talk.synthesis.joint import make_plan
     from bayes_talk.synthesis.predictive_checks import prior_predictive
 
     labels = list(labels)
+    check_bins(n_draws, n_sims, bins)
     post = sampler_posterior(posterior, **sampler_kw) if isinstance(posterior, str) else posterior
     # the plan's audio is a placeholder: the prior predictive simulates it (and u)
     plan = make_plan(model, np.zeros((len(labels), model.dims_[0])), labels, smoothness=smoothness)
@@ -270,11 +306,19 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
 
     def simulate(rng):
         i = next(it)
-        return X[i].reshape(-1), (i, audio[i])
+        return X[i].reshape(-1), i
 
-    def sample(y, s):
-        i, a = y
-        draws, diag = post(model, a, labels, seed + 1000 + i, U[i] if smooth_on else None)
+    runs = [(audio[i], seed + 1000 + i, U[i] if smooth_on else None) for i in range(n_sims)]
+    done: dict[int, tuple[np.ndarray, dict]] = {}
+    if getattr(executor, "parallel", False) and n_sims > 1:
+        n_chunks = min(n_sims, SBC_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
+        bounds = np.linspace(0, n_sims, n_chunks + 1).round().astype(int)
+        outs = executor.map(_posterior_chunk, [(post, model, labels, runs[a:b]) for a, b in zip(bounds, bounds[1:])])
+        done = {i: r for a, rs in zip(bounds, outs) for i, r in enumerate(rs, start=int(a))}
+
+    def sample(i, s):
+        a, run_seed, u = runs[i]
+        draws, diag = done.pop(i) if i in done else post(model, a, labels, run_seed, u)
         diags.append(diag)
         return draws
 
