@@ -40,6 +40,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -313,7 +314,7 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     if getattr(executor, "parallel", False) and n_sims > 1:
         n_chunks = min(n_sims, SBC_CHUNKS_PER_WORKER * max(1, int(getattr(executor, "n_workers", 2))))
         bounds = np.linspace(0, n_sims, n_chunks + 1).round().astype(int)
-        outs = executor.map(_posterior_chunk, [(post, model, labels, runs[a:b]) for a, b in zip(bounds, bounds[1:])])
+        outs = executor.map(_posterior_chunk, [(post, model, labels, runs[a:b]) for a, b in pairwise(bounds)])
         done = {i: r for a, rs in zip(bounds, outs) for i, r in enumerate(rs, start=int(a))}
 
     def sample(i, s):

@@ -76,11 +76,11 @@ def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
                 a3 -= lij * v[t + 3, j]
             v[t, i], v[t + 1, i], v[t + 2, i], v[t + 3, i] = a0 / piv, a1 / piv, a2 / piv, a3 / piv
             t += 4
-        for t in range(t, T):
-            acc = k[t, i]
+        for r in range(t, T):
+            acc = k[r, i]
             for j in range(i):
-                acc -= L[i, j] * v[t, j]
-            v[t, i] = acc / piv
+                acc -= L[i, j] * v[r, j]
+            v[r, i] = acc / piv
     return v
 
 
