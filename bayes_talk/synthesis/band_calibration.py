@@ -633,21 +633,28 @@ def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", ho
     utterances of ``train`` outside the seeded ``holdout`` fraction, and the calibration of
     its ``method`` posterior fitted on the held-out ones (see :func:`fit_band_calibration`
     for the arguments). ``model`` itself is only read for its configuration."""
+    seqs, fit_idx, held_idx, sub, say = _calibration_split(model, train, holdout, seed, progress)
+    rest = [seqs[i] for i in fit_idx]
+    sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
+    results = _held_out_syntheses(sub, [seqs[i] for i in held_idx], method, n_draws, seed, executor, say)
+    return sub, _holdout_calibration(results, [seqs[i] for i in held_idx], method, holdout, n_draws, seed,
+                                     len(fit_idx), say)
+
+
+def _calibration_split(model, train: Sequence, holdout: float, seed: int, progress: Callable[[str], None] | None,
+                       also: str = "") -> tuple[list, list[int], list[int], Any, Callable[[str], None]]:
+    """(the utterances, fit indices, held-out indices, an unfitted model of ``model``'s
+    configuration, the progress function) of a held-out calibration, the split announced."""
     from bayes_talk.models.switching import SwitchingModel
-    
+
     if not isinstance(model, SwitchingModel):
         raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
     seqs = list(train)
     fit_idx, held_idx = split_for_calibration(len(seqs), holdout, seed)
     say = progress or (lambda msg: log.info("%s", msg))
     say(f"band calibration: training a {model.name} model on {len(fit_idx)} utterances, "
-        f"holding out {len(held_idx)}")
-    sub = type(model)(**asdict(model.config))
-    rest = [seqs[i] for i in fit_idx]
-    sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
-    results = _held_out_syntheses(sub, [seqs[i] for i in held_idx], method, n_draws, seed, executor, say)
-    return sub, _holdout_calibration(results, [seqs[i] for i in held_idx], method, holdout, n_draws, seed,
-                                     len(fit_idx), say)
+        f"holding out {len(held_idx)}{also}")
+    return seqs, fit_idx, held_idx, type(model)(**asdict(model.config)), say
 
 
 def _holdout_calibration(results: Sequence[SynthesisResult], held: Sequence, method: str, holdout: float,
@@ -675,17 +682,11 @@ def refit_beside_calibration(model, train: Sequence, method: str = "laplace", ho
     calibration model's states are back its held-out syntheses are queued behind the shipped
     model's states. Every task is the one the sequential scheme runs (the same seeds, one
     thread each), so the model and the calibration are the sequential scheme's."""
-    from bayes_talk.models.switching import SwitchingModel, fit_state
+    from bayes_talk.models.switching import fit_state
     from bayes_talk.progress import bar
 
-    if not isinstance(model, SwitchingModel):
-        raise TypeError(f"band calibration needs a switching SGPDM, found {type(model).__name__}")
-    seqs = list(train)
-    fit_idx, held_idx = split_for_calibration(len(seqs), holdout, seed)
-    say = progress or (lambda msg: log.info("%s", msg))
-    say(f"band calibration: training a {model.name} model on {len(fit_idx)} utterances, "
-        f"holding out {len(held_idx)}; the model on all {len(seqs)} beside it")
-    sub = type(model)(**asdict(model.config))
+    seqs, fit_idx, held_idx, sub, say = _calibration_split(model, train, holdout, seed, progress,
+                                                           f"; the model on all {len(train)} beside it")
     sub_plan = sub.plan_fit([seqs[i] for i in fit_idx])
     sub_states = [executor.submit(fit_state, job) for job in sub_plan.jobs]
     plan = model.plan_fit(seqs)
