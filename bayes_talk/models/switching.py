@@ -15,6 +15,9 @@ dynamics fixed at signal-to-noise 100:1, d = 6. At most ``max_frames_per_state``
 per state (a seeded random choice of whole subsequences) bound the O(N³) cost. States are
 independent, so they are fitted through ``executor.map`` (any ``concurrent.futures``
 executor, or a Dask/Ray one with the same ``map``); the default runs them in turn.
+``fit`` is :meth:`SwitchingModel.plan_fit` (this process), the state fits
+(:func:`fit_state`), :meth:`SwitchingModel.finish_fit`: a caller can queue the state fits
+itself beside other work (the band calibration's "refit" scheme does).
 
 Back-off: a state with fewer than ``min_frames_per_state`` training frames gets no model
 of its own; at synthesis it uses the model of its longest suffix that has one, and a
