@@ -130,11 +130,14 @@ def main() -> None:
             r = synthesis_sbc(model, labels, posteriors[method](), n_sims=n, n_draws=args.rank_draws, seed=args.seed,
                               smoothness=args.smoothness, executor=ex)
         out = r.to_dict()   # its "verdict": the combined verdict (sbc_power.combined_verdict)
+        # the ranks themselves (n_sims, coordinates): runs with other --seed values simulate
+        # other trajectories, so their ranks can be pooled into one larger SBC
+        out["ranks"] = r.ranks.tolist()
         if "worst_ess_bulk_min" in r.info and method in ("nuts", "pg-nuts", "emcee"):
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
         res["samplers"][method] = out
-        print(json.dumps({k: v for k, v in out.items() if k != "p_values"}, default=str), flush=True)
+        print(json.dumps({k: v for k, v in out.items() if k not in ("p_values", "ranks")}, default=str), flush=True)
         save()
     res["complete"] = True
     save()
