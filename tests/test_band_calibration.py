@@ -360,8 +360,9 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
 def test_the_refit_scheme_on_workers_gives_the_sequential_model_and_calibration():
     """Issue 29: ``calibrated_fit(..., "refit")`` on an executor with workers queues the
     calibration model's state fits, the shipped model's and the held-out syntheses as one
-    queue (refit_beside_calibration); the shipped model (every state's arrays, the views,
-    the entry distributions) and the calibration equal the sequential scheme's."""
+    queue (refit_beside_calibration; without an executor, the same queue in this process);
+    the shipped model (every state's arrays, the views, the entry distributions) and the
+    calibration equal the sequential scheme's."""
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
@@ -370,7 +371,10 @@ def test_the_refit_scheme_on_workers_gives_the_sequential_model_and_calibration(
     train = make_utterances(10, seed=4, mean_len=30)
     small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90,
              "context_view": 2, "context_mean": True}
-    m1, c1 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1)
+    # a fit callable keeps the sequential scheme: fit on all, then fit_band_calibration
+    m1, c1 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1,
+                            fit=lambda m, utterances: m.fit(utterances))
+    m0, c0 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1)
     pool = _PickledPool()
     m2, c2 = calibrated_fit(SwitchingSGPDM(**small), train, "refit", holdout=0.3, n_draws=16, seed=1, executor=pool)
     n_sub = pool.submitted.index("_synthesise_chunk")
@@ -388,6 +392,10 @@ def test_the_refit_scheme_on_workers_gives_the_sequential_model_and_calibration(
     assert c2.held_out == c1.held_out and c1.info["n_fit"] == c2.info["n_fit"] == 7
     for name in ("scale", "mean_scale", "level_raw", "control_var", "pool_weight"):
         np.testing.assert_array_equal(getattr(c2, name), getattr(c1, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(c0, name), getattr(c1, name), err_msg=name)
+    arr0 = m0.state()[1]        # no executor: the same queue run in this process
+    for k in arr1:
+        np.testing.assert_array_equal(arr0[k], arr1[k], err_msg=k)
 
 
 def test_balanced_chunks_partition_the_items_by_longest_processing_time_first():

@@ -605,12 +605,12 @@ def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = 
     ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits);
     "cv", the same model and :func:`crossfit_band_calibration` (K + 1 fits).
     The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this.
-    With "refit", no ``fit`` and an ``executor`` that runs tasks in other processes, the two
-    fits and the syntheses share the workers' queue (:func:`refit_beside_calibration`: the
-    same model and calibration, in less wall time)."""
+    With "refit" and no ``fit``, the two fits and the syntheses share the executor's queue
+    (:func:`refit_beside_calibration`; without workers they run one after another in this
+    process, with the same results)."""
     if calibrated_model not in CALIBRATED_MODELS:
         raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
-    if calibrated_model == "refit" and fit is None and getattr(executor, "parallel", False):
+    if calibrated_model == "refit" and fit is None:
         return refit_beside_calibration(model, train, method, holdout, n_draws, seed, executor, progress)
     if fit is None:   # through the executor, with a progress bar of the states
         def fit(m, utterances):
@@ -681,9 +681,14 @@ def refit_beside_calibration(model, train: Sequence, method: str = "laplace", ho
     plans the shipped model meanwhile and queues its state fits behind them; when the
     calibration model's states are back its held-out syntheses are queued behind the shipped
     model's states. Every task is the one the sequential scheme runs (the same seeds, one
-    thread each), so the model and the calibration are the sequential scheme's."""
+    thread each), so the model and the calibration are the sequential scheme's. Without an
+    executor (None) or on one without workers the tasks run in this process, each when its
+    result is first asked for (:meth:`bayes_talk.executor.Executor.submit`)."""
+    from bayes_talk.executor import LocalExecutor
     from bayes_talk.models.switching import fit_state
     from bayes_talk.progress import bar
+
+    executor = executor if executor is not None else LocalExecutor()
 
     seqs, fit_idx, held_idx, sub, say = _calibration_split(model, train, holdout, seed, progress,
                                                            f"; the model on all {len(train)} beside it")
