@@ -1,0 +1,163 @@
+"""What the band calibration's budget costs in training time and buys in calibration (issue 29).
+
+``bayes-talk train`` spends most of its time on the band calibration: a second fit of the
+state models (``--calibrated-model refit``) and the posterior synthesis of the held-out
+training utterances (``--calibrate-bands FRACTION``, 20 % by default). This script trains
+the same family under several calibration budgets, one after another on the same machine,
+and scores each model on a *test corpus* of sentences it never saw, the way a user's
+recordings arrive:
+
+* per configuration: ``bayes-talk train`` wall and CPU time (the train process and its
+  workers, ``os.getloadavg()`` around it), then the calibrated posterior (``--posterior``,
+  the calibrated method, Laplace by default) of every test utterance through
+  ``TrainedModel.model.predict_dist`` in ``--workers`` spawned processes;
+* scores over the test utterances (:func:`bayes_talk.evaluation.calibration.summarise_calibration`):
+  pooled 50 % / 90 % coverage, NLPD and CRPS per entry, the fraction of AAM parameters
+  whose 90 % coverage lies in 0.85-0.95, and AMSE of the mean (deena2010 §5);
+* paired against the first configuration (the reference, the default budget): the
+  difference of NLPD and CRPS per entry with its cluster-robust standard error over
+  utterances (:func:`bayes_talk.evaluation.calibration.ratio_se`), since every model is
+  scored on the same utterances.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/calibration_budget.py data/train250 --test data/dev40 \\
+        --configs refit:0.2,holdout:0.1,holdout:0.05,refit:0.05 \\
+        --out benchmarks/results/calibration_budget_dev.json
+
+A configuration is ``SCHEME:FRACTION`` (``train --calibrated-model SCHEME --calibrate-bands
+FRACTION``). The test utterances' AAM parameters are projected on the trained model's AAM
+(as ``evaluate --test-corpus`` does). Paths in the JSON are relative to the repository.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from train_speed import run_train
+
+from bayes_talk.evaluation.calibration import ratio_se, score_utterance, summarise_calibration
+from bayes_talk.evaluation.metrics import amse
+from bayes_talk.files import write_json
+
+_LOADED: dict = {}
+
+
+def _score_one(job: tuple[str, str, str, str]) -> dict:
+    """The calibrated posterior of one test utterance and its scores (runs in a worker)."""
+    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.pipeline import load_trained
+
+    model_dir, test, name, posterior = job
+    if (model_dir, test) not in _LOADED:
+        _LOADED.clear()
+        _LOADED[(model_dir, test)] = (load_trained(model_dir).model,
+                                      {u.name: u for u in load_corpus(test, aam=Path(model_dir) / "aam.npz")})
+    model, utts = _LOADED[(model_dir, test)]
+    u = utts[name]
+    r = model.predict_dist(u, posterior=posterior)
+    return {"name": name, "score": score_utterance(r, u.aam), "mean": r.mean, "truth": u.aam}
+
+
+def score_model(model_dir: Path, test: str, names: list[str], posterior: str, workers: int) -> dict:
+    """Scores of the calibrated posterior of ``model_dir`` on the utterances ``names`` of ``test``."""
+    jobs = [(str(model_dir), test, n, posterior) for n in names]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+        out = list(ex.map(_score_one, jobs))
+    scores = [o["score"] for o in out]
+    summary = summarise_calibration(scores)
+    return {"summary": {"coverage_90": summary["coverage"]["0.9"]["pooled"],
+                        "coverage_50": summary["coverage"]["0.5"]["pooled"],
+                        "nlpd": summary["nlpd"], "crps": summary["crps"],
+                        "params_in_range_90": summary["params_in_range_90"],
+                        "amse": amse([o["truth"] for o in out], [o["mean"] for o in out])},
+            "per_utterance": {"name": [o["name"] for o in out],
+                              "entries": [int(s.n_frames * s.nlpd.size) for s in scores],
+                              "nlpd": [float(s.nlpd.sum()) for s in scores],
+                              "crps": [float(s.crps.sum()) for s in scores]},
+            "score_wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def paired(a: dict, ref: dict) -> dict:
+    """NLPD and CRPS per entry of ``a`` minus those of ``ref`` (same utterances), with SEs."""
+    if a["per_utterance"]["name"] != ref["per_utterance"]["name"]:
+        raise ValueError("paired: the two configurations were scored on different utterances")
+    e = np.asarray(ref["per_utterance"]["entries"], np.float64)
+    out = {}
+    for key in ("nlpd", "crps"):
+        d = np.asarray(a["per_utterance"][key]) - np.asarray(ref["per_utterance"][key])
+        r, se = ratio_se(d, e)
+        out[key] = {"diff": r, "se": se}
+    return out
+
+
+def parse_configs(text: str) -> list[tuple[str, float]]:
+    """``refit:0.2,holdout:0.05`` → [("refit", 0.2), ("holdout", 0.05)], checked."""
+    out = []
+    for part in text.split(","):
+        scheme, _, frac = part.strip().partition(":")
+        if scheme not in ("refit", "holdout", "cv") or not frac:
+            raise SystemExit(f"--configs: {part!r} is not SCHEME:FRACTION with SCHEME refit, holdout or cv")
+        f = float(frac)
+        if not 0.0 < f < 1.0:
+            raise SystemExit(f"--configs: fraction {f} in {part!r} is not in (0, 1)")
+        out.append((scheme, f))
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("corpus", help="training corpus")
+    ap.add_argument("--test", required=True, help="test corpus (sentences not in the training corpus)")
+    ap.add_argument("--configs", default="refit:0.2,holdout:0.05", help="SCHEME:FRACTION,...; the first is "
+                    "the reference the others are paired against")
+    ap.add_argument("--model", default=None, help="train --model (default: train's default family)")
+    ap.add_argument("--posterior", default="laplace", help="the calibrated posterior method")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    configs = parse_configs(args.configs)
+    from bayes_talk.data.corpus import load_corpus
+
+    names = [u.name for u in load_corpus(args.test)]
+    corpus = str(Path(args.corpus).resolve())
+    extra = ["--model", args.model] if args.model else []
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="calibration_budget_") as tmp:
+        for i, (scheme, frac) in enumerate(configs):
+            out = Path(tmp) / f"model_{i}"
+            cfg = ["--calibrated-model", scheme, "--calibrate-bands", str(frac), "--workers", str(args.workers)]
+            timing = run_train(ROOT, corpus, out, extra + cfg, {})
+            scores = score_model(out, str(Path(args.test).resolve()), names, args.posterior, args.workers)
+            run = {"scheme": scheme, "fraction": frac, "train": timing, **scores}
+            if runs:
+                run["vs_reference"] = paired(run, runs[0])
+            runs.append(run)
+            s = run["summary"]
+            print(f"{scheme}:{frac} train {timing['wall_s']} s; cov90 {s['coverage_90']:.3f} nlpd "
+                  f"{s['nlpd']['mean']:.4f} crps {s['crps']['mean']:.4f} amse {s['amse']:.3f}"
+                  + (f"; vs reference nlpd {run['vs_reference']['nlpd']['diff']:+.4f}"
+                     f"±{run['vs_reference']['nlpd']['se']:.4f}" if "vs_reference" in run else ""), flush=True)
+    result = {"benchmark": "calibration_budget", "issue": 29,
+              "corpus": os.path.relpath(corpus, ROOT), "test": os.path.relpath(Path(args.test).resolve(), ROOT),
+              "model": args.model or "default", "posterior": args.posterior, "workers": args.workers,
+              "commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                                       check=False, capture_output=True, text=True).stdout.strip(),
+              "cpus": os.cpu_count(), "runs": runs}
+    write_json(args.out, result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
