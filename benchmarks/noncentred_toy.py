@@ -59,6 +59,10 @@ def main() -> None:
     ap.add_argument("--pg-backward", action="store_true", help="backward simulation instead of ancestor sampling (pg-nuts)")
     ap.add_argument("--pg-frame-tries", type=int, default=None,
                     help="K-try Metropolis updates of isolated frames after each sweep (pg-nuts)")
+    ap.add_argument("--pg-coords", default=None,
+                    help="the NUTS coordinates of pg-nuts (noncentred or noncentred-whitened; default: its own)")
+    ap.add_argument("--pg-frame-modes", choices=("on", "off"), default=None,
+                    help="the isolated frames' tries from their own modes or from the sweep's proposal (pg-nuts)")
     ap.add_argument("--pg-every", type=int, default=None, help="a particle Gibbs sweep after every k-th iteration (pg-nuts)")
     ap.add_argument("--save-draws", type=Path, default=None,
                     help="write the latent draws (chains, draws, T, d) and the lp per draw to this .npz (for analysis)")
@@ -80,11 +84,18 @@ def main() -> None:
             continue
         t0 = time.perf_counter()
         method = "pg-nuts" if coords == "pg-nuts" else "nuts"   # pg-nuts: its own defaults (non-centred)
-        skw = {"pg_particles": args.pg_particles} if method == "pg-nuts" else {"coords": coords}
+        if method == "pg-nuts":
+            skw = {"pg_particles": args.pg_particles}
+            if args.pg_coords:
+                skw["coords"] = args.pg_coords
+        else:
+            skw = {"coords": coords}
         if args.pg_every is not None and method == "pg-nuts":
             skw["pg_every"] = args.pg_every
         if args.pg_frame_tries is not None and method == "pg-nuts":
             skw["pg_frame_tries"] = args.pg_frame_tries
+        if args.pg_frame_modes is not None and method == "pg-nuts":
+            skw["pg_frame_modes"] = args.pg_frame_modes == "on"
         if args.pg_backward and method == "pg-nuts":
             skw["pg_backward"] = True
         if args.workers:
@@ -101,7 +112,8 @@ def main() -> None:
             **{k: d.get(k) for k in ("divergences", "ebfmi_min", "step_size", "n_steps_mean", "tree_depth_mean",
                                      "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
                                      "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
-                                     "pg_h", "pg_mode_centres", "pg_particles", "pg_every", "pg_backward", "pg_frame_tries")},
+                                     "pg_h", "pg_mode_centres", "pg_particles", "coords", "pg_every", "pg_backward", "pg_frame_tries",
+                                     "pg_frame_modes")},
             # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
             "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
             # pg-nuts: how often the sweeps after the warm-up changed each frame (per chain)

@@ -24,7 +24,7 @@ utterances whose joint MAP converged).
         [--nuts-warmup 150] [--emcee-warmup 500] [--methods map,laplace,nuts,emcee]
         [--out benchmarks/results/posterior.json]
 
-Sampler efficiency (``--efficiency``, issue 10): NUTS, emcee and VI (and Laplace) with their
+Sampler efficiency (``--efficiency``, issue 10): NUTS, pg-nuts, emcee and VI (and Laplace) with their
 library defaults, side by side in one run, on one held-out utterance of a trained model
 (``--model DIR --test-corpus DIR --utterance NAME``, its first ``--frames`` frames; the
 corpus is projected through the training AAM given by ``--aam``). Per sampler: wall
@@ -37,7 +37,10 @@ bound, flagged ``seconds_to_ess_400_is_lower_bound``). VI and Laplace draw iid f
 approximation q: their row holds PSIS k̂ and the PSIS effective sample size of the k̂
 draws (and ESS per second), ``reliable`` only where k̂ ≤ 0.7. ``--nuts-chains``, ``--nuts-warmup``,
 ``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
-``budget``). Writes ``benchmarks/results/posterior_efficiency.json``:
+``budget``); ``--workers`` runs NUTS/pg-nuts chains in that many processes, ``--coords``
+sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off`` pg-nuts's updates of the
+isolated frames (``sampler_kw``; default: the library's). NUTS and pg-nuts rows also hold the AAM parameters'
+``aam_rhat_max``, ``aam_ess_bulk_min`` and ``aam_ess_tail_min`` (what users consume). Writes ``benchmarks/results/posterior_efficiency.json``:
 
     PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
         --test-corpus data/v2/heldout40 --aam data/v2/train250/aam.npz \
@@ -111,7 +114,7 @@ def _efficiency_budget(args, method: str) -> dict:
     """``sample_synthesis`` keywords overriding the library defaults (``--nuts-chains``,
     ``--nuts-warmup``, ``--draws`` (pooled over chains), ``--emcee-warmup``); {} = the defaults."""
     out = {}
-    if method == "nuts":
+    if method in ("nuts", "pg-nuts"):
         if args.nuts_chains is not None:
             out["chains"] = args.nuts_chains
         if args.nuts_warmup is not None:
@@ -138,15 +141,23 @@ def efficiency(args) -> None:
            "ess_target": 400, "samplers": {}}
     out_path = args.out if args.out != HERE / "results" / "posterior.json" else HERE / "results" / "posterior_efficiency.json"
     for method in args.methods.split(","):
-        if method not in ("nuts", "emcee", "vi", "laplace"):
-            raise SystemExit(f"--efficiency compares nuts, emcee, vi and laplace, got {method!r}")
+        if method not in ("nuts", "pg-nuts", "emcee", "vi", "laplace"):
+            raise SystemExit(f"--efficiency compares nuts, pg-nuts, emcee, vi and laplace, got {method!r}")
         print(f"{method} ...", flush=True)
         load0 = os.getloadavg()[0]
         t0 = time.perf_counter()
-        skw = {"max_steps": args.emcee_max_steps} if method == "emcee" and args.emcee_max_steps else None
+        skw = {"max_steps": args.emcee_max_steps} if method == "emcee" and args.emcee_max_steps else {}
+        if method in ("nuts", "pg-nuts") and args.workers:
+            skw["workers"] = args.workers
+        if method in ("nuts", "pg-nuts") and args.coords:
+            skw["coords"] = args.coords
+        if method == "pg-nuts" and args.pg_frame_tries is not None:
+            skw["pg_frame_tries"] = args.pg_frame_tries
+        if method == "pg-nuts" and args.pg_frame_modes is not None:
+            skw["pg_frame_modes"] = args.pg_frame_modes == "on"
         budget = _efficiency_budget(args, method)
         p = sample_synthesis(model, s.mfcc[:T], s.labels[:T], method=method, seed=args.seed, log_warnings=False,
-                             sampler_kw=skw, **budget)
+                             sampler_kw=skw or None, **budget)
         wall = time.perf_counter() - t0
         d = p.diagnostics
         if method in ("vi", "laplace"):
@@ -155,12 +166,20 @@ def efficiency(args) -> None:
             _write_atomic(out_path, res)
             continue
         sampler_s = d["sampler_seconds"]
-        warm_s = d["warmup_seconds"] if method == "nuts" else sampler_s * d["warmup"] / d["steps"]
+        if method in ("nuts", "pg-nuts"):
+            # warmup_seconds sums the chains'; with chains in parallel processes the wall-clock
+            # warm-up is the sampler's wall time times the warm-up's share of the chains' time
+            chain_s = float(np.sum(d.get("chain_seconds", [sampler_s])))
+            warm_s = sampler_s * min(1.0, d["warmup_seconds"] / chain_s) if chain_s > 0 else 0.0
+        else:
+            warm_s = sampler_s * d["warmup"] / d["steps"]
         draw_s = sampler_s - warm_s
         ess = d["ess_bulk_min"]
         to_400 = warm_s + draw_s * 400.0 / ess if ess > 0 else float("inf")
         converged = d["rhat_max"] <= RHAT_MAX
         row = {k: d[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "mcse_mean_max", "n_chains", "n_draws")}
+        # what users consume: the AAM parameters' means at the draws (per frame)
+        row.update({k: d[k] for k in ("aam_rhat_max", "aam_ess_bulk_min", "aam_ess_tail_min") if k in d})
         row.update(wall_seconds=wall, setup_seconds=wall - sampler_s, sampler_seconds=sampler_s,
                    warmup_seconds=warm_s, sampling_seconds=draw_s, ess_bulk_per_second=ess / sampler_s,
                    ess_bulk_per_sampling_second=ess / draw_s if draw_s > 0 else None,
@@ -168,7 +187,7 @@ def efficiency(args) -> None:
                    # ESS grows linearly with the draws only once the chains agree: with R-hat above
                    # the threshold the extrapolated time is a lower bound, not an estimate
                    seconds_to_ess_400_is_lower_bound=bool(not converged and ess < 400),
-                   rhat_ok=bool(converged), budget=budget or "library defaults",
+                   rhat_ok=bool(converged), budget=budget or "library defaults", sampler_kw=skw,
                    warnings=p.warnings, loadavg_start_end=[load0, os.getloadavg()[0]],
                    diagnostics={k: v for k, v in d.items() if np.ndim(v) == 0 or isinstance(v, list)})
         res["samplers"][method] = row
@@ -219,6 +238,14 @@ def main() -> None:
     ap.add_argument("--nuts-warmup", type=int, default=None, help="default 150; --efficiency: the library's")
     ap.add_argument("--nuts-chains", type=int, default=None, help="default 2; --efficiency: the library's")
     ap.add_argument("--emcee-warmup", type=int, default=None, help="default 500; --efficiency: the library's")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="--efficiency: NUTS/pg-nuts chains in this many processes (default: in-process)")
+    ap.add_argument("--pg-frame-tries", type=int, default=None,
+                    help="--efficiency, pg-nuts: K-try updates of the isolated frames after each sweep")
+    ap.add_argument("--pg-frame-modes", choices=("on", "off"), default=None,
+                    help="--efficiency, pg-nuts: those tries from the frames' own modes (default: the library's)")
+    ap.add_argument("--coords", default=None,
+                    help="--efficiency: NUTS/pg-nuts coordinates (sampler_kw['coords']; default: the method's)")
     ap.add_argument("--methods", default="map,laplace,nuts,emcee")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "posterior.json")

@@ -156,10 +156,12 @@ def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_ra
     assert rate.shape == (2, T) and np.all((rate >= 0) & (rate <= 1)) and rate.mean() > 0.1, rate
 
 
-def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy):
+@pytest.mark.parametrize("frame_kw", [{}, {"pg_frame_tries": 4, "pg_frame_modes": True}])
+def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy, frame_kw):
     """PG ∘ NUTS in non-centred coordinates: after each sweep the sampler's cached potential
     is that of the new state (the recorded ln p_ε equals the density at the draw), the sweeps
-    move the chain, and the seed reproduces the draws. NUTS trees are capped at depth 3 (≤ 7
+    move the chain, and the seed reproduces the draws — also with the isolated frames (3–6
+    here) updated after each sweep from their own modes. NUTS trees are capped at depth 3 (≤ 7
     leapfrog steps; unadapted step sizes after a 12-iteration warm-up grew deep ones): the
     consistency of the cached potential after a sweep does not need long trajectories."""
     from bayes_talk.synthesis.noncentred import NonCentred
@@ -168,7 +170,7 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy)
     T = 10
     kw = {"method": "nuts", "n_draws": 16, "warmup": 12, "chains": 2, "seed": 4, "map_restarts": 0,
           "log_warnings": False, "sampler_kw": {"coords": "noncentred", "pg_every": 1, "pg_particles": 16,
-                                                "max_tree_depth": 3}}
+                                                "max_tree_depth": 3, **frame_kw}}
     r1 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], **kw)
     r2 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], **kw)
     assert np.array_equal(r1.latent_draws, r2.latent_draws)
@@ -190,12 +192,14 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     ref = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts",
                            sampler_kw={"coords": "noncentred", "pg_every": 1, "pg_particles": 8,
                                        "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
-                                       "pg_mode_centres": True}, **kw)
+                                       "pg_mode_centres": True, "pg_frame_tries": 16, "pg_frame_modes": True},
+                           **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
     d = r.diagnostics
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
+    assert (d["pg_frame_tries"], d["pg_frame_modes"]) == (16, True)
     assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
     with pytest.raises(ValueError, match="non-centred"):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
@@ -267,3 +271,47 @@ def test_lookahead_proposal_with_map_centres_is_a_normalised_density_of_its_draw
     assert w.max() <= 2 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
     with pytest.raises(ValueError, match="extra_centres"):
         MixtureProposal(ff, plan, extra_centres=x_map)
+
+
+def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_reports(toy):
+    """``frame_modes``: every returned mean is a local maximum of the frame's own factor g_t
+    (gradient ≈ 0; g_t lower at 40 points 0.5 sd away) and merged maxima are ≥ 1 sd apart.
+    ``FrameModeProposal``: its draws and its ln q agree — for q⁰ the sweep's proposal (the
+    defensive component), E_q[q⁰/q] = 1 with q⁰/q ≤ 1/δ = 5 (fails if ln q misses the modes'
+    mixture or the draws come from another one) — and a (1 − δ) share of the draws lies
+    within 3 sd of a mode."""
+    from bayes_talk.synthesis.particle_gibbs import FrameModeProposal, _own_factor, frame_modes
+
+    model, u = toy
+    T = 20
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), extra_centres=x_map[None])
+    t = next(t for t in isolated_frames(ff) if t in ff.entry and t in ff.smooth)
+    m, S, lw = frame_modes(ff, t, q.centres[t])
+    assert len(m) >= 1 and S.shape == (len(m), 3, 3) and abs(logsumexp(lw)) < 1e-9
+    rng = np.random.default_rng(3)
+    g, gx = _own_factor(ff, t, m)
+    for k in range(len(m)):
+        L = np.linalg.cholesky(S[k])
+        assert np.linalg.norm(gx[k] @ L) < 1e-3, (k, gx[k])
+        Z = rng.standard_normal((40, 3))
+        P = m[k] + 0.5 * (Z / np.linalg.norm(Z, axis=1, keepdims=True)) @ L.T
+        assert np.all(_own_factor(ff, t, P)[0] < g[k])
+        for j in range(k):
+            r = np.linalg.solve(np.linalg.cholesky(S[j]), m[k] - m[j])
+            assert r @ r > 1.0 - 1e-9
+    fm = FrameModeProposal(q, [t], delta=0.2, scale=1.5)
+    N = 20000
+    Xprev = np.repeat(x_map[t - 1:t], N, 0)
+    X, lq = fm.sample_logq(t, Xprev, N, rng)
+    _, lq0 = q.sample_logq(t, Xprev, N, rng, X)
+    w = np.exp(lq0 - lq)
+    assert w.max() <= 5 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    Li = np.linalg.inv(np.linalg.cholesky(S * 1.5 ** 2))
+    r2 = np.einsum("kij,nkj->nki", Li, X[:, None, :] - m[None])
+    near = (np.sqrt((r2 ** 2).sum(-1)) < 3.0).any(1).mean()
+    assert near > 0.8 * 0.95, near
+    with pytest.raises(ValueError, match="delta"):
+        FrameModeProposal(q, [t], delta=0.0)

@@ -119,7 +119,7 @@ log = logging.getLogger(__name__)
 POSTERIOR_METHODS = tuple(INFERENCE)
 #: coordinates NUTS moves in: X = X_MAP + L z (whitened at the mode, with the pilot mode
 #: search) or the standardised dynamics innovations ε (:mod:`bayes_talk.synthesis.noncentred`)
-NUTS_COORDS = ("whitened", "noncentred")
+NUTS_COORDS = ("whitened", "noncentred", "noncentred-whitened")
 #: emcee (burn-in steps: :data:`~bayes_talk.synthesis.defaults.EMCEE_WARMUP`): walkers reported as
 #: chains, the chain may run on to this many times its first length to meet the autocorrelation
 #: rule, within this many stored floats
@@ -164,7 +164,7 @@ def sample_synthesis(
         standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (0);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -261,7 +261,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
             warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
             if method == "pg-nuts":
-                if skw.get("coords", "noncentred") != "noncentred":
+                if skw.get("coords", "noncentred") not in ("noncentred", "noncentred-whitened"):
                     raise ValueError(f"pg-nuts samples in the non-centred coordinates; got sampler_kw['coords'] = "
                                      f"{skw['coords']!r} (use method='nuts' for the whitened ones)")
                 skw = {"coords": "noncentred", **PG_NUTS_DEFAULTS, **skw}
@@ -271,13 +271,14 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
                             pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
-                            pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]))
+                            pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
+                            pg_frame_modes=bool(skw["pg_frame_modes"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
-            if coords == "noncentred":
+            if coords in ("noncentred", "noncentred-whitened"):
                 draws, g = nuts_noncentred(dens, mp, modes, z0, L, -(-n_draws // chains), warmup, chains, seed,
-                                           skw)
+                                           skw, whiten=coords == "noncentred-whitened")
                 found = []
             else:
                 draws, mp, g, found = nuts_with_mode_search(dens, mp, modes, z0, -(-n_draws // chains), warmup,
