@@ -219,6 +219,19 @@ def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
               sampler_options={"pg_particles": 32})
 
 
+def _draws_match_their_density(q, q_ref, t, x_prev, bound, rng, N=20000):
+    """N draws X of q_t given the neighbour x_prev, checked against ln q by importance weights
+    against q_ref: w = q_ref/q ≤ ``bound`` and E_q[w] = 1 within 4 Monte-Carlo s.e. (a
+    low-variance check that fails if ln q misses a term or the draws come from another
+    density). Returns X and the repeated neighbour."""
+    Xprev = np.repeat(np.asarray(x_prev)[None], N, 0)
+    X, lq = q.sample_logq(t, Xprev, N, rng)
+    _, lq_ref = q_ref.sample_logq(t, Xprev, N, rng, X)
+    w = np.exp(lq_ref - lq)
+    assert w.max() <= bound + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    return X, Xprev
+
+
 def test_multi_bandwidth_proposal_samples_from_the_density_it_reports(toy):
     """With bandwidths (0.005, 0.02, 0.05) the proposal's draws and its ln q agree: for
     q' the one-bandwidth (0.05) proposal, E_q[q'/q] = 1 (q'/q ≤ 3: a low-variance check that
@@ -233,19 +246,15 @@ def test_multi_bandwidth_proposal_samples_from_the_density_it_reports(toy):
     q1 = MixtureProposal(ff, plan, rho=0.5, h=0.05)
     rng = np.random.default_rng(0)
     t = next(t for t in range(1, T) if t in ff.smooth)      # a block start: entry and smoothness weights
-    N = 20000
-    Xprev = np.repeat(x_map[t - 1:t], N, 0)
-    X, lq = q.sample_logq(t, Xprev, N, rng)
-    _, lq1 = q1.sample_logq(t, Xprev, N, rng, X)
-    w = np.exp(lq1 - lq)
-    assert w.max() <= 3 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    X, Xprev = _draws_match_their_density(q, q1, t, x_map[t - 1], 3.0, rng)
     # the one-bandwidth density written out: ρ entry + (1 − ρ) Σ_j π_j N(x; X_j, h² I)
     lw = q1._weights(t, Xprev[:5], 5)
     C = q1.centres[t]
     r2 = ((X[:5, None, :] - C[None]) ** 2).sum(-1)
     kern = np.exp(lw - 0.5 * r2 / 0.05**2).sum(1) / (2 * np.pi * 0.05**2) ** 1.5
     ref = np.log(0.5 * np.exp(ff.entry_logpdf(t, X[:5])) + 0.5 * kern)
-    np.testing.assert_allclose(lq1[:5], ref, rtol=1e-9)
+    _, lq1 = q1.sample_logq(t, Xprev[:5], 5, rng, X[:5])
+    np.testing.assert_allclose(lq1, ref, rtol=1e-9)
     with pytest.raises(ValueError, match="bandwidths h > 0"):
         MixtureProposal(ff, plan, h=(0.01, 0.0))
 
@@ -303,12 +312,7 @@ def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
             r = np.linalg.solve(np.linalg.cholesky(S[j]), m[k] - m[j])
             assert r @ r > 1.0 - 1e-9
     fm = FrameModeProposal(q, [t], delta=0.2, scale=1.5)
-    N = 20000
-    Xprev = np.repeat(x_map[t - 1:t], N, 0)
-    X, lq = fm.sample_logq(t, Xprev, N, rng)
-    _, lq0 = q.sample_logq(t, Xprev, N, rng, X)
-    w = np.exp(lq0 - lq)
-    assert w.max() <= 5 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    X, _ = _draws_match_their_density(fm, q, t, x_map[t - 1], 5.0, rng)
     Li = np.linalg.inv(np.linalg.cholesky(S * 1.5 ** 2))
     r2 = np.einsum("kij,nkj->nki", Li, X[:, None, :] - m[None])
     near = (np.sqrt((r2 ** 2).sum(-1)) < 3.0).any(1).mean()
