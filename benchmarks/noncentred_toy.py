@@ -12,7 +12,8 @@ the diagnostics of the latents and of the AAM-parameter means μ_Z(x) at every d
         [--out benchmarks/results/noncentred_toy78.json]
 
 ``--coords pg-nuts``: ``sample_synthesis(method="pg-nuts")`` (particle Gibbs ∘ NUTS ∘ mode
-jumps, its defaults; ``--pg-particles``). ``--coords pg``: particle Gibbs alone from Laplace draws (``--pg-particles``, ``--pg-h`` the
+jumps, its defaults; ``--pg-particles``, ``--pg-coords``, ``--pg-every``, ``--pg-backward``,
+``--pg-frame-tries``, ``--pg-frame-modes on|off`` override them). ``--coords pg``: particle Gibbs alone from Laplace draws (``--pg-particles``, ``--pg-h`` the
 proposal's kernel bandwidths), with the per-frame update rate and the frames never updated.
 """
 from __future__ import annotations

@@ -167,10 +167,13 @@ def efficiency(args) -> None:
             continue
         sampler_s = d["sampler_seconds"]
         if method in ("nuts", "pg-nuts"):
-            # warmup_seconds sums the chains'; with chains in parallel processes the wall-clock
-            # warm-up is the sampler's wall time times the warm-up's share of the chains' time
-            chain_s = float(np.sum(d.get("chain_seconds", [sampler_s])))
-            warm_s = sampler_s * min(1.0, d["warmup_seconds"] / chain_s) if chain_s > 0 else 0.0
+            # warmup_seconds sums the chains' (and nuts's pilot, run before them); with chains in
+            # parallel processes the wall-clock warm-up is the pilot plus the rest of the sampler's
+            # wall time times the warm-up's share of the chains' time
+            pilot_s = float(d.get("pilot_seconds", 0.0))
+            chain_s = float(np.sum(d.get("chain_seconds", [sampler_s - pilot_s])))
+            share = min(1.0, (d["warmup_seconds"] - pilot_s) / chain_s) if chain_s > 0 else 0.0
+            warm_s = pilot_s + (sampler_s - pilot_s) * share
         else:
             warm_s = sampler_s * d["warmup"] / d["steps"]
         draw_s = sampler_s - warm_s

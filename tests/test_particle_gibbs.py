@@ -156,12 +156,14 @@ def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_ra
     assert rate.shape == (2, T) and np.all((rate >= 0) & (rate <= 1)) and rate.mean() > 0.1, rate
 
 
-@pytest.mark.parametrize("frame_kw", [{}, {"pg_frame_tries": 4, "pg_frame_modes": True}])
+@pytest.mark.parametrize("frame_kw", [{}, {"pg_frame_tries": 4, "pg_frame_modes": True},
+                                      {"coords": "noncentred-whitened", "pg_frame_tries": 4, "pg_frame_modes": True}])
 def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy, frame_kw):
     """PG ∘ NUTS in non-centred coordinates: after each sweep the sampler's cached potential
     is that of the new state (the recorded ln p_ε equals the density at the draw), the sweeps
     move the chain, and the seed reproduces the draws — also with the isolated frames (3–6
-    here) updated after each sweep from their own modes. NUTS trees are capped at depth 3 (≤ 7
+    here) updated after each sweep from their own modes, and in the whitened non-centred
+    coordinates (the move maps through their ``to_x``/``to_u``). NUTS trees are capped at depth 3 (≤ 7
     leapfrog steps; unadapted step sizes after a 12-iteration warm-up grew deep ones): the
     consistency of the cached potential after a sweep does not need long trajectories."""
     from bayes_talk.synthesis.noncentred import NonCentred
@@ -174,7 +176,10 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy,
     r1 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], **kw)
     r2 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], **kw)
     assert np.array_equal(r1.latent_draws, r2.latent_draws)
-    nc = NonCentred(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T])))
+    dens = UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))
+    if frame_kw:
+        assert isolated_frames(FrameFactors(dens)), "the frame updates need isolated frames"
+    nc = NonCentred(dens)
     for c in range(2):
         lp = [nc(nc.to_eps(x))[0] for x in r1.latent_draws[c]]
         np.testing.assert_allclose(lp, r1.sample_stats["lp"][c], rtol=1e-9)

@@ -98,8 +98,9 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
                "modes of a multimodal posterior will not agree",
         options={**NUTS_DEFAULTS, "coords": "whitened"}),
     InferenceMethod(
-        "pg-nuts", "particle Gibbs (conditional SMC with ancestor sampling) composed with NUTS in the "
-                   "non-centred coordinates and the mode jumps",
+        "pg-nuts", "particle Gibbs (conditional SMC with ancestor sampling) and multiple-try updates of the "
+                   "isolated frames from their own modes, composed with NUTS in the non-centred coordinates "
+                   "and the mode jumps",
         "bayes_talk.synthesis.noncentred:nuts_noncentred",
         draws=NUTS_DEFAULTS["chains"] * NUTS_DEFAULTS["draws_per_chain"], map_restarts=6,
         diagnostics=("rhat_ess", "divergences_bfmi", "frame_update_rate"),

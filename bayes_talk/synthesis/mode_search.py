@@ -113,6 +113,7 @@ def nuts_with_mode_search(dens: UtteranceDensity, mp: MapResult, modes: list, z0
     st["pilot"], st["warmup"] = pilot, warmup
     st["n_gradients"] += pilot_gradients
     st["warmup_seconds"] += pilot_seconds
+    st["pilot_seconds"] = pilot_seconds        # in warmup_seconds and seconds, not in chain_seconds
     draws.seconds += pilot_seconds
     return draws, mp, g, found
 

@@ -311,7 +311,8 @@ def frame_modes(ff: FrameFactors, t: int, starts: np.ndarray, n_iter: int = 40, 
     approximations: damped Newton ascent from every row of ``starts`` at once (Hessian by
     central differences of the analytic gradient; steps capped at ``max_step``, halved until
     g_t rises; a gradient step where the Hessian is not negative definite), then maxima closer
-    than one standard deviation (Mahalanobis, in the better one's covariance) merged. Returns
+    than one standard deviation (Mahalanobis, in the heavier one's covariance) merged (the
+    lighter dropped); a point whose Hessian is not clearly negative definite is no maximum. Returns
     the means (K, d), covariances Σ_k = (−∇²g_t)⁻¹ (K, d, d) and log weights ln w_k =
     g_t(m_k) + ½ ln det Σ_k normalised (each maximum's Laplace mass), the ``max_modes`` heaviest."""
     X = np.array(starts, dtype=np.float64, copy=True)
@@ -347,13 +348,16 @@ def frame_modes(ff: FrameFactors, t: int, starts: np.ndarray, n_iter: int = 40, 
             step[~done] *= 0.5
         X[a], g[a], gx[a] = Xa, ga, gxa
     H = hessian(X)
-    lam = np.linalg.eigvalsh(H)
-    ok = (lam[:, -1] < 0) & np.isfinite(g)
-    X, g, H = X[ok], g[ok], H[ok]
+    lam, U = np.linalg.eigh(-H)                          # the precision's eigenvalues, ascending
+    # a maximum only where every curvature is clearly negative (a flat direction, e.g. a latent
+    # dimension the audio GP does not read in a frame without an entry, has no Laplace mass)
+    ok = np.all(np.isfinite(lam), axis=1) & np.isfinite(g) & (lam[:, 0] > 1e-8 * np.abs(lam).max(1, initial=1.0))
+    X, g, lam, U, H = X[ok], g[ok], lam[ok], U[ok], H[ok]
     if not len(X):
         return np.empty((0, d)), np.empty((0, d, d)), np.empty(0)
-    S = np.linalg.inv(-H)
-    logw = g + 0.5 * np.linalg.slogdet(S)[1]
+    S = np.einsum("kij,kj,klj->kil", U, 1.0 / lam, U)
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    logw = g - 0.5 * np.log(lam).sum(1)
     keep: list[int] = []
     Pk = -H
     for i in np.argsort(-logw):
@@ -427,7 +431,7 @@ class ParticleGibbsMove:
     invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
     (particle Gibbs ∘ NUTS). ``frame_tries`` = K > 0: after the sweep, a multiple-try
     Metropolis update (:func:`frame_mtm`, K tries) of every isolated frame
-    (:func:`isolated_frames`) — also invariant, so the composition is; ``frame_modes``: its
+    (:func:`isolated_frames`) — also invariant, so the composition is; ``tries_from_modes``: its
     tries from :class:`FrameModeProposal` (the frame's own modes) instead of the sweep's proposal.
 
     A call returns (u', record): ``record["pg_sweep"]`` True (a sweep ran) and
@@ -438,14 +442,14 @@ class ParticleGibbsMove:
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                  h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
-                 backward: bool = False, frame_tries: int = 0, frame_modes: bool = False):
+                 backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False):
         self.ff = FrameFactors(dens)
         self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
         self.frame_tries = int(frame_tries)
         self.frames = isolated_frames(self.ff) if self.frame_tries > 0 else []
         # the frame updates' tries: from the frame's own modes (FrameModeProposal) or the sweep's proposal
-        self.q_frames = FrameModeProposal(self.q, self.frames) if frame_modes and self.frames else self.q
+        self.q_frames = FrameModeProposal(self.q, self.frames) if tries_from_modes and self.frames else self.q
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)

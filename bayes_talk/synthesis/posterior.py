@@ -36,11 +36,12 @@ their trained MAP values.
    conditional-SMC sweep with ancestor sampling over the frames
    (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
    kernels of three bandwidths around the training latents and the joint MAP's modes, with
-   lookahead weights;
+   lookahead weights), then a 16-try Metropolis update of every isolated frame with tries from
+   the frame's own modes (:class:`~bayes_talk.synthesis.particle_gibbs.FrameModeProposal`;
    :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
    invariant, so the composition does (tests/test_composition_invariance.py, on separated
    modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
-   "pg_every": 1}``; no pilot mode search.
+   "pg_every": 1}`` and the rest of ``PG_NUTS_DEFAULTS``; no pilot mode search.
 4. **emcee**: the affine-invariant ensemble on the same z, walkers in a ball around 0,
    run on until the chain is 50 autocorrelation times long (within a step budget).
    In a few hundred dimensions it mixes slowly (FACTS.md); its diagnostics say so.
@@ -160,8 +161,9 @@ def sample_synthesis(
         approximation, keeping the highest mode (:func:`restart_map`; default
         :data:`MAP_RESTARTS`: 6 for NUTS and emcee, none for MAP, Laplace and VI).
     sampler_kw: extra keywords for the sampler (NUTS: ``target_accept`` (0.8),
-        ``max_tree_depth`` (10), ``coords`` ("whitened", or "noncentred": NUTS on the
-        standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
+        ``max_tree_depth`` (10), ``coords`` ("whitened", "noncentred": NUTS on the
+        standardised dynamics innovations, :func:`~bayes_talk.synthesis.noncentred.nuts_noncentred`, or
+        "noncentred-whitened": those whitened by their own Laplace); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True);
@@ -386,6 +388,7 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
         out["mode_jumps_accepted_per_chain"] = st["jumps_accepted"]
         out["pilot"] = st.get("pilot", 0)
         out["chain_seconds"] = st["chain_seconds"]
+        out["pilot_seconds"] = float(st.get("pilot_seconds", 0.0))
         if "pg_frame_moved" in ss:
             out["pg_sweeps_per_chain"] = [int(n) for n in ss["pg_sweep"].sum(1)]
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
