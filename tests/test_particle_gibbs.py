@@ -8,13 +8,12 @@ import pytest
 from scipy.special import logsumexp
 from toydata import make_utterances
 
+from bayes_talk.synthesis.frame_updates import frame_mtm, isolated_frames
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.particle_gibbs import (
     FrameFactors,
     MixtureProposal,
     csmc_as,
-    frame_mtm,
-    isolated_frames,
     run_particle_gibbs,
 )
 from bayes_talk.synthesis.posterior import sample_synthesis
@@ -294,7 +293,7 @@ def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     defensive component), E_q[q⁰/q] = 1 with q⁰/q ≤ 1/δ = 5 (fails if ln q misses the modes'
     mixture or the draws come from another one) — and a (1 − δ) share of the draws lies
     within 3 sd of a mode."""
-    from bayes_talk.synthesis.particle_gibbs import FrameModeProposal, _own_factor, frame_modes
+    from bayes_talk.synthesis.frame_updates import FrameModeProposal, frame_modes
 
     model, u = toy
     T = 20
@@ -306,13 +305,13 @@ def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     m, S, lw = frame_modes(ff, t, q.centres[t])
     assert len(m) >= 1 and S.shape == (len(m), 3, 3) and abs(logsumexp(lw)) < 1e-9
     rng = np.random.default_rng(3)
-    g, gx = _own_factor(ff, t, m)
+    g, gx = ff.own_factor(t, m)
     for k in range(len(m)):
         L = np.linalg.cholesky(S[k])
         assert np.linalg.norm(gx[k] @ L) < 1e-3, (k, gx[k])
         Z = rng.standard_normal((40, 3))
         P = m[k] + 0.5 * (Z / np.linalg.norm(Z, axis=1, keepdims=True)) @ L.T
-        assert np.all(_own_factor(ff, t, P)[0] < g[k])
+        assert np.all(ff.own_factor(t, P)[0] < g[k])
         for j in range(k):
             r = np.linalg.solve(np.linalg.cholesky(S[j]), m[k] - m[j])
             assert r @ r > 1.0 - 1e-9

@@ -287,9 +287,9 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     ``skw["pg_backward"]`` (default False): backward simulation instead of ancestor sampling
     (:func:`~bayes_talk.synthesis.particle_gibbs.csmc_as`); ``skw["pg_frame_tries"]`` = K > 0
     (default 0): after each sweep a K-try Metropolis update of every isolated frame
-    (:func:`~bayes_talk.synthesis.particle_gibbs.frame_mtm`); ``skw["pg_frame_modes"]`` (default False):
+    (:func:`~bayes_talk.synthesis.frame_updates.frame_mtm`); ``skw["pg_frame_modes"]`` (default False):
     those tries from the frame's own modes
-    (:class:`~bayes_talk.synthesis.particle_gibbs.FrameModeProposal`). ``run``: the NUTS
+    (:class:`~bayes_talk.synthesis.frame_updates.FrameModeProposal`). ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps

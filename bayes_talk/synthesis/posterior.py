@@ -37,7 +37,7 @@ their trained MAP values.
    (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
    kernels of three bandwidths around the training latents and the joint MAP's modes, with
    lookahead weights), then a 16-try Metropolis update of every isolated frame with tries from
-   the frame's own modes (:class:`~bayes_talk.synthesis.particle_gibbs.FrameModeProposal`;
+   the frame's own modes (:class:`~bayes_talk.synthesis.frame_updates.FrameModeProposal`;
    :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
    invariant, so the composition does (tests/test_composition_invariance.py, on separated
    modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",

@@ -37,8 +37,9 @@ def frame_kinds(T: int) -> tuple[dict[int, str], list[int]]:
     dynamics; and the isolated frames (no dynamics on either side: ``isolated_frames``)."""
     from toydata import make_utterances
 
+    from bayes_talk.synthesis.frame_updates import isolated_frames
     from bayes_talk.synthesis.joint import UtteranceDensity
-    from bayes_talk.synthesis.particle_gibbs import FrameFactors, isolated_frames
+    from bayes_talk.synthesis.particle_gibbs import FrameFactors
 
     model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
     u = make_utterances(1, seed=1, mean_len=80)[0]
