@@ -13,7 +13,7 @@ the diagnostics of the latents and of the AAM-parameter means μ_Z(x) at every d
 
 ``--coords pg-nuts``: ``sample_synthesis(method="pg-nuts")`` (particle Gibbs ∘ NUTS ∘ mode
 jumps, its defaults; ``--pg-particles``, ``--pg-coords``, ``--pg-every``, ``--pg-backward``,
-``--pg-frame-tries``, ``--pg-frame-modes on|off`` override them). ``--coords pg``: particle Gibbs alone from Laplace draws (``--pg-particles``, ``--pg-h`` the
+``--pg-frame-tries``, ``--pg-frame-modes on|off``, ``--pg-block-len`` override them). ``--coords pg``: particle Gibbs alone from Laplace draws (``--pg-particles``, ``--pg-h`` the
 proposal's kernel bandwidths), with the per-frame update rate and the frames never updated.
 """
 from __future__ import annotations
@@ -64,6 +64,8 @@ def main() -> None:
                     help="the NUTS coordinates of pg-nuts (noncentred or noncentred-whitened; default: its own)")
     ap.add_argument("--pg-frame-modes", choices=("on", "off"), default=None,
                     help="the isolated frames' tries from their own modes or from the sweep's proposal (pg-nuts)")
+    ap.add_argument("--pg-block-len", type=int, default=None,
+                    help="also update dynamics runs of up to this many frames by multiple tries (pg-nuts)")
     ap.add_argument("--pg-every", type=int, default=None, help="a particle Gibbs sweep after every k-th iteration (pg-nuts)")
     ap.add_argument("--save-draws", type=Path, default=None,
                     help="write the latent draws (chains, draws, T, d) and the lp per draw to this .npz (for analysis)")
@@ -97,6 +99,8 @@ def main() -> None:
             skw["pg_frame_tries"] = args.pg_frame_tries
         if args.pg_frame_modes is not None and method == "pg-nuts":
             skw["pg_frame_modes"] = args.pg_frame_modes == "on"
+        if args.pg_block_len is not None and method == "pg-nuts":
+            skw["pg_block_len"] = args.pg_block_len
         if args.pg_backward and method == "pg-nuts":
             skw["pg_backward"] = True
         if args.workers:
@@ -114,7 +118,7 @@ def main() -> None:
                                      "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
                                      "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
                                      "pg_h", "pg_mode_centres", "pg_particles", "coords", "pg_every", "pg_backward", "pg_frame_tries",
-                                     "pg_frame_modes")},
+                                     "pg_frame_modes", "pg_block_len")},
             # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
             "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
             # pg-nuts: how often the sweeps after the warm-up changed each frame (per chain)

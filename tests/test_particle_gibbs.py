@@ -8,7 +8,8 @@ import pytest
 from scipy.special import logsumexp
 from toydata import make_utterances
 
-from bayes_talk.synthesis.frame_updates import frame_mtm, isolated_frames
+from bayes_talk.synthesis.defaults import PG_NUTS_DEFAULTS
+from bayes_talk.synthesis.frame_updates import block_factor, block_mtm, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.particle_gibbs import (
     FrameFactors,
@@ -54,6 +55,12 @@ class _AR1:
             return lp - 0.5 * x * x
         return lp - 0.5 * ((x - self.a * Xprev[:, 0]) / self.s) ** 2
 
+    def dynamics_mean_sd(self, t, Xprev):
+        return self.a * Xprev, np.full_like(Xprev, self.s)
+
+    def dynamics_logpdf(self, t, Xprev, X):
+        return -0.5 * ((X[:, 0] - self.a * Xprev[:, 0]) / self.s) ** 2 - np.log(self.s) - 0.5 * np.log(2 * np.pi)
+
     def sample_logq(self, t, Xprev, N, rng, X=None):      # the prior transition (bootstrap)
         m = np.zeros(N) if t == 0 else self.a * Xprev[:, 0]
         sd = 1.0 if t == 0 else self.s
@@ -62,16 +69,8 @@ class _AR1:
         return X, -0.5 * ((X[:, 0] - m) / sd) ** 2 - np.log(sd)
 
     def exact(self):
-        T, a, s, r = self.T, self.a, self.s, self.r
-        P = np.zeros((T, T))
-        P[0, 0] = 1.0
-        for t in range(1, T):
-            P[t, t] += 1 / s**2
-            P[t - 1, t - 1] += a * a / s**2
-            P[t, t - 1] = P[t - 1, t] = -a / s**2
-        P += np.eye(T) / r**2
-        cov = np.linalg.inv(P)
-        return cov @ (self.y / r**2), np.diag(cov)
+        cov = np.linalg.inv(_ar1_precision(self))
+        return cov @ (self.y / self.r**2), np.diag(cov)
 
 
 @pytest.mark.parametrize(("broken", "backward"), [(False, False), (True, False), (False, True)])
@@ -101,11 +100,15 @@ def test_csmc_with_ancestor_sampling_leaves_a_known_posterior_invariant(broken, 
     assert ok != broken, (D.mean(0), mean, D.var(0), var)
 
 
-@pytest.mark.parametrize("broken", [False, True])
-def test_frame_mtm_leaves_a_known_posterior_invariant(broken):
-    """Multiple-try Metropolis updates of every frame of the AR(1) chain given its neighbours
-    (bootstrap tries) keep the exact posterior's means and variances (5 Monte-Carlo s.e.,
-    15 %); accepting every selected try (no Metropolis test) does not."""
+@pytest.mark.parametrize(("blocks", "broken"), [([(t, t + 1) for t in range(5)], False),
+                                                ([(t, t + 1) for t in range(5)], True),
+                                                ([(0, 2), (2, 5)], False), ([(1, 4)], False), ([(0, 2), (2, 5)], True)])
+def test_block_mtm_leaves_a_known_posterior_invariant(blocks, broken):
+    """Multiple-try Metropolis updates of blocks of the AR(1) chain given their neighbours —
+    single frames, and blocks whose later frames are drawn from the dynamics (so the weights
+    must cancel the dynamics terms exactly) — keep the exact posterior's means and variances
+    of the frames they update (5 Monte-Carlo s.e., 15 %); accepting every selected try (no
+    Metropolis test) does not."""
     y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
     m = _AR1(y)
     mean, var = m.exact()
@@ -113,23 +116,44 @@ def test_frame_mtm_leaves_a_known_posterior_invariant(broken):
     x = np.zeros((m.T, 1))
     draws = []
     for it in range(3000):
-        x, moved = frame_mtm(m, m, x, list(range(m.T)), 4, rng, _broken=broken)
-        assert moved.shape == (m.T,)
+        x, moved = block_mtm(m, m, x, blocks, 4, rng, _broken=broken)
+        assert moved.shape == (len(blocks),)
         if it >= 200:
             draws.append(x[:, 0].copy())
     D = np.array(draws)
-    B = D.reshape(28, -1, m.T).mean(1)
+    if len(blocks) == 1:   # frames outside the block stay where they are; compare the block's conditional
+        s, e = blocks[0]
+        assert np.all(D[:, :s] == 0) and np.all(D[:, e:] == 0)
+        cov = np.linalg.inv(_ar1_precision(m)[s:e, s:e])
+        mean, var = cov @ (y[s:e] / m.r ** 2), np.diag(cov)      # x outside = 0
+        D = D[:, s:e]
+    B = D.reshape(28, -1, D.shape[1]).mean(1)
     se = B.std(0, ddof=1) / np.sqrt(len(B))
     ok = np.all(np.abs(D.mean(0) - mean) < 5 * se) and np.all(np.abs(D.var(0) / var - 1) < 0.15)
     assert ok != broken, (D.mean(0), mean, D.var(0), var)
 
 
-def test_isolated_frames_are_those_without_dynamics_on_either_side(toy):
+def _ar1_precision(m):
+    T, a, s, r = m.T, m.a, m.s, m.r
+    P = np.zeros((T, T))
+    P[0, 0] = 1.0
+    for t in range(1, T):
+        P[t, t] += 1 / s**2
+        P[t - 1, t - 1] += a * a / s**2
+        P[t, t - 1] = P[t - 1, t] = -a / s**2
+    return P + np.eye(T) / r**2
+
+
+def test_dynamics_blocks_partition_the_frames_into_runs(toy):
+    """``dynamics_blocks(ff, 1)``: the isolated frames (no dynamics on either side: every frame
+    of a block without dynamics; of a block with, none unless it is alone); with no length cap
+    the blocks partition the frames, each starting where no dynamics factor enters and
+    continuing through the frames that have one; a cap keeps only the shorter runs."""
     model, u = toy
     plan = make_plan(model, u.mfcc, u.labels)
     ff = FrameFactors(UtteranceDensity(plan))
-    iso = isolated_frames(ff)
-    assert iso and len(iso) < ff.T
+    iso = [s for s, _ in dynamics_blocks(ff, 1)]
+    assert iso and len(iso) < ff.T and all(e == s + 1 for s, e in dynamics_blocks(ff, 1))
     for b in plan.blocks:   # every frame of a block without dynamics; of a block with, none unless alone
         frames = set(range(b.start, b.stop))
         nxt = next((c for c in plan.blocks if c.start == b.stop), None)
@@ -138,6 +162,12 @@ def test_isolated_frames_are_those_without_dynamics_on_either_side(toy):
             assert frames <= set(iso)
         elif b.stop - b.start > 1 or b.linked or into_next:
             assert not frames & set(iso), (b.start, b.stop)
+    runs = dynamics_blocks(ff, ff.T)
+    assert [s for s, _ in runs] == [0] + [e for _, e in runs[:-1]] and runs[-1][1] == ff.T
+    for s, e in runs:
+        assert s not in ff.dyn_gp and all(v in ff.dyn_gp for v in range(s + 1, e)) and ff.run_end(s) == e
+    assert max(e - s for s, e in runs) > 3
+    assert dynamics_blocks(ff, 3) == [(s, e) for s, e in runs if e - s <= 3]
 
 
 def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_rate(toy):
@@ -156,12 +186,14 @@ def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_ra
 
 
 @pytest.mark.parametrize("frame_kw", [{}, {"pg_frame_tries": 4, "pg_frame_modes": True},
+                                      {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6},
                                       {"coords": "noncentred-whitened", "pg_frame_tries": 4, "pg_frame_modes": True}])
 def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy, frame_kw):
     """PG ∘ NUTS in non-centred coordinates: after each sweep the sampler's cached potential
     is that of the new state (the recorded ln p_ε equals the density at the draw), the sweeps
     move the chain, and the seed reproduces the draws — also with the isolated frames (3–6
-    here) updated after each sweep from their own modes, and in the whitened non-centred
+    here), or those and the dynamics runs of up to 6 frames, updated after each sweep from their
+    own modes, and in the whitened non-centred
     coordinates (the move maps through their ``to_x``/``to_u``). NUTS trees are capped at depth 3 (≤ 7
     leapfrog steps; unadapted step sizes after a 12-iteration warm-up grew deep ones): the
     consistency of the cached potential after a sweep does not need long trajectories."""
@@ -177,7 +209,9 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy,
     assert np.array_equal(r1.latent_draws, r2.latent_draws)
     dens = UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))
     if frame_kw:
-        assert isolated_frames(FrameFactors(dens)), "the frame updates need isolated frames"
+        blocks = dynamics_blocks(FrameFactors(dens), frame_kw.get("pg_block_len", 1))
+        assert blocks, "the frame updates need isolated frames"
+        assert "pg_block_len" not in frame_kw or max(e - s for s, e in blocks) > 1, "and here longer blocks"
     nc = NonCentred(dens)
     for c in range(2):
         lp = [nc(nc.to_eps(x))[0] for x in r1.latent_draws[c]]
@@ -196,14 +230,15 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     ref = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts",
                            sampler_kw={"coords": "noncentred", "pg_every": 1, "pg_particles": 8,
                                        "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
-                                       "pg_mode_centres": True, "pg_frame_tries": 16, "pg_frame_modes": True},
+                                       "pg_mode_centres": True, "pg_frame_tries": 16, "pg_frame_modes": True,
+                                       "pg_block_len": PG_NUTS_DEFAULTS["pg_block_len"]},
                            **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
     d = r.diagnostics
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
-    assert (d["pg_frame_tries"], d["pg_frame_modes"]) == (16, True)
+    assert (d["pg_frame_tries"], d["pg_frame_modes"], d["pg_block_len"]) == (16, True, PG_NUTS_DEFAULTS["pg_block_len"])
     assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
     with pytest.raises(ValueError, match="non-centred"):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
@@ -286,14 +321,16 @@ def test_lookahead_proposal_with_map_centres_is_a_normalised_density_of_its_draw
         MixtureProposal(ff, plan, extra_centres=x_map)
 
 
-def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_reports(toy):
-    """``frame_modes``: every returned mean is a local maximum of the frame's own factor g_t
-    (gradient ≈ 0; g_t lower at 40 points 0.5 sd away) and merged maxima are ≥ 1 sd apart.
-    ``FrameModeProposal``: its draws and its ln q agree — for q⁰ the sweep's proposal (the
-    defensive component), E_q[q⁰/q] = 1 with q⁰/q ≤ 1/δ = 5 (fails if ln q misses the modes'
-    mixture or the draws come from another one) — and a (1 − δ) share of the draws lies
-    within 3 sd of a mode."""
-    from bayes_talk.synthesis.frame_updates import FrameModeProposal, frame_modes
+@pytest.mark.parametrize("block", ["isolated", "run"])
+def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_reports(toy, block):
+    """``factor_modes`` on a block's own factor (``block_factor``: an isolated frame's audio
+    and entry; a dynamics run's audio along its deterministic continuation): every returned
+    mean is a local maximum (gradient ≈ 0; the factor lower at 40 points 0.5 sd away) and
+    merged maxima are ≥ 1 sd apart. ``BlockModeProposal``: its draws and its ln q agree — for
+    q⁰ the sweep's proposal (the defensive component), E_q[q⁰/q] = 1 with q⁰/q ≤ 1/δ = 5 (fails
+    if ln q misses the modes' mixture or the draws come from another one) — and a (1 − δ)
+    share of the draws lies within 3 sd of a mode."""
+    from bayes_talk.synthesis.frame_updates import BlockModeProposal, factor_modes
 
     model, u = toy
     T = 20
@@ -301,25 +338,60 @@ def test_frame_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     ff = FrameFactors(UtteranceDensity(plan))
     x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
     q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), extra_centres=x_map[None])
-    t = next(t for t in isolated_frames(ff) if t in ff.entry and t in ff.smooth)
-    m, S, lw = frame_modes(ff, t, q.centres[t])
+    if block == "isolated":
+        s, e = next((s, e) for s, e in dynamics_blocks(ff, 1) if s in ff.entry and s in ff.smooth)
+    else:
+        s, e = next((s, e) for s, e in dynamics_blocks(ff, T) if 1 < e - s <= 6 and s > 0)
+
+    def own(X):
+        return block_factor(ff, s, e, X)
+
+    m, S, lw = factor_modes(own, q.centres[s])
     assert len(m) >= 1 and S.shape == (len(m), 3, 3) and abs(logsumexp(lw)) < 1e-9
     rng = np.random.default_rng(3)
-    g, gx = ff.own_factor(t, m)
+    g, gx = own(m)
     for k in range(len(m)):
         L = np.linalg.cholesky(S[k])
         assert np.linalg.norm(gx[k] @ L) < 1e-3, (k, gx[k])
         Z = rng.standard_normal((40, 3))
         P = m[k] + 0.5 * (Z / np.linalg.norm(Z, axis=1, keepdims=True)) @ L.T
-        assert np.all(ff.own_factor(t, P)[0] < g[k])
+        assert np.all(own(P)[0] < g[k])
         for j in range(k):
             r = np.linalg.solve(np.linalg.cholesky(S[j]), m[k] - m[j])
             assert r @ r > 1.0 - 1e-9
-    fm = FrameModeProposal(q, [t], delta=0.2, scale=1.5)
-    X, _ = _draws_match_their_density(fm, q, t, x_map[t - 1], 5.0, rng)
+    fm = BlockModeProposal(q, [(s, e)], delta=0.2, scale=1.5)
+    X, _ = _draws_match_their_density(fm, q, s, x_map[s - 1], 5.0, rng)
     Li = np.linalg.inv(np.linalg.cholesky(S * 1.5 ** 2))
     r2 = np.einsum("kij,nkj->nki", Li, X[:, None, :] - m[None])
     near = (np.sqrt((r2 ** 2).sum(-1)) < 3.0).any(1).mean()
     assert near > 0.8 * 0.95, near
     with pytest.raises(ValueError, match="delta"):
-        FrameModeProposal(q, [t], delta=0.0)
+        BlockModeProposal(q, [(s, e)], delta=0.0)
+
+
+def test_block_factor_is_the_own_factors_along_the_dynamics_means_with_their_gradient(toy):
+    """``block_factor`` of a dynamics run equals the own factors summed along the path the
+    dynamics means continue (written out frame by frame), its gradient matches central
+    differences, and the dynamics' logpdf is the Gaussian of ``dynamics_mean_sd``."""
+    model, u = toy
+    T = 20
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    s, e = next((s, e) for s, e in dynamics_blocks(ff, T) if e - s >= 3)
+    rng = np.random.default_rng(5)
+    X = x_map[s] + 0.02 * rng.standard_normal((4, 3))
+    g, gx = block_factor(ff, s, e, X)
+    ref, M = ff.own_factor(s, X)[0], X
+    for v in range(s + 1, e):
+        mu, sd = ff.dynamics_mean_sd(v, M)
+        Y = mu + sd * rng.standard_normal(mu.shape)
+        lp = (-0.5 * ((Y - mu) / sd) ** 2 - np.log(sd) - 0.5 * np.log(2 * np.pi)).sum(1)
+        np.testing.assert_allclose(ff.dynamics_logpdf(v, M, Y), lp, rtol=1e-9)
+        M = mu
+        ref = ref + ff.own_factor(v, M)[0]
+    np.testing.assert_allclose(g, ref, rtol=1e-12)
+    h = 1e-6
+    fd = np.stack([(block_factor(ff, s, e, X + h * np.eye(3)[j])[0] - block_factor(ff, s, e, X - h * np.eye(3)[j])[0])
+                   / (2 * h) for j in range(3)], axis=1)
+    np.testing.assert_allclose(gx, fd, rtol=1e-5, atol=1e-4 * np.abs(fd).max())

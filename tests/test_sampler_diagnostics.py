@@ -141,6 +141,10 @@ def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatc
     assert np.all(rate[:, pinned] == 0) and rate.max() > 0 and pinned in d["pg_frames_never_updated"]
     assert d["pg_frame_update_rate_min"] == 0.0 and d["pg_frame_update_rate_mean"] == pytest.approx(rate.mean())
     assert d["pg_sweeps_per_chain"] == [per_chain] * chains and len(d["ebfmi"]) == chains
+    secs = ss["pg_seconds"]     # the move's own time per draw, summed per chain
+    assert secs.shape == (chains, per_chain) and np.all(secs > 0)
+    np.testing.assert_allclose(d["pg_seconds_per_chain"], secs.sum(1))
+    assert all(0 < s < c for s, c in zip(d["pg_seconds_per_chain"], d["chain_seconds"], strict=True))
     idata = from_netcdf(write_posterior_netcdf(tmp_path / "posterior.nc", r))
     moved = idata.sample_stats["pg_frame_moved"]
     assert moved.dims == ("chain", "draw", "frame")

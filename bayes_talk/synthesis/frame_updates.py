@@ -1,4 +1,5 @@
-"""Multiple-try updates of single frames given their neighbours (issue 24, after the sweep).
+"""Multiple-try updates of single frames and short dynamics blocks given their neighbours
+(issue 24, after the sweep).
 
 ``ff`` below is a :class:`~bayes_talk.synthesis.particle_gibbs.FrameFactors` and a proposal
 anything with its ``sample_logq(t, Xprev, N, rng, X=None) -> (X, ln q)``, e.g.
@@ -6,18 +7,22 @@ anything with its ``sample_logq(t, Xprev, N, rng, X=None) -> (X, ln q)``, e.g.
 particle Gibbs move imports this one).
 
 The synthesis density is Markov over frames (:mod:`bayes_talk.synthesis.particle_gibbs`,
-(1)), so frame t's full conditional given its neighbours is
+(1)), so a block of frames [s, e) has the full conditional given its neighbours
 
-    π_t(x_t) ∝ exp(f_t(x_{t−1}, x_t) + f_{t+1}(x_t, x_{t+1})).
+    π(x_{s:e}) ∝ exp(Σ_{u=s}^{e} f_u(x_{u−1}, x_u)).
 
-:func:`frame_mtm` updates a frame from π_t by independence multiple-try Metropolis (Liu,
-Liang & Wong 2000), its tries from a proposal that does not depend on x_t; the particle Gibbs
-move (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, ``frame_tries``)
-applies it to the isolated frames (:func:`isolated_frames`) after each sweep. The tries come
-from the sweep's own proposal or from :class:`FrameModeProposal`: the Laplace approximations
-at the local maxima of the frame's own factor g_t(x) = ln p_π(ŷ_t | x) + [entry] ln N(x; μ_π,
-Σ_π) (:func:`frame_modes`) — at an isolated frame the marginal is a mixture of narrow,
-separated bumps there (docs/uncertainty.md, "The isolated frames' own modes").
+:func:`block_mtm` updates a block from it by independence multiple-try Metropolis (Liu,
+Liang & Wong 2000): tries of its first frame from a proposal that does not depend on the
+block, the rest of each try's path from the dynamics. The particle Gibbs move
+(:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, ``frame_tries``,
+``block_len``) applies it after each sweep to the isolated frames and the dynamics runs of
+at most ``block_len`` frames (:func:`dynamics_blocks`): with dynamics noise 10⁻⁶ the sweep
+moves such a run only when a particle lands on its first frame's narrow bumps. The tries
+come from the sweep's own proposal or from :class:`BlockModeProposal`: the Laplace
+approximations at the local maxima of the block's own factor (:func:`block_factor`: audio
+and entry along the path the dynamics means continue; :func:`factor_modes`) — at an
+isolated frame the marginal is a mixture of narrow, separated bumps there
+(docs/uncertainty.md, "The isolated frames' own modes").
 """
 from __future__ import annotations
 
@@ -27,57 +32,85 @@ from scipy.special import logsumexp
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
-def frame_mtm(ff, q, x: np.ndarray, frames, K: int, rng: np.random.Generator,
+def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
               _broken: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Multiple-try Metropolis updates of single frames given their neighbours (Liu, Liang &
-    Wong 2000, with independent proposals): for each t in ``frames`` in turn, the full
-    conditional π_t(x_t) ∝ exp(f_t(x_{t−1}, x_t) + f_{t+1}(x_t, x_{t+1})) of (1) (the density is
-    Markov), K tries y_k ~ q_t(· | x_{t−1}) — independent of x_t, so the move is an
-    independence MTM — w_k = π_t(y_k)/q_t(y_k), y = y_J with probability ∝ w_J, accepted with
-    probability min(1, Σ_k w_k / (Σ_k w_k − w_J + w(x_t))). Each update leaves π_t, hence
-    p(X | Ŷ), invariant. Returns the new path and, per frame of ``frames``, whether it moved.
-    (``_broken``: accept always — not invariant; the tests' control.)"""
+    """Multiple-try Metropolis updates of blocks of frames given their neighbours (Liu, Liang &
+    Wong 2000, with independent proposals). For each block [s, e) of ``blocks`` in turn (a
+    frame s and the frames s + 1 … e − 1 that follow it through the dynamics; e = s + 1: one
+    frame), the block's full conditional (the density is Markov, (1) of
+    :mod:`~bayes_talk.synthesis.particle_gibbs`)
+
+        π(x_{s:e}) ∝ exp(Σ_{u=s}^{e} f_u(x_{u−1}, x_u))            (x_{s−1}, x_e held fixed)
+
+    is the target. K tries Y^k: y_s ~ q_s(· | x_{s−1}) (independent of the block's current
+    value: an independence MTM), then y_u ~ p_π(· | y_{u−1}) through the block's dynamics, so the
+    proposal density is q(Y) = q_s(y_s) Π_u p_π(y_u | y_{u−1}) and the weight w = π/q has the
+    dynamics terms cancelled (with noise 10⁻⁶ the rest of the path is nearly a function of y_s).
+    Y = Y^J with probability ∝ w_J, accepted with probability min(1, Σ_k w_k / (Σ_k w_k − w_J
+    + w(x_{s:e}))). Each update leaves π, hence p(X | Ŷ), invariant. Returns the new path and,
+    per block, whether it moved. (``_broken``: accept always — not invariant; the tests'
+    control.)"""
     x = np.array(x, dtype=np.float64, copy=True)
     T = ff.T
-    moved = np.zeros(len(frames), dtype=bool)
-    for i, t in enumerate(frames):
-        prev = None if t == 0 else np.repeat(x[t - 1][None], K + 1, 0)
-        Y, lq = q.sample_logq(t, None if prev is None else prev[:K], K, rng)
-        _, lq_x = q.sample_logq(t, None if prev is None else prev[:1], 1, rng, x[t][None])
-        C = np.vstack([Y, x[t][None]])                                   # the K tries and the current value
-        lw = ff.log_f(t, prev, C)
-        if t + 1 < T:
-            lw = lw + ff.log_f(t + 1, C, np.repeat(x[t + 1][None], K + 1, 0))
-        lw = lw - np.concatenate([lq, lq_x])
+    moved = np.zeros(len(blocks), dtype=bool)
+    for i, (s, e) in enumerate(blocks):
+        prev = None if s == 0 else np.repeat(x[s - 1][None], K + 1, 0)
+        Y, lq = q.sample_logq(s, None if prev is None else prev[:K], K, rng)
+        _, lq_x = q.sample_logq(s, None if prev is None else prev[:1], 1, rng, x[s][None])
+        P = np.empty((K + 1, e - s, ff.d))                                # the K tries and the current block
+        P[:K, 0], P[K] = Y, x[s:e]
+        lw = ff.log_f(s, prev, P[:, 0]) - np.concatenate([lq, lq_x])
+        for u in range(s + 1, e):
+            mu, sd = ff.dynamics_mean_sd(u, P[:K, u - s - 1])
+            P[:K, u - s] = mu + sd * rng.standard_normal(mu.shape)
+            lw += ff.log_f(u, P[:, u - s - 1], P[:, u - s]) - ff.dynamics_logpdf(u, P[:, u - s - 1], P[:, u - s])
+        if e < T:
+            lw = lw + ff.log_f(e, P[:, -1], np.repeat(x[e][None], K + 1, 0))
         j = rng.choice(K, p=np.exp(lw[:K] - logsumexp(lw[:K])))
         s_y = logsumexp(lw[:K])
         s_x = logsumexp(np.concatenate([np.delete(lw[:K], j), lw[K:]]))
         if _broken or np.log(rng.random()) < s_y - s_x:
-            x[t] = Y[j]
+            x[s:e] = P[j]
             moved[i] = True
     return x, moved
 
 
-def frame_modes(ff, t: int, starts: np.ndarray, n_iter: int = 40, max_step: float = 0.05,
-                max_modes: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Local maxima of frame t's own factor g_t (:meth:`~bayes_talk.synthesis.particle_gibbs.FrameFactors.own_factor`) and their Laplace
+def block_factor(ff, s: int, e: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """G_s(x) = g_s(x) + Σ_{u=s+1}^{e−1} g_u(m_u) and ∂G_s/∂x for rows X (N, d): block [s, e)'s
+    own factors (audio, and entry at s) along the deterministic continuation m_s = x, m_u =
+    μ_x(m_{u−1}) (:meth:`~bayes_talk.synthesis.particle_gibbs.FrameFactors.own_factor`,
+    :meth:`~bayes_talk.synthesis.particle_gibbs.FrameFactors.continuation`): up to the
+    dynamics noise, the block's marginal density of its first frame apart from the
+    smoothness factors at its two ends."""
+    g, gx = ff.own_factor(s, X)
+    if e - s == 1:
+        return g, gx
+    c, gc = ff.continuation(s, X, e)
+    return g + c, gx + gc
+
+
+def factor_modes(own, starts: np.ndarray, n_iter: int = 40, max_step: float = 0.05,
+                 max_modes: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local maxima of a function g (``own(X) -> (g (N,), ∂g/∂X (N, d))``, e.g. a block's own
+    factor :func:`block_factor`) and their Laplace
     approximations: damped Newton ascent from every row of ``starts`` at once (Hessian by
     central differences of the analytic gradient; steps capped at ``max_step``, halved until
-    g_t rises; a gradient step where the Hessian is not negative definite), then maxima closer
+    g rises; a gradient step where the Hessian is not negative definite), then maxima closer
     than one standard deviation (Mahalanobis, in the heavier one's covariance) merged (the
-    lighter dropped); a point whose Hessian is not clearly negative definite is no maximum. Returns
-    the means (K, d), covariances Σ_k = (−∇²g_t)⁻¹ (K, d, d) and log weights ln w_k =
-    g_t(m_k) + ½ ln det Σ_k normalised (each maximum's Laplace mass), the ``max_modes`` heaviest."""
+    lighter dropped); a point whose Hessian is not clearly negative definite, or where the ascent
+    has not converged within ``n_iter`` steps (Newton decrement ≥ 10⁻⁶), is no maximum. Returns
+    the means (K, d), covariances Σ_k = (−∇²g)⁻¹ (K, d, d) and log weights ln w_k =
+    g(m_k) + ½ ln det Σ_k normalised (each maximum's Laplace mass), the ``max_modes`` heaviest."""
     X = np.array(starts, dtype=np.float64, copy=True)
-    d, h = ff.d, 1e-6
+    d, h = X.shape[1], 1e-6
     eye = np.eye(d)
 
     def hessian(X):
-        H = np.stack([(ff.own_factor(t, X + h * eye[j])[1] - ff.own_factor(t, X - h * eye[j])[1]) / (2 * h)
+        H = np.stack([(own(X + h * eye[j])[1] - own(X - h * eye[j])[1]) / (2 * h)
                       for j in range(d)], axis=1)
         return 0.5 * (H + np.swapaxes(H, 1, 2))
 
-    g, gx = ff.own_factor(t, X)
+    g, gx = own(X)
     for _ in range(n_iter):
         a = np.flatnonzero(np.linalg.norm(gx, axis=1) >= 1e-6)      # the rows still moving
         if not len(a):
@@ -92,7 +125,7 @@ def frame_modes(ff, t: int, starts: np.ndarray, n_iter: int = 40, max_step: floa
         step *= np.minimum(1.0, max_step / np.maximum(norm, 1e-300))
         done = np.zeros(len(a), dtype=bool)
         for _ in range(8):                                   # halve until g rises (per row)
-            g1, gx1 = ff.own_factor(t, Xa + step)
+            g1, gx1 = own(Xa + step)
             up = ~done & (g1 >= ga)
             Xa[up], ga[up], gxa[up] = Xa[up] + step[up], g1[up], gx1[up]
             done |= up
@@ -105,11 +138,14 @@ def frame_modes(ff, t: int, starts: np.ndarray, n_iter: int = 40, max_step: floa
     # a maximum only where every curvature is clearly negative (a flat direction, e.g. a latent
     # dimension the audio GP does not read in a frame without an entry, has no Laplace mass)
     ok = np.all(np.isfinite(lam), axis=1) & np.isfinite(g) & (lam[:, 0] > 1e-8 * np.abs(lam).max(1, initial=1.0))
-    X, g, lam, U, H = X[ok], g[ok], lam[ok], U[ok], H[ok]
-    if not len(X):
-        return np.empty((0, d)), np.empty((0, d, d)), np.empty(0)
+    X, g, gx, lam, U, H = X[ok], g[ok], gx[ok], lam[ok], U[ok], H[ok]
     S = np.einsum("kij,kj,klj->kil", U, 1.0 / lam, U)
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    # and only where the ascent has converged: Newton decrement ∇gᵀ Σ ∇g < 10⁻⁶
+    ok = np.einsum("ki,kij,kj->k", gx, S, gx) < 1e-6
+    X, g, lam, H, S = X[ok], g[ok], lam[ok], H[ok], S[ok]
+    if not len(X):
+        return np.empty((0, d)), np.empty((0, d, d)), np.empty(0)
     logw = g - 0.5 * np.log(lam).sum(1)
     keep: list[int] = []
     Pk = -H
@@ -122,31 +158,35 @@ def frame_modes(ff, t: int, starts: np.ndarray, n_iter: int = 40, max_step: floa
     return X[keep], S[keep], lw - logsumexp(lw)
 
 
-class FrameModeProposal:
-    """An independence proposal for the multiple-try update of an isolated frame t
-    (:func:`frame_mtm`): q_t(x | x_{t−1}) = (1 − δ) Σ_k w_k N(x; m_k, s² Σ_k) + δ q⁰_t(x | x_{t−1})
-    with (m_k, Σ_k, w_k) the Laplace approximations at the local maxima of the frame's own
-    factor (:func:`frame_modes`, found once, from the frame's proposal centres: its state
-    model's training latents and any extra centres; with ``n_starts`` only that many, those of
-    highest audio × entry weight) and q⁰ the sweep's proposal
-    (:class:`MixtureProposal`) as the defensive component. The isolated frames' marginals are
-    mixtures of narrow, separated bumps (on the toy utterance frame 63's chain draws sit in
-    clusters near −0.13 and −0.03, each ~0.01 wide, and switch every ~30 draws): tries from
-    the bumps themselves land in them. q_t is fixed before sampling and evaluated exactly.
-    Frames without a maximum found fall back to q⁰ alone."""
+class BlockModeProposal:
+    """An independence proposal for the first frame s of a block's multiple-try update
+    (:func:`block_mtm`): q_s(x | x_{s−1}) = (1 − δ) Σ_k w_k N(x; m_k, c² Σ_k) + δ q⁰_s(x | x_{s−1})
+    with (m_k, Σ_k, w_k) the Laplace approximations at the local maxima of the block's own
+    factor G_s (:func:`block_factor`; :func:`factor_modes`, found once, from the frame's
+    proposal centres: its state model's training latents and any extra centres; for a block of
+    more than one frame only the ``n_starts`` of highest weight (None: all) — on held-out
+    `utt0001` of the default model the 64 of ~300 find every maximum of weight ≥ 0.001 at a fifth
+    of the cost) and q⁰ the sweep's proposal
+    (:class:`~bayes_talk.synthesis.particle_gibbs.MixtureProposal`) as the defensive
+    component. An isolated frame's marginal is a mixture of narrow, separated bumps (on the toy
+    utterance frame 63's chain draws sit in clusters near −0.13 and −0.03, each ~0.01 wide,
+    and switch every ~30 draws), and a short dynamics block's first frame likewise (its path a
+    function of that frame): tries from the bumps themselves land in them. q_s is fixed before
+    sampling and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone."""
 
-    def __init__(self, base, frames, delta: float = 0.2, scale: float = 1.5,
-                 n_starts: int | None = None):
+    def __init__(self, base, blocks, delta: float = 0.2, scale: float = 1.5,
+                 n_starts: int | None = 64):
         if not 0 < delta <= 1 or scale <= 0 or (n_starts is not None and n_starts < 1):
-            raise ValueError(f"FrameModeProposal needs 0 < delta <= 1, scale > 0 and n_starts >= 1, got {delta}, "
+            raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scale > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
         self.base, self.ff, self.delta, self.scale = base, base.ff, float(delta), float(scale)
         self.modes = {}
-        for t in frames:   # ascend from the n_starts centres of highest audio × entry weight (None: all)
-            m, S, lw = frame_modes(self.ff, t, base.centres[t][np.argsort(-base.logw[t], kind="stable")[:n_starts]])
+        for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
+            starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
+            m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
             if len(m):
                 L = np.linalg.cholesky(S * self.scale ** 2)
-                self.modes[t] = (m, L, lw)
+                self.modes[s] = (m, L, lw)
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
                     X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -169,12 +209,20 @@ class FrameModeProposal:
         return X, np.logaddexp(np.log1p(-self.delta) + lm, np.log(self.delta) + lq0)
 
 
-def isolated_frames(ff) -> list[int]:
-    """Frames with no dynamics factor into them or out of them (one-frame blocks of a state
-    model without dynamics, coupled to their neighbours by smoothness factors only): the
-    frames whose full conditional :func:`frame_mtm` samples well (inside a dynamics run the
-    noise 10⁻⁶ pins a frame to its neighbours)."""
-    return [t for t in range(ff.T) if t not in ff.dyn_gp and t + 1 not in ff.dyn_gp]
+def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
+    """The blocks [s, e) of at most ``max_len`` frames: a frame s with no dynamics factor into
+    it and the frames s + 1 … e − 1 that follow it through the dynamics, e the next frame
+    without one (or T). ``max_len`` = 1: the isolated frames (no dynamics on either side;
+    one-frame blocks of a state model without dynamics, coupled to their neighbours by
+    smoothness factors only); inside a longer run the noise 10⁻⁶ pins a frame to its
+    neighbours, so a run moves only as a whole."""
+    out, s = [], 0
+    for t in range(1, ff.T + 1):
+        if t == ff.T or t not in ff.dyn_gp:
+            if t - s <= max_len:
+                out.append((s, t))
+            s = t
+    return out
 
 
-__all__ = ["FrameModeProposal", "frame_modes", "frame_mtm", "isolated_frames"]
+__all__ = ["BlockModeProposal", "block_factor", "block_mtm", "dynamics_blocks", "factor_modes"]

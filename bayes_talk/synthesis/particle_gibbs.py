@@ -33,7 +33,7 @@ from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.diagnostics import frame_update_rate
-from bayes_talk.synthesis.frame_updates import FrameModeProposal, frame_mtm, isolated_frames
+from bayes_talk.synthesis.frame_updates import BlockModeProposal, block_mtm, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
@@ -87,7 +87,7 @@ class FrameFactors:
     def own_factor(self, t: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """g_t(x) = ln p_π(ŷ_t | x) + [t entry] ln N(x; μ_π, Σ_π) and ∂g_t/∂x for rows X (N, d):
         the factors of frame t that involve x_t alone (the frame updates' modes,
-        :func:`~bayes_talk.synthesis.frame_updates.frame_modes`)."""
+        :func:`~bayes_talk.synthesis.frame_updates.block_factor`)."""
         tm, N = self.tm, len(X)
         X = np.ascontiguousarray(X, dtype=np.float64)
         g, gx, _ = tm.audio_gps.loglik(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0), X)
@@ -98,6 +98,45 @@ class FrameFactors:
             g += self.entry_logpdf(t, X)
             gx -= u @ Ci
         return g, gx
+
+    def dynamics_mean_sd(self, t: int, Xprev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (N, d) and sd (N, d) of frame t's dynamics p_π(x_t | x_{t−1}) at the rows Xprev (N, d)."""
+        g = self.dyn_gp[t]
+        mu, s = self.tm.dyn_gps.mean_var(_runs(g, len(Xprev)), np.ascontiguousarray(Xprev, dtype=np.float64))
+        return mu, np.sqrt(s[:, None] / self.tm.dyn_gps.w2[g][None])
+
+    def dynamics_logpdf(self, t: int, Xprev: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """ln p_π(x_t | x_{t−1}) of frame t's dynamics for N pairs (the term of f_t) → (N,)."""
+        ll, _, _ = self.tm.dyn_gps.loglik(_runs(self.dyn_gp[t], len(X)), np.ascontiguousarray(X, dtype=np.float64),
+                                          np.ascontiguousarray(Xprev, dtype=np.float64))
+        return ll
+
+    def run_end(self, t: int) -> int:
+        """The first frame after t without a dynamics factor into it (T at the end): frames
+        t + 1 … run_end − 1 follow x_t through the dynamics."""
+        u = t + 1
+        while u < self.T and u in self.dyn_gp:
+            u += 1
+        return u
+
+    def continuation(self, t: int, X: np.ndarray, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """c(x) = Σ_{u=t+1}^{stop−1} g_u(m_u) along the deterministic continuation m_t = x,
+        m_u = μ_x(m_{u−1}) (the dynamics means; frames t + 1 … stop − 1 must have dynamics
+        factors), g_u the frame's own factor (:meth:`own_factor`), and ∂c/∂x by reverse
+        accumulation through the means (``mean_vjp``), for rows X (N, d). With dynamics noise
+        10⁻⁶ a run's path is nearly this function of its first frame."""
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        c, ms, grads = np.zeros(len(X)), [X], []
+        for u in range(t + 1, stop):
+            m, _ = self.tm.dyn_gps.mean_var(_runs(self.dyn_gp[u], len(X)), ms[-1])
+            ms.append(np.ascontiguousarray(m))
+            g, gx = self.own_factor(u, ms[-1])
+            c += g
+            grads.append(gx)
+        G = np.zeros_like(X)
+        for k in range(len(grads) - 1, -1, -1):      # ∂c/∂m_{u−1} = g'_{u−1} + J_uᵀ ∂c/∂m_u
+            G = self.tm.dyn_gps.mean_vjp(_runs(self.dyn_gp[t + 1 + k], len(X)), ms[k], grads[k] + G)
+        return c, G
 
     def _a_row(self, t: int) -> int:
         return int(np.flatnonzero(self.tm.a_idx == t)[0])
@@ -151,23 +190,13 @@ class MixtureProposal:
                 if t in ff.entry:
                     ll = ll + ff.entry_logpdf(t, Xtr)
                 if lookahead and t not in ff.dyn_gp:
-                    ll = ll + self._continuation_loglik(t, Xtr)
+                    ll = ll + ff.continuation(t, Xtr, ff.run_end(t))[0]
                 self.centres[t], self.logw[t] = Xtr, ll - logsumexp(ll)
                 if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
                     _, gv = ff.smooth[t]
                     mu, s = ff.tm.vis_gps.mean_var(_runs(gv, len(Xtr)), np.ascontiguousarray(Xtr))
                     self.smooth_pred[t] = (mu, s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None])
 
-    def _continuation_loglik(self, t: int, X: np.ndarray) -> np.ndarray:
-        """Σ_u ln p(ŷ_u | m_u) along the dynamics means from X through the run after frame t."""
-        ff, tm = self.ff, self.ff.tm
-        out, m, u = np.zeros(len(X)), np.ascontiguousarray(X), t + 1
-        while u < ff.T and u in ff.dyn_gp:
-            m, _ = tm.dyn_gps.mean_var(_runs(ff.dyn_gp[u], len(m)), m)
-            m = np.ascontiguousarray(m)
-            out += ff.audio_loglik(u, m)
-            u += 1
-        return out
 
     def _weights(self, t: int, Xprev: np.ndarray | None, N: int) -> np.ndarray:
         """ln π_j per particle (N, M): audio × entry, × the smoothness factor s(x_{t−1}, X_j)
@@ -188,8 +217,7 @@ class MixtureProposal:
         """Mean (N, d) and sd (N, d) of the frame's prior, or None (no prior: kernel only)."""
         ff = self.ff
         if t in ff.dyn_gp:
-            mu, s = ff.tm.dyn_gps.mean_var(_runs(ff.dyn_gp[t], N), np.ascontiguousarray(Xprev))
-            return "dyn", mu, np.sqrt(s[:, None] / ff.tm.dyn_gps.w2[ff.dyn_gp[t]][None])
+            return "dyn", *ff.dynamics_mean_sd(t, Xprev)
         if t in ff.entry:
             return "entry", None, None
         return None, None, None
@@ -281,40 +309,43 @@ class ParticleGibbsMove:
     p(x | Ŷ) invariant, so the move leaves the sampler's target (p pushed through the bijection)
     invariant: for :func:`~bayes_talk.synthesis.samplers.run_nuts`'s ``extra_move``
     (particle Gibbs ∘ NUTS). ``frame_tries`` = K > 0: after the sweep, a multiple-try
-    Metropolis update (:func:`~bayes_talk.synthesis.frame_updates.frame_mtm`, K tries) of
-    every isolated frame (:func:`~bayes_talk.synthesis.frame_updates.isolated_frames`) — also
-    invariant, so the composition is; ``tries_from_modes``: its tries from
-    :class:`~bayes_talk.synthesis.frame_updates.FrameModeProposal` (the frame's own modes)
+    Metropolis update (:func:`~bayes_talk.synthesis.frame_updates.block_mtm`, K tries) of
+    every isolated frame and every dynamics run of at most ``block_len`` frames
+    (:func:`~bayes_talk.synthesis.frame_updates.dynamics_blocks`) — also invariant, so the
+    composition is; ``tries_from_modes``: the tries of a block's first frame from
+    :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (the block's own modes)
     instead of the sweep's proposal.
 
     A call returns (u', record): ``record["pg_sweep"]`` True (a sweep ran) and
     ``record["pg_frame_moved"]`` (T,) whether the move (sweep and frame updates) changed
-    frame t's latent x_t, compared in x, exactly; ``run_nuts`` keeps them per draw
+    frame t's latent x_t, compared in x, exactly, ``record["pg_seconds"]`` the move's own time;
+    ``run_nuts`` keeps them per draw
     (:func:`~bayes_talk.synthesis.diagnostics.frame_update_rate` turns them into the
     per-frame update rate)."""
 
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                  h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
-                 backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False):
-
+                 backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
+                 block_len: int = 1):
+        if int(block_len) < 1:
+            raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         self.ff = FrameFactors(dens)
         self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
         self.frame_tries = int(frame_tries)
-        self.frames = isolated_frames(self.ff) if self.frame_tries > 0 else []
-        # the frame updates' tries: from the frame's own modes (FrameModeProposal) or the sweep's proposal
-        self.q_frames = FrameModeProposal(self.q, self.frames) if tries_from_modes and self.frames else self.q
+        self.blocks = dynamics_blocks(self.ff, int(block_len)) if self.frame_tries > 0 else []
+        # the block updates' tries: from the block's own modes (BlockModeProposal) or the sweep's proposal
+        self.q_blocks = BlockModeProposal(self.q, self.blocks) if tries_from_modes and self.blocks else self.q
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+        t0 = time.perf_counter()
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
         x_new, _ = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
-        if self.frames:
-            x_new, _ = frame_mtm(self.ff, self.q_frames, x_new, self.frames, self.frame_tries, rng)
+        if self.blocks:
+            x_new, _ = block_mtm(self.ff, self.q_blocks, x_new, self.blocks, self.frame_tries, rng)
         moved = np.any(x_new != x, axis=1)
-        record = {"pg_sweep": True, "pg_frame_moved": moved}
-        if not moved.any():
-            return u, record
-        return np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64), record
+        u_new = np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64) if moved.any() else u
+        return u_new, {"pg_sweep": True, "pg_frame_moved": moved, "pg_seconds": time.perf_counter() - t0}
 
 
 def run_particle_gibbs(dens: UtteranceDensity, plan, starts: np.ndarray, n_draws: int, warmup: int, seed: int,

@@ -36,8 +36,9 @@ their trained MAP values.
    conditional-SMC sweep with ancestor sampling over the frames
    (:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, 64 particles, proposal
    kernels of three bandwidths around the training latents and the joint MAP's modes, with
-   lookahead weights), then a 16-try Metropolis update of every isolated frame with tries from
-   the frame's own modes (:class:`~bayes_talk.synthesis.frame_updates.FrameModeProposal`;
+   lookahead weights), then a 16-try Metropolis update of every isolated frame and every
+   dynamics run of at most 8 frames, the tries of its first frame from the block's own modes
+   (:class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`;
    :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`). Each kernel leaves the posterior
    invariant, so the composition does (tests/test_composition_invariance.py, on separated
    modes). The same as ``method="nuts"`` with ``sampler_kw={"coords": "noncentred",
@@ -166,7 +167,7 @@ def sample_synthesis(
         "noncentred-whitened": those whitened by their own Laplace); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -274,7 +275,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
                             pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
                             pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
-                            pg_frame_modes=bool(skw["pg_frame_modes"]))
+                            pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
@@ -391,6 +392,8 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
         out["pilot_seconds"] = float(st.get("pilot_seconds", 0.0))
         if "pg_frame_moved" in ss:
             out["pg_sweeps_per_chain"] = [int(n) for n in ss["pg_sweep"].sum(1)]
+            if "pg_seconds" in ss:   # the particle Gibbs move's share of the draws' time
+                out["pg_seconds_per_chain"] = [float(v) for v in ss["pg_seconds"].sum(1)]
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])

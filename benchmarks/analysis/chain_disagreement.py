@@ -34,10 +34,10 @@ SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state"
 
 def frame_kinds(T: int) -> tuple[dict[int, str], list[int]]:
     """Per frame of the toy utterance: its block, whether it starts it, linked/smoothness,
-    dynamics; and the isolated frames (no dynamics on either side: ``isolated_frames``)."""
+    dynamics; and the isolated frames (no dynamics on either side: ``dynamics_blocks(ff, 1)``)."""
     from toydata import make_utterances
 
-    from bayes_talk.synthesis.frame_updates import isolated_frames
+    from bayes_talk.synthesis.frame_updates import dynamics_blocks
     from bayes_talk.synthesis.joint import UtteranceDensity
     from bayes_talk.synthesis.particle_gibbs import FrameFactors
 
@@ -54,7 +54,7 @@ def frame_kinds(T: int) -> tuple[dict[int, str], list[int]]:
                 tags.append("smoothness factor")
             tags.append("no dynamics" if b.model.dynamics_predictor_ is None else "dynamics")
             out[t] = f"[{b.start}, {b.stop}) {'/'.join(b.key)}: " + ", ".join(tags)
-    return out, isolated_frames(FrameFactors(UtteranceDensity(plan)))
+    return out, [s for s, _ in dynamics_blocks(FrameFactors(UtteranceDensity(plan)), 1)]
 
 
 def main() -> None:
