@@ -392,7 +392,7 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
         out["pilot_seconds"] = float(st.get("pilot_seconds", 0.0))
         if "pg_frame_moved" in ss:
             out["pg_sweeps_per_chain"] = [int(n) for n in ss["pg_sweep"].sum(1)]
-            if "pg_seconds" in ss:   # the particle Gibbs move's share of the draws' time
+            if "pg_seconds" in ss:   # the move's seconds over the kept draws (warm-up not recorded)
                 out["pg_seconds_per_chain"] = [float(v) for v in ss["pg_seconds"].sum(1)]
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
     if "acceptance_fraction" in st:
