@@ -119,12 +119,13 @@ class FrameFactors:
             u += 1
         return u
 
-    def continuation(self, t: int, X: np.ndarray, stop: int) -> tuple[np.ndarray, np.ndarray]:
+    def continuation(self, t: int, X: np.ndarray, stop: int, grad: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """c(x) = Σ_{u=t+1}^{stop−1} g_u(m_u) along the deterministic continuation m_t = x,
         m_u = μ_x(m_{u−1}) (the dynamics means; frames t + 1 … stop − 1 must have dynamics
         factors), g_u the frame's own factor (:meth:`own_factor`), and ∂c/∂x by reverse
         accumulation through the means (``mean_vjp``), for rows X (N, d). With dynamics noise
-        10⁻⁶ a run's path is nearly this function of its first frame."""
+        10⁻⁶ a run's path is nearly this function of its first frame. ``grad=False``: c alone
+        (the reverse pass skipped; None for the gradient)."""
         X = np.ascontiguousarray(X, dtype=np.float64)
         c, ms, grads = np.zeros(len(X)), [X], []
         for u in range(t + 1, stop):
@@ -133,6 +134,8 @@ class FrameFactors:
             g, gx = self.own_factor(u, ms[-1])
             c += g
             grads.append(gx)
+        if not grad:
+            return c, None
         G = np.zeros_like(X)
         for k in range(len(grads) - 1, -1, -1):      # ∂c/∂m_{u−1} = g'_{u−1} + J_uᵀ ∂c/∂m_u
             G = self.tm.dyn_gps.mean_vjp(_runs(self.dyn_gp[t + 1 + k], len(X)), ms[k], grads[k] + G)
@@ -190,7 +193,7 @@ class MixtureProposal:
                 if t in ff.entry:
                     ll = ll + ff.entry_logpdf(t, Xtr)
                 if lookahead and t not in ff.dyn_gp:
-                    ll = ll + ff.continuation(t, Xtr, ff.run_end(t))[0]
+                    ll = ll + ff.continuation(t, Xtr, ff.run_end(t), grad=False)[0]
                 self.centres[t], self.logw[t] = Xtr, ll - logsumexp(ll)
                 if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
                     _, gv = ff.smooth[t]
