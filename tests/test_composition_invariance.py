@@ -82,12 +82,17 @@ class Chain:
             out = out - 0.5 * (X[:, 0] - Xprev[:, 0]) ** 2 / C**2
         return out
 
-    def sample_logq(self, t, Xprev, N, rng, X=None):
+    def link_logf(self, t, Xprev, X):      # the terms of f_t with x_{t−1}
+        return np.zeros(len(X)) if t == 0 else -0.5 * (X[:, 0] - Xprev[:, 0]) ** 2 / C**2
+
+    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None):
         m, sd = (np.zeros(N), 3.0) if t == 0 else (Xprev[:, 0], C)
         if X is None:
             walk = rng.random(N) < self.rho
             x = np.where(rng.random(N) < self.q_pos, M, -M) + self.h * rng.standard_normal(N)
             X = np.where(walk, m + sd * rng.standard_normal(N), x)[:, None]
+        if ref is not None:
+            X[-1] = ref
         x = X[:, 0]
         lw = -0.5 * ((x - m) / sd) ** 2 - np.log(sd)
         lc = np.logaddexp(np.log(self.q_pos) - 0.5 * ((x - M) / self.h) ** 2,
@@ -98,8 +103,8 @@ class Chain:
 class NoProposalCorrection(Chain):
     """Broken: ln q_t reported as 0, so the weights are f_t, not f_t / q_t (not invariant)."""
 
-    def sample_logq(self, t, Xprev, N, rng, X=None):
-        X, _ = super().sample_logq(t, Xprev, N, rng, X)
+    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None):
+        X, _ = super().sample_logq(t, Xprev, N, rng, X, ref)
         return X, np.zeros(N)
 
 

@@ -55,17 +55,22 @@ class _AR1:
             return lp - 0.5 * x * x
         return lp - 0.5 * ((x - self.a * Xprev[:, 0]) / self.s) ** 2
 
+    def link_logf(self, t, Xprev, X):      # the terms of f_t with x_{t−1}
+        return np.zeros(len(X)) if t == 0 else -0.5 * ((X[:, 0] - self.a * Xprev[:, 0]) / self.s) ** 2
+
     def dynamics_mean_sd(self, t, Xprev):
         return self.a * Xprev, np.full_like(Xprev, self.s)
 
     def dynamics_logpdf(self, t, Xprev, X):
         return -0.5 * ((X[:, 0] - self.a * Xprev[:, 0]) / self.s) ** 2 - np.log(self.s) - 0.5 * np.log(2 * np.pi)
 
-    def sample_logq(self, t, Xprev, N, rng, X=None):      # the prior transition (bootstrap)
+    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None):      # the prior transition (bootstrap)
         m = np.zeros(N) if t == 0 else self.a * Xprev[:, 0]
         sd = 1.0 if t == 0 else self.s
         if X is None:
             X = (m + sd * rng.standard_normal(N))[:, None]
+        if ref is not None:
+            X[-1] = ref
         return X, -0.5 * ((X[:, 0] - m) / sd) ** 2 - np.log(sd)
 
     def exact(self):

@@ -281,6 +281,15 @@ class PackedGPs:
                        np.ascontiguousarray(Xs, dtype=np.float64), ex, ll, gx, gy)
         return ll, pad_inputs(gx, d), gy
 
+    def loglik_value(self, runs: Runs, Y: np.ndarray, Xs: np.ndarray, extra: np.ndarray | None = None) -> np.ndarray:
+        """Per-row ℓ (R,) alone, from :meth:`mean_var`: no back substitution and no gradient
+        loop, about a third of :meth:`loglik`'s time for 64 rows of a 300-point GP (the
+        particle sweeps need no gradient). Equal to :meth:`loglik`'s ℓ to round-off."""
+        mu, s = self.mean_var(runs, Xs)
+        var = s[:, None] / self.w2[runs.row_gp(1)] + (0.0 if extra is None else np.asarray(extra, dtype=np.float64))
+        r = np.asarray(Y, dtype=np.float64) - mu
+        return -0.5 * (LOG_2PI * self.D + np.log(var).sum(1) + (r * r / var).sum(1))
+
     def mean_var(self, runs: Runs, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """μ (R, D) and σ² (R,) for rows laid out as ``runs``."""
         Xs = take_inputs(Xs, self.in_dims)

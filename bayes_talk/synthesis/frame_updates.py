@@ -2,7 +2,7 @@
 (issue 24, after the sweep).
 
 ``ff`` below is a :class:`~bayes_talk.synthesis.particle_gibbs.FrameFactors` and a proposal
-anything with its ``sample_logq(t, Xprev, N, rng, X=None) -> (X, ln q)``, e.g.
+anything with its ``sample_logq(t, Xprev, N, rng, X=None, ref=None) -> (X, ln q)``, e.g.
 :class:`~bayes_talk.synthesis.particle_gibbs.MixtureProposal` (not imported: that module's
 particle Gibbs move imports this one).
 
@@ -55,17 +55,16 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
     moved = np.zeros(len(blocks), dtype=bool)
     for i, (s, e) in enumerate(blocks):
         prev = None if s == 0 else np.repeat(x[s - 1][None], K + 1, 0)
-        Y, lq = q.sample_logq(s, None if prev is None else prev[:K], K, rng)
-        _, lq_x = q.sample_logq(s, None if prev is None else prev[:1], 1, rng, x[s][None])
+        Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s])            # K tries and the current x_s
         P = np.empty((K + 1, e - s, ff.d))                                # the K tries and the current block
-        P[:K, 0], P[K] = Y, x[s:e]
-        lw = ff.log_f(s, prev, P[:, 0]) - np.concatenate([lq, lq_x])
+        P[:K, 0], P[K] = Y[:K], x[s:e]
+        lw = ff.log_f(s, prev, P[:, 0]) - lq
         for u in range(s + 1, e):
             mu, sd = ff.dynamics_mean_sd(u, P[:K, u - s - 1])
             P[:K, u - s] = mu + sd * rng.standard_normal(mu.shape)
             lw += ff.log_f(u, P[:, u - s - 1], P[:, u - s]) - ff.dynamics_logpdf(u, P[:, u - s - 1], P[:, u - s])
         if e < T:
-            lw = lw + ff.log_f(e, P[:, -1], np.repeat(x[e][None], K + 1, 0))
+            lw = lw + ff.link_logf(e, P[:, -1], np.repeat(x[e][None], K + 1, 0))   # x_e's own terms cancel
         j = rng.choice(K, p=np.exp(lw[:K] - logsumexp(lw[:K])))
         s_y = logsumexp(lw[:K])
         s_x = logsumexp(np.concatenate([np.delete(lw[:K], j), lw[K:]]))
@@ -189,10 +188,11 @@ class BlockModeProposal:
                 self.modes[s] = (m, L, lw)
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
-                    X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """N draws of q_t given the neighbour Xprev (N, d) (or the given X) and their ln q_t (N,)."""
+                    X: np.ndarray | None = None, ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """N draws of q_t given the neighbour Xprev (N, d) (or the given X) and their ln q_t (N,);
+        ``ref`` (d,): the last draw replaced by it before ln q_t is evaluated."""
         if t not in self.modes:
-            return self.base.sample_logq(t, Xprev, N, rng, X)
+            return self.base.sample_logq(t, Xprev, N, rng, X, ref)
         m, L, lw = self.modes[t]
         d = self.ff.d
         if X is None:
@@ -200,6 +200,8 @@ class BlockModeProposal:
             mine = rng.random(N) >= self.delta
             k = rng.choice(len(m), size=int(mine.sum()), p=np.exp(lw))
             X[mine] = m[k] + np.einsum("kij,kj->ki", L[k], rng.standard_normal((len(k), d)))
+        if ref is not None:
+            X[-1] = ref
         _, lq0 = self.base.sample_logq(t, Xprev, N, rng, X)
         z = np.linalg.solve(L[None], (X[:, None, :] - m[None])[..., None])[..., 0]        # (N, K, d)
         lg = -0.5 * (z * z).sum(-1) - np.log(np.diagonal(L, axis1=1, axis2=2)).sum(1)[None] - 0.5 * d * LOG_2PI

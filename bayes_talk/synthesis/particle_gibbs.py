@@ -35,6 +35,7 @@ from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.diagnostics import frame_update_rate
 from bayes_talk.synthesis.frame_updates import BlockModeProposal, block_mtm, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity
+from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothness_weights
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
@@ -61,28 +62,33 @@ class FrameFactors:
 
     def log_f(self, t: int, Xprev: np.ndarray | None, X: np.ndarray) -> np.ndarray:
         """f_t(x_{t−1}^i, x_t^i) for N pairs (Xprev (N, d) or None at t = 0, X (N, d)) → (N,)."""
-        tm, N = self.tm, len(X)
         X = np.ascontiguousarray(X, dtype=np.float64)
-        ll, _, _ = tm.audio_gps.loglik(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0), X)
-        out = ll.copy()
+        out = self.audio_loglik(t, X)
         if t in self.entry:
             out += self.entry_logpdf(t, X)
+        return out + self.link_logf(t, Xprev, X)
+
+    def link_logf(self, t: int, Xprev: np.ndarray | None, X: np.ndarray) -> np.ndarray:
+        """The terms of f_t that involve x_{t−1}: [t dynamics] ln p_π(x_t | x_{t−1}) + [t smooth]
+        ln s(x_{t−1}, x_t), for N pairs → (N,) (zeros where frame t has neither). The rest of
+        f_t depends on x_t alone, so it cancels where x_t is fixed and only the ancestor varies
+        (the sweep's ancestor and backward weights)."""
+        tm, N = self.tm, len(X)
+        out = np.zeros(N)
         if t in self.dyn_gp:
-            ll, _, _ = tm.dyn_gps.loglik(_runs(self.dyn_gp[t], N), X, np.ascontiguousarray(Xprev))
-            out += ll
+            out += self.dynamics_logpdf(t, Xprev, X)
         if t in self.smooth:
             gp, gv = self.smooth[t]
-            zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
-            ll, _, _ = tm.vis_gps.loglik(_runs(gv, N), zp + self.smooth_shift[t], X, tm.motion_var)
-            out += ll
+            zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
+            out += tm.vis_gps.loglik_value(_runs(gv, N), zp + self.smooth_shift[t],
+                                           np.ascontiguousarray(X, dtype=np.float64), tm.motion_var)
         return out
 
     def audio_loglik(self, t: int, X: np.ndarray) -> np.ndarray:
         """ln p_π(ŷ_t | x) of frame t's audio at rows X (N, d) → (N,)."""
         tm, N = self.tm, len(X)
-        ll, _, _ = tm.audio_gps.loglik(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0),
-                                       np.ascontiguousarray(X, dtype=np.float64))
-        return ll
+        return tm.audio_gps.loglik_value(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0),
+                                         np.ascontiguousarray(X, dtype=np.float64))
 
     def own_factor(self, t: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """g_t(x) = ln p_π(ŷ_t | x) + [t entry] ln N(x; μ_π, Σ_π) and ∂g_t/∂x for rows X (N, d):
@@ -107,9 +113,8 @@ class FrameFactors:
 
     def dynamics_logpdf(self, t: int, Xprev: np.ndarray, X: np.ndarray) -> np.ndarray:
         """ln p_π(x_t | x_{t−1}) of frame t's dynamics for N pairs (the term of f_t) → (N,)."""
-        ll, _, _ = self.tm.dyn_gps.loglik(_runs(self.dyn_gp[t], len(X)), np.ascontiguousarray(X, dtype=np.float64),
-                                          np.ascontiguousarray(Xprev, dtype=np.float64))
-        return ll
+        return self.tm.dyn_gps.loglik_value(_runs(self.dyn_gp[t], len(X)), np.ascontiguousarray(X, dtype=np.float64),
+                                            np.ascontiguousarray(Xprev, dtype=np.float64))
 
     def run_end(self, t: int) -> int:
         """The first frame after t without a dynamics factor into it (T at the end): frames
@@ -198,23 +203,18 @@ class MixtureProposal:
                 if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
                     _, gv = ff.smooth[t]
                     mu, s = ff.tm.vis_gps.mean_var(_runs(gv, len(Xtr)), np.ascontiguousarray(Xtr))
-                    self.smooth_pred[t] = (mu, s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None])
-
+                    var = s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None]
+                    self.smooth_pred[t] = (np.ascontiguousarray(mu), 1.0 / var, 0.5 * np.log(var).sum(1))
 
     def _weights(self, t: int, Xprev: np.ndarray | None, N: int) -> np.ndarray:
-        """ln π_j per particle (N, M): audio × entry, × the smoothness factor s(x_{t−1}, X_j)
-        given each particle's ancestor at a block start; normalised per row."""
-        lw = np.broadcast_to(self.logw[t], (N, len(self.logw[t])))
+        """ln π_j per particle (N, M), or (1, M) when every particle shares them: audio × entry,
+        × the smoothness factor s(x_{t−1}, X_j) given each particle's ancestor at a block
+        start (:func:`~bayes_talk.synthesis.proposal_tables.smoothness_weights`); normalised per row."""
         if t not in self.smooth_pred or Xprev is None:
-            return lw
+            return self.logw[t][None]
         gp, _ = self.ff.smooth[t]
-        zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev))
-        zp = zp + self.ff.smooth_shift[t]
-        mu, var = self.smooth_pred[t]
-        r = zp[:, None, :] - mu[None]
-        ls = -0.5 * (np.log(var)[None] + r * r / var[None]).sum(-1)
-        w = lw + ls
-        return w - logsumexp(w, axis=1, keepdims=True)
+        zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
+        return smoothness_weights(self.logw[t], zp + self.ff.smooth_shift[t], *self.smooth_pred[t])
 
     def _prior(self, t: int, Xprev: np.ndarray | None, N: int):
         """Mean (N, d) and sd (N, d) of the frame's prior, or None (no prior: kernel only)."""
@@ -226,8 +226,10 @@ class MixtureProposal:
         return None, None, None
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
-                    X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """N draws of q_t given ancestors Xprev (N, d) (or the given X) and their ln q_t (N,)."""
+                    X: np.ndarray | None = None, ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """N draws of q_t given ancestors Xprev (N, d) (or the given X) and their ln q_t (N,);
+        ``ref`` (d,): the last draw replaced by it before ln q_t is evaluated (the reference
+        particle of a sweep, the current value of a block)."""
         d = self.ff.d
         kind, mu, sd = self._prior(t, Xprev, N)
         rho = self.rho if kind else 0.0
@@ -245,10 +247,9 @@ class MixtureProposal:
                     e = self.ff.entry[t]
                     L = np.linalg.inv(self.ff.tm.e_chol_inv[e])
                     X[use_prior] = self.ff.tm.e_mean[e] + rng.standard_normal((int(use_prior.sum()), d)) @ L.T
-        r = X[:, None, :] - C[None]
-        r2 = (r * r).sum(-1)[..., None]                                   # (N, M, 1)
-        lk = logsumexp(lw[..., None] - 0.5 * r2 / self.hs ** 2 - d * np.log(self.hs), axis=(1, 2)) \
-            - np.log(len(self.hs)) - 0.5 * d * LOG_2PI
+        if ref is not None:
+            X[-1] = ref
+        lk = kernel_mixture_logpdf(np.ascontiguousarray(X, dtype=np.float64), C, lw, self.hs)
         if not rho:
             return X, lk
         if kind == "dyn":
@@ -272,9 +273,7 @@ def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng
     P = np.empty((T, N, d))
     A = np.zeros((T, N), dtype=np.int64)
     LW = np.empty((T, N))
-    X, lq = q.sample_logq(0, None, N, rng)
-    X[-1] = x_ref[0]
-    lq[-1] = q.sample_logq(0, None, 1, rng, X[-1:])[1][0]
+    X, lq = q.sample_logq(0, None, N, rng, ref=x_ref[0])
     P[0] = X
     logw = ff.log_f(0, None, X) - lq
     LW[0] = logw
@@ -284,12 +283,10 @@ def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng
         if backward:
             a[-1] = N - 1
         else:   # ancestor of the reference particle ∝ W_{t−1}^i exp f_t(x_{t−1}^i, x_t^*)
-            la = np.log(W + 1e-300) + ff.log_f(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
+            la = np.log(W + 1e-300) + ff.link_logf(t, P[t - 1], np.repeat(x_ref[t][None], N, 0))
             a[-1] = rng.choice(N, p=np.exp(la - logsumexp(la)))
         Xprev = P[t - 1][a]
-        X, lq = q.sample_logq(t, Xprev, N, rng)
-        X[-1] = x_ref[t]
-        lq[-1] = q.sample_logq(t, Xprev[-1:], 1, rng, X[-1:])[1][0]
+        X, lq = q.sample_logq(t, Xprev, N, rng, ref=x_ref[t])
         P[t], A[t] = X, a
         logw = ff.log_f(t, Xprev, X) - lq
         LW[t] = logw
@@ -298,7 +295,7 @@ def csmc_as(ff: FrameFactors, q: MixtureProposal, x_ref: np.ndarray, N: int, rng
     out[T - 1] = P[T - 1, k]
     for t in range(T - 2, -1, -1):
         if backward:
-            lb = LW[t] + ff.log_f(t + 1, P[t], np.repeat(out[t + 1][None], N, 0))
+            lb = LW[t] + ff.link_logf(t + 1, P[t], np.repeat(out[t + 1][None], N, 0))
             k = rng.choice(N, p=np.exp(lb - logsumexp(lb)))
         else:
             k = A[t + 1, k]
