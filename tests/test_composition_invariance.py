@@ -85,7 +85,7 @@ class Chain:
     def link_logf(self, t, Xprev, X):      # the terms of f_t with x_{t−1}
         return np.zeros(len(X)) if t == 0 else -0.5 * (X[:, 0] - Xprev[:, 0]) ** 2 / C**2
 
-    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None):
+    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None, x_next=None):
         m, sd = (np.zeros(N), 3.0) if t == 0 else (Xprev[:, 0], C)
         if X is None:
             walk = rng.random(N) < self.rho
@@ -103,7 +103,7 @@ class Chain:
 class NoProposalCorrection(Chain):
     """Broken: ln q_t reported as 0, so the weights are f_t, not f_t / q_t (not invariant)."""
 
-    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None):
+    def sample_logq(self, t, Xprev, N, rng, X=None, ref=None, x_next=None):
         X, _ = super().sample_logq(t, Xprev, N, rng, X, ref)
         return X, np.zeros(N)
 

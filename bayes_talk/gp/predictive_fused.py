@@ -319,6 +319,11 @@ class Runs:
         self.hi = np.ascontiguousarray(hi, dtype=np.int64)
 
     @classmethod
+    def one(cls, g: int, n: int) -> Runs:
+        """n rows, all of GP g."""
+        return cls(np.array([g]), np.array([0]), np.array([n]))
+
+    @classmethod
     def of(cls, row_gp: np.ndarray) -> Runs:
         """Runs of a per-row GP index (rows of one GP should be consecutive)."""
         row_gp = np.asarray(row_gp, dtype=np.int64)

@@ -35,10 +35,11 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: ``pg_block_len`` = 8 of every dynamics run of at most 8 frames, its first frame's tries from
 #: the run's own modes (held-out ``utt0001``: R-hat 1.22 → 1.12, bulk ESS per second +60 %,
 #: wall +32 %; toy 1.014 → 1.025, with the modes' new convergence filter; docs/uncertainty.md
-#: "Short dynamics blocks' own modes")
+#: "Short dynamics blocks' own modes"); ``pg_neighbours``: those modes conditioned on the
+#: smoothness factors into and out of the block given its current neighbours (off)
 PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
                     "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 16,
-                    "pg_frame_modes": True, "pg_block_len": 8}
+                    "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}

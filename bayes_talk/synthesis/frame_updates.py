@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import logsumexp
 
+from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
@@ -55,7 +56,8 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
     moved = np.zeros(len(blocks), dtype=bool)
     for i, (s, e) in enumerate(blocks):
         prev = None if s == 0 else np.repeat(x[s - 1][None], K + 1, 0)
-        Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s])            # K tries and the current x_s
+        Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s],           # K tries and the current x_s
+                              x_next=x[e] if e < T else None)
         P = np.empty((K + 1, e - s, ff.d))                                # the K tries and the current block
         P[:K, 0], P[K] = Y[:K], x[s:e]
         lw = ff.log_f(s, prev, P[:, 0]) - lq
@@ -174,26 +176,42 @@ class BlockModeProposal:
     sampling and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone."""
 
     def __init__(self, base, blocks, delta: float = 0.2, scale: float = 1.5,
-                 n_starts: int | None = 64):
+                 n_starts: int | None = 64, neighbours: bool = False):
         if not 0 < delta <= 1 or scale <= 0 or (n_starts is not None and n_starts < 1):
             raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scale > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
         self.base, self.ff, self.delta, self.scale = base, base.ff, float(delta), float(scale)
-        self.modes = {}
+        self.neighbours = bool(neighbours)
+        self.modes, self.laplace, self.end = {}, {}, {}
         for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
             starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
             if len(m):
                 L = np.linalg.cholesky(S * self.scale ** 2)
-                self.modes[s] = (m, L, lw)
+                self.modes[s], self.end[s] = (m, L, lw), e
+                self.laplace[s] = (np.linalg.inv(S), lw)
+
+    def components(self, s: int, x_prev: np.ndarray | None, x_next: np.ndarray | None):
+        """The mixture's components (means (K, d), Cholesky factors of the covariances
+        (K, d, d), log weights (K,)) for block s given its neighbours: the own factor's modes,
+        or with ``neighbours`` (:func:`neighbour_adjusted`) those modes conditioned on the
+        smoothness factors at the block's two ends."""
+        if not self.neighbours:
+            return self.modes[s]
+        P, lw = self.laplace[s]
+        m, Pn, lwn = neighbour_adjusted(self.ff, s, self.end[s], self.modes[s][0], P, lw, x_prev, x_next)
+        S = np.linalg.inv(Pn)
+        return m, np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)) * self.scale ** 2), lwn
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
-                    X: np.ndarray | None = None, ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    X: np.ndarray | None = None, ref: np.ndarray | None = None,
+                    x_next: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """N draws of q_t given the neighbour Xprev (N, d) (or the given X) and their ln q_t (N,);
-        ``ref`` (d,): the last draw replaced by it before ln q_t is evaluated."""
+        ``ref`` (d,): the last draw replaced by it before ln q_t is evaluated; ``x_next`` (d,):
+        the frame after the block (None at the end or when unknown), read with ``neighbours``."""
         if t not in self.modes:
             return self.base.sample_logq(t, Xprev, N, rng, X, ref)
-        m, L, lw = self.modes[t]
+        m, L, lw = self.components(t, None if Xprev is None else Xprev[0], x_next)
         d = self.ff.d
         if X is None:
             X, _ = self.base.sample_logq(t, Xprev, N, rng)
@@ -209,6 +227,69 @@ class BlockModeProposal:
         if self.delta == 1.0:
             return X, lq0
         return X, np.logaddexp(np.log1p(-self.delta) + lm, np.log(self.delta) + lq0)
+
+
+def neighbour_adjusted(ff, s: int, e: int, m: np.ndarray, P: np.ndarray, lw: np.ndarray,
+                       x_prev: np.ndarray | None, x_next: np.ndarray | None):
+    """Gaussian components N(m_k, P_k⁻¹) with weights w_k (a block's own modes, Laplace
+    precisions P_k) conditioned on the block's smoothness factors, linearised at m_k. The
+    block [s, e)'s full conditional is its own factor G_s × the smoothness factor at s,
+    ln N(ȳ_s; μ_s(x), V_s) (ȳ_s = the previous state's visual prediction at x_{s−1} plus the
+    factor's u_s, μ_s and V_s the visual predictive of x with the motion variance added) × the
+    one at e, ln N(ȳ_e(x); μ_e, V_e) (ȳ_e from the end c(x) of the path the dynamics means
+    continue from x, μ_e and V_e at the fixed x_e). With both means linear in x near m_k
+    (Jacobians H by central differences) and V at m_k, each component is a linear-Gaussian
+    model with observation z = H x + ε, ε ~ N(0, V), whose posterior and evidence are exact:
+
+        P'_k = P_k + Hᵀ V⁻¹ H,   m'_k = m_k + P'_k⁻¹ Hᵀ V⁻¹ r_k,   r_k the residual at m_k,
+        ln w'_k = ln w_k − ½ r_kᵀ V⁻¹ r_k + ½ bᵀ P'_k⁻¹ b − ½ ln det V + ½ ln det P_k − ½ ln det P'_k,
+        b = Hᵀ V⁻¹ r_k (the evidence by the determinant lemma; its 2π constant cancels).
+
+    Everything is a deterministic function of the neighbours (x_{s−1}, x_e), not of the block,
+    so a proposal built from it stays an independence proposal for :func:`block_mtm`. A
+    factor that is absent (no smoothness factor, or the neighbour unknown) is left out.
+    Returns (m' (K, d), P' (K, d, d), ln w' normalised (K,))."""
+    tm, d, K = ff.tm, ff.d, len(m)
+    h = 1e-6
+    rows = np.concatenate([m[:, None, :] + h * np.concatenate([np.eye(d), -np.eye(d)])[None], m[:, None, :]], 1)
+    rows = rows.reshape(-1, d)                                    # per mode: +h e_j, −h e_j, m_k
+    Hs, rs, vs = [], [], []
+
+    def add(pred, y, var):                                        # pred (K·(2d+1), D): a mean linear in x
+        pred = pred.reshape(K, 2 * d + 1, -1)
+        Hs.append(np.swapaxes((pred[:, :d] - pred[:, d:2 * d]) / (2 * h), 1, 2))   # (K, D, d)
+        rs.append(y - pred[:, -1])
+        vs.append(var)
+
+    if s in ff.smooth and x_prev is not None:
+        gp, gv = ff.smooth[s]
+        zp, _ = tm.vis_gps.mean_var(Runs.one(gp, 1), np.ascontiguousarray(x_prev[None], dtype=np.float64))
+        mu, sv = tm.vis_gps.mean_var(Runs.one(gv, len(rows)), rows)
+        var = sv.reshape(K, 2 * d + 1)[:, -1:] / tm.vis_gps.w2[gv][None] + tm.motion_var[None]
+        add(mu, (zp + ff.smooth_shift[s])[0][None], var)
+    if e < ff.T and e in ff.smooth and x_next is not None:
+        gp, gv = ff.smooth[e]
+        c = rows
+        for u in range(s + 1, e):
+            c, _ = tm.dyn_gps.mean_var(Runs.one(ff.dyn_gp[u], len(c)), np.ascontiguousarray(c))
+        zp, _ = tm.vis_gps.mean_var(Runs.one(gp, len(c)), np.ascontiguousarray(c))
+        mu, sv = tm.vis_gps.mean_var(Runs.one(gv, 1), np.ascontiguousarray(x_next[None], dtype=np.float64))
+        var = sv[:, None] / tm.vis_gps.w2[gv][None] + tm.motion_var[None]
+        # the observation is μ_e − u_e = ȳ_e(x) − u_e: z(x) = zp(c(x)), observed value μ_e − u_e
+        add(zp, (mu - ff.smooth_shift[e])[0][None], np.broadcast_to(var, (K, var.shape[1])))
+    if not Hs:
+        return m, P, lw
+    H = np.concatenate(Hs, 1)                                      # (K, D_tot, d)
+    r = np.concatenate(rs, 1)                                      # (K, D_tot)
+    iv = 1.0 / np.concatenate(vs, 1)
+    Pn = P + np.einsum("kai,ka,kaj->kij", H, iv, H)
+    b = np.einsum("kai,ka->ki", H, iv * r)
+    Lp = np.linalg.cholesky(Pn)
+    step = np.linalg.solve(Pn, b[..., None])[..., 0]
+    logdet = lambda A: 2 * np.log(np.diagonal(np.linalg.cholesky(A), axis1=1, axis2=2)).sum(1)
+    lwn = (lw - 0.5 * (r * r * iv).sum(1) + 0.5 * (b * step).sum(1) + 0.5 * np.log(iv).sum(1)
+           + 0.5 * logdet(P) - np.log(np.diagonal(Lp, axis1=1, axis2=2)).sum(1))
+    return m + step, Pn, lwn - logsumexp(lwn)
 
 
 def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
@@ -227,4 +308,5 @@ def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
     return out
 
 
-__all__ = ["BlockModeProposal", "block_factor", "block_mtm", "dynamics_blocks", "factor_modes"]
+__all__ = ["BlockModeProposal", "block_factor", "block_mtm", "dynamics_blocks", "factor_modes",
+           "neighbour_adjusted"]

@@ -290,7 +290,8 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     ``skw["pg_block_len"]`` = L (default 1), every dynamics run of at most L frames
     (:func:`~bayes_talk.synthesis.frame_updates.block_mtm`); ``skw["pg_frame_modes"]`` (default False):
     those tries from the block's own modes
-    (:class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`). ``run``: the NUTS
+    (:class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`), with ``skw["pg_neighbours"]``
+    (default False) conditioned on the block's neighbours' smoothness factors. ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
@@ -322,6 +323,7 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_frame_tries = int(skw.pop("pg_frame_tries", 0))
     pg_frame_modes = bool(skw.pop("pg_frame_modes", False))
     pg_block_len = int(skw.pop("pg_block_len", 1))
+    pg_neighbours = bool(skw.pop("pg_neighbours", False))
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
         from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 
@@ -330,7 +332,7 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
         skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h,
                                               lookahead=pg_lookahead, extra_centres=extra, backward=pg_backward,
                                               frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
-                                              block_len=pg_block_len)
+                                              block_len=pg_block_len, neighbours=pg_neighbours)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,

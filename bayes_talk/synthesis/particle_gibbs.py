@@ -39,10 +39,6 @@ from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothne
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
-def _runs(g: int, n: int) -> Runs:
-    return Runs(np.array([g]), np.array([0]), np.array([n]))
-
-
 class FrameFactors:
     """The per-frame factors f_t of (1), evaluated for many (x_{t−1}, x_t) pairs of one frame."""
 
@@ -79,15 +75,15 @@ class FrameFactors:
             out += self.dynamics_logpdf(t, Xprev, X)
         if t in self.smooth:
             gp, gv = self.smooth[t]
-            zp, _ = tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
-            out += tm.vis_gps.loglik_value(_runs(gv, N), zp + self.smooth_shift[t],
+            zp, _ = tm.vis_gps.mean_var(Runs.one(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
+            out += tm.vis_gps.loglik_value(Runs.one(gv, N), zp + self.smooth_shift[t],
                                            np.ascontiguousarray(X, dtype=np.float64), tm.motion_var)
         return out
 
     def audio_loglik(self, t: int, X: np.ndarray) -> np.ndarray:
         """ln p_π(ŷ_t | x) of frame t's audio at rows X (N, d) → (N,)."""
         tm, N = self.tm, len(X)
-        return tm.audio_gps.loglik_value(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0),
+        return tm.audio_gps.loglik_value(Runs.one(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0),
                                          np.ascontiguousarray(X, dtype=np.float64))
 
     def own_factor(self, t: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,7 +92,7 @@ class FrameFactors:
         :func:`~bayes_talk.synthesis.frame_updates.block_factor`)."""
         tm, N = self.tm, len(X)
         X = np.ascontiguousarray(X, dtype=np.float64)
-        g, gx, _ = tm.audio_gps.loglik(_runs(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0), X)
+        g, gx, _ = tm.audio_gps.loglik(Runs.one(self.audio_gp[t], N), np.repeat(tm.a_Y[[self._a_row(t)]], N, 0), X)
         g, gx = g.copy(), gx.copy()
         if t in self.entry:
             Ci = tm.e_chol_inv[self.entry[t]]
@@ -108,12 +104,12 @@ class FrameFactors:
     def dynamics_mean_sd(self, t: int, Xprev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean (N, d) and sd (N, d) of frame t's dynamics p_π(x_t | x_{t−1}) at the rows Xprev (N, d)."""
         g = self.dyn_gp[t]
-        mu, s = self.tm.dyn_gps.mean_var(_runs(g, len(Xprev)), np.ascontiguousarray(Xprev, dtype=np.float64))
+        mu, s = self.tm.dyn_gps.mean_var(Runs.one(g, len(Xprev)), np.ascontiguousarray(Xprev, dtype=np.float64))
         return mu, np.sqrt(s[:, None] / self.tm.dyn_gps.w2[g][None])
 
     def dynamics_logpdf(self, t: int, Xprev: np.ndarray, X: np.ndarray) -> np.ndarray:
         """ln p_π(x_t | x_{t−1}) of frame t's dynamics for N pairs (the term of f_t) → (N,)."""
-        return self.tm.dyn_gps.loglik_value(_runs(self.dyn_gp[t], len(X)), np.ascontiguousarray(X, dtype=np.float64),
+        return self.tm.dyn_gps.loglik_value(Runs.one(self.dyn_gp[t], len(X)), np.ascontiguousarray(X, dtype=np.float64),
                                             np.ascontiguousarray(Xprev, dtype=np.float64))
 
     def run_end(self, t: int) -> int:
@@ -134,7 +130,7 @@ class FrameFactors:
         X = np.ascontiguousarray(X, dtype=np.float64)
         c, ms, grads = np.zeros(len(X)), [X], []
         for u in range(t + 1, stop):
-            m, _ = self.tm.dyn_gps.mean_var(_runs(self.dyn_gp[u], len(X)), ms[-1])
+            m, _ = self.tm.dyn_gps.mean_var(Runs.one(self.dyn_gp[u], len(X)), ms[-1])
             ms.append(np.ascontiguousarray(m))
             g, gx = self.own_factor(u, ms[-1])
             c += g
@@ -143,7 +139,7 @@ class FrameFactors:
             return c, None
         G = np.zeros_like(X)
         for k in range(len(grads) - 1, -1, -1):      # ∂c/∂m_{u−1} = g'_{u−1} + J_uᵀ ∂c/∂m_u
-            G = self.tm.dyn_gps.mean_vjp(_runs(self.dyn_gp[t + 1 + k], len(X)), ms[k], grads[k] + G)
+            G = self.tm.dyn_gps.mean_vjp(Runs.one(self.dyn_gp[t + 1 + k], len(X)), ms[k], grads[k] + G)
         return c, G
 
     def _a_row(self, t: int) -> int:
@@ -202,7 +198,7 @@ class MixtureProposal:
                 self.centres[t], self.logw[t] = Xtr, ll - logsumexp(ll)
                 if t in ff.smooth:   # the smoothness factor's visual predictive at each centre
                     _, gv = ff.smooth[t]
-                    mu, s = ff.tm.vis_gps.mean_var(_runs(gv, len(Xtr)), np.ascontiguousarray(Xtr))
+                    mu, s = ff.tm.vis_gps.mean_var(Runs.one(gv, len(Xtr)), np.ascontiguousarray(Xtr))
                     var = s[:, None] / ff.tm.vis_gps.w2[gv][None] + ff.tm.motion_var[None]
                     self.smooth_pred[t] = (np.ascontiguousarray(mu), 1.0 / var, 0.5 * np.log(var).sum(1))
 
@@ -213,7 +209,7 @@ class MixtureProposal:
         if t not in self.smooth_pred or Xprev is None:
             return self.logw[t][None]
         gp, _ = self.ff.smooth[t]
-        zp, _ = self.ff.tm.vis_gps.mean_var(_runs(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
+        zp, _ = self.ff.tm.vis_gps.mean_var(Runs.one(gp, N), np.ascontiguousarray(Xprev, dtype=np.float64))
         return smoothness_weights(self.logw[t], zp + self.ff.smooth_shift[t], *self.smooth_pred[t])
 
     def _prior(self, t: int, Xprev: np.ndarray | None, N: int):
@@ -226,10 +222,12 @@ class MixtureProposal:
         return None, None, None
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
-                    X: np.ndarray | None = None, ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    X: np.ndarray | None = None, ref: np.ndarray | None = None,
+                    x_next: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """N draws of q_t given ancestors Xprev (N, d) (or the given X) and their ln q_t (N,);
         ``ref`` (d,): the last draw replaced by it before ln q_t is evaluated (the reference
-        particle of a sweep, the current value of a block)."""
+        particle of a sweep, the current value of a block). ``x_next``: ignored (a sweep's
+        proposal does not look at the frame after; the block updates pass it to any proposal)."""
         d = self.ff.d
         kind, mu, sd = self._prior(t, Xprev, N)
         rho = self.rho if kind else 0.0
@@ -314,7 +312,9 @@ class ParticleGibbsMove:
     (:func:`~bayes_talk.synthesis.frame_updates.dynamics_blocks`) — also invariant, so the
     composition is; ``tries_from_modes``: the tries of a block's first frame from
     :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (the block's own modes)
-    instead of the sweep's proposal.
+    instead of the sweep's proposal, with ``neighbours`` conditioned on the smoothness factors
+    at the block's two ends given its current neighbours
+    (:func:`~bayes_talk.synthesis.frame_updates.neighbour_adjusted`).
 
     A call returns (u', record): ``record["pg_sweep"]`` True (a sweep ran) and
     ``record["pg_frame_moved"]`` (T,) whether the move (sweep and frame updates) changed
@@ -326,7 +326,7 @@ class ParticleGibbsMove:
     def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                  h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
                  backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
-                 block_len: int = 1):
+                 block_len: int = 1, neighbours: bool = False):
         if int(block_len) < 1:
             raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         self.ff = FrameFactors(dens)
@@ -335,7 +335,8 @@ class ParticleGibbsMove:
         self.frame_tries = int(frame_tries)
         self.blocks = dynamics_blocks(self.ff, int(block_len)) if self.frame_tries > 0 else []
         # the block updates' tries: from the block's own modes (BlockModeProposal) or the sweep's proposal
-        self.q_blocks = BlockModeProposal(self.q, self.blocks) if tries_from_modes and self.blocks else self.q
+        self.q_blocks = (BlockModeProposal(self.q, self.blocks, neighbours=neighbours)
+                         if tries_from_modes and self.blocks else self.q)
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         t0 = time.perf_counter()

@@ -167,7 +167,7 @@ def sample_synthesis(
         "noncentred-whitened": those whitened by their own Laplace); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -275,7 +275,8 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
                             pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
                             pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
-                            pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]))
+                            pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]),
+                            pg_neighbours=bool(skw["pg_neighbours"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
