@@ -25,6 +25,18 @@ def toy(toy_vlmm):
     return toy_vlmm, make_utterances(1, seed=1, mean_len=20)[0]
 
 
+@pytest.fixture(scope="module")
+def toy20(toy):
+    """The toy utterance's first 20 frames: (T, their FrameFactors, the joint MAP, the sweep's
+    proposal with the MAP as an extra centre)."""
+    model, u = toy
+    T = 20
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    ff = FrameFactors(UtteranceDensity(plan))
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    return T, ff, x_map, MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), extra_centres=x_map[None])
+
+
 @pytest.mark.parametrize("smoothness", ["frame", "off"])
 def test_frame_factors_sum_to_the_utterance_density(toy, smoothness):
     model, u = toy
@@ -331,7 +343,7 @@ def test_lookahead_proposal_with_map_centres_is_a_normalised_density_of_its_draw
 
 
 @pytest.mark.parametrize("block", ["isolated", "run"])
-def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_reports(toy, block):
+def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_reports(toy20, block):
     """``factor_modes`` on a block's own factor (``block_factor``: an isolated frame's audio
     and entry; a dynamics run's audio along its deterministic continuation): every returned
     mean is a local maximum (gradient ≈ 0; the factor lower at 40 points 0.5 sd away) and
@@ -341,12 +353,7 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     share of the draws lies within 3 sd of a mode."""
     from bayes_talk.synthesis.frame_updates import BlockModeProposal, factor_modes
 
-    model, u = toy
-    T = 20
-    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
-    ff = FrameFactors(UtteranceDensity(plan))
-    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
-    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), extra_centres=x_map[None])
+    T, ff, x_map, q = toy20
     if block == "isolated":
         s, e = next((s, e) for s, e in dynamics_blocks(ff, 1) if s in ff.entry and s in ff.smooth)
     else:
@@ -407,7 +414,7 @@ def test_block_factor_is_the_own_factors_along_the_dynamics_means_with_their_gra
 
 
 @pytest.mark.parametrize("block", ["isolated", "run"])
-def test_neighbour_adjusted_modes_are_the_conditioned_laplace_approximation(toy, block):
+def test_neighbour_adjusted_modes_are_the_conditioned_laplace_approximation(toy20, block):
     """``BlockModeProposal(neighbours=True)``: each own-factor mode N(m_k, Σ_k) conditioned on
     the block's smoothness factors at both ends given x_{s−1} and x_e. Its mean is the maximum
     of F(x) = ln N(x; m_k, Σ_k) + the two smoothness factors (the end one at the path the
@@ -418,12 +425,7 @@ def test_neighbour_adjusted_modes_are_the_conditioned_laplace_approximation(toy,
 
     from bayes_talk.synthesis.frame_updates import BlockModeProposal
 
-    model, u = toy
-    T = 20
-    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
-    ff = FrameFactors(UtteranceDensity(plan))
-    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
-    q = MixtureProposal(ff, plan, rho=0.5, h=(0.005, 0.02, 0.05), extra_centres=x_map[None])
+    T, ff, x_map, q = toy20
     cap = 1 if block == "isolated" else T
     s, e = next((s, e) for s, e in dynamics_blocks(ff, cap) if s > 0 and e < T and s in ff.smooth and e in ff.smooth
                 and (e - s == 1) == (block == "isolated"))
