@@ -275,7 +275,7 @@ def neighbour_adjusted(ff, s: int, e: int, m: np.ndarray, P: np.ndarray, lw: np.
         zp, _ = tm.vis_gps.mean_var(Runs.one(gp, len(c)), np.ascontiguousarray(c))
         mu, sv = tm.vis_gps.mean_var(Runs.one(gv, 1), np.ascontiguousarray(x_next[None], dtype=np.float64))
         var = sv[:, None] / tm.vis_gps.w2[gv][None] + tm.motion_var[None]
-        # the observation is μ_e − u_e = ȳ_e(x) − u_e: z(x) = zp(c(x)), observed value μ_e − u_e
+        # ȳ_e(x) = zp(c(x)) + u_e against μ_e: the prediction zp(c(x)), the observed value μ_e − u_e
         add(zp, (mu - ff.smooth_shift[e])[0][None], np.broadcast_to(var, (K, var.shape[1])))
     if not Hs:
         return m, P, lw
@@ -286,9 +286,8 @@ def neighbour_adjusted(ff, s: int, e: int, m: np.ndarray, P: np.ndarray, lw: np.
     b = np.einsum("kai,ka->ki", H, iv * r)
     Lp = np.linalg.cholesky(Pn)
     step = np.linalg.solve(Pn, b[..., None])[..., 0]
-    logdet = lambda A: 2 * np.log(np.diagonal(np.linalg.cholesky(A), axis1=1, axis2=2)).sum(1)
     lwn = (lw - 0.5 * (r * r * iv).sum(1) + 0.5 * (b * step).sum(1) + 0.5 * np.log(iv).sum(1)
-           + 0.5 * logdet(P) - np.log(np.diagonal(Lp, axis1=1, axis2=2)).sum(1))
+           + 0.5 * np.linalg.slogdet(P)[1] - np.log(np.diagonal(Lp, axis1=1, axis2=2)).sum(1))
     return m + step, Pn, lwn - logsumexp(lwn)
 
 
