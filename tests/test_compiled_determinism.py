@@ -25,6 +25,7 @@ import numpy as np
 from bayes_talk.gp.fused import rbf_matrix_normal_grad
 from bayes_talk.gp.predictive_fused import PackedGPs, Runs
 from bayes_talk.synthesis.noncentred import _packed_vjp
+from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothness_weights
 from bayes_talk.synthesis.segment_objective import _segment_compiled
 
 rng = np.random.default_rng(0)
@@ -70,6 +71,12 @@ _packed_vjp(runs.gp, runs.lo, runs.hi, pack.X, pack.A, pack.L, pack.offs, pack.l
 out["noncentred_vjp"] = digest(vjp)
 ll, gX, ga, gg, gb, gV = rbf_matrix_normal_grad(rng.normal(size=(90, d)), 1.1, 0.8, 50.0, rng.normal(size=(90, 5)))
 out["rbf_matrix_normal_grad"] = digest(np.array([ll, ga, gg, gb]), gX, gV)
+var = rng.uniform(0.5, 2.0, size=(37, 18))
+lw = smoothness_weights(rng.normal(size=37), rng.normal(size=(29, 18)), rng.normal(size=(37, 18)), 1.0 / var,
+                        0.5 * np.log(var).sum(1))
+out["proposal_smoothness_weights"] = digest(lw)
+out["proposal_kernel_mixture_logpdf"] = digest(kernel_mixture_logpdf(rng.normal(size=(29, d)), rng.normal(size=(37, d)),
+                                                                     lw, np.array([0.05, 0.2, 0.5])))
 print(json.dumps(out))
 """
 

@@ -9,12 +9,15 @@ The test density is a 3-frame chain with a bimodal per-frame factor,
 whose modes are 16 nats apart at the barrier (NUTS alone never crosses it). The exact marginals
 P(x_t > 0), E x_t and E x_t² come from a forward-backward pass on a fine grid. The sampler is
 the project's :func:`~bayes_talk.synthesis.samplers.run_nuts` with its mode-jumping Metropolis
-moves and, as ``extra_move``, one conditional-SMC sweep with ancestor sampling
-(:func:`~bayes_talk.synthesis.particle_gibbs.csmc_as`) per iteration; every estimate must lie
-within 5 Monte-Carlo standard errors (batch means) of the exact value. Two deliberately broken
-extra moves must fail the same check: the sweep with its importance weights missing the
-proposal density (weights f_t instead of f_t / q_t), and a sign flip accepted without a
-Metropolis test.
+moves and, as ``extra_move``, the library's particle Gibbs move
+(:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, the object ``pg-nuts`` runs):
+one conditional-SMC sweep with ancestor sampling per iteration, then multiple-try Metropolis
+updates of the blocks {0} and {1, 2} given their neighbours (the second frame of a block drawn
+from the coupling, as the synthesis blocks' later frames are drawn from the dynamics). Every
+estimate must lie within 5 Monte-Carlo standard errors (batch means) of the exact value. Two
+deliberately broken extra moves must fail the same check: the move with its proposal density
+missing from the sweep's and the tries' weights (f_t instead of f_t / q_t), and a sign flip
+accepted without a Metropolis test.
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ import pytest
 import torch
 from scipy.special import logsumexp
 
-from bayes_talk.synthesis.particle_gibbs import csmc_as
+from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 from bayes_talk.synthesis.samplers import run_nuts
 
 T, M, S, C = 3, 2.0, 0.35, 2.5          # frames, mode location ±M, mode sd, coupling sd
@@ -69,7 +72,9 @@ def exact_moments(n: int = 4001, lim: float = 6.0) -> dict:
 
 
 class Chain:
-    """The density as frame factors f_t for :func:`csmc_as`, with a proposal q_t: ρ · a random
+    """The density as frame factors f_t for the particle Gibbs move, the coupling as its "dynamics"
+    (mean x_{t−1}, sd c: what the block updates draw a block's later frames from), and a
+    proposal q_t: ρ · a random
     walk from the ancestor (N(0, 3²) at t = 0) + (1 − ρ) · a mixture of N(+2, 0.5²) and N(−2, 0.5²)
     with weights 0.1 and 0.9 (deliberately unlike the target's, so that a sweep whose weights
     miss q_t is visibly biased)."""
@@ -84,6 +89,12 @@ class Chain:
 
     def link_logf(self, t, Xprev, X):      # the terms of f_t with x_{t−1}
         return np.zeros(len(X)) if t == 0 else -0.5 * (X[:, 0] - Xprev[:, 0]) ** 2 / C**2
+
+    def dynamics_mean_sd(self, t, Xprev):
+        return Xprev, np.full_like(Xprev, C)
+
+    def dynamics_logpdf(self, t, Xprev, X):
+        return -0.5 * ((X[:, 0] - Xprev[:, 0]) / C) ** 2 - np.log(C) - 0.5 * np.log(2 * np.pi)
 
     def sample_logq(self, t, Xprev, N, rng, X=None, ref=None, x_next=None):
         m, sd = (np.zeros(N), 3.0) if t == 0 else (Xprev[:, 0], C)
@@ -108,15 +119,11 @@ class NoProposalCorrection(Chain):
         return X, np.zeros(N)
 
 
-class PGSweep:
-    """``extra_move`` for run_nuts: one CSMC-AS sweep with ``n`` particles."""
-
-    def __init__(self, model: Chain, n: int = 16):
-        self.model, self.n = model, n
-
-    def __call__(self, x, rng):
-        x_new, _ = csmc_as(self.model, self.model, np.asarray(x, dtype=np.float64).reshape(T, 1), self.n, rng)
-        return x_new.reshape(-1)
+def pg_move(model: Chain) -> ParticleGibbsMove:
+    """``extra_move`` for run_nuts: a 16-particle sweep, then 4-try updates of the blocks [0, 1)
+    and [1, 3); NUTS's state x (T,) is the move's (T, 1) path."""
+    return ParticleGibbsMove(model, model, to_x=lambda u: np.reshape(u, (T, 1)), to_u=lambda x: np.reshape(x, -1),
+                             n_particles=16, blocks=[(0, 1), (1, 3)], frame_tries=4)
 
 
 def naive_flip(x, rng):
@@ -137,7 +144,7 @@ def _batch_se(v: np.ndarray, n_batches: int = 20) -> np.ndarray:
 
 @pytest.mark.parametrize("move", ["pg", "pg-no-proposal-correction", "naive-flip"])
 def test_pg_nuts_jumps_leaves_a_separated_bimodal_chain_invariant(move):
-    extra = {"pg": PGSweep(Chain()), "pg-no-proposal-correction": PGSweep(NoProposalCorrection()),
+    extra = {"pg": pg_move(Chain()), "pg-no-proposal-correction": pg_move(NoProposalCorrection()),
              "naive-flip": naive_flip}[move]
     broken = move != "pg"
     # mode jump: all three frames to the other mode (the displacement between the two extreme modes)

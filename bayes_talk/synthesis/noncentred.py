@@ -329,10 +329,10 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
 
         extra = (np.stack([np.reshape(m.latents, (T, d)) for m in [mp, *modes]]) if pg_mode_centres else None)
         to_u = target.to_u if whiten else nc.to_eps
-        skw["extra_move"] = ParticleGibbsMove(dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h,
-                                              lookahead=pg_lookahead, extra_centres=extra, backward=pg_backward,
-                                              frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
-                                              block_len=pg_block_len, neighbours=pg_neighbours)
+        skw["extra_move"] = ParticleGibbsMove.for_density(
+            dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h, lookahead=pg_lookahead, extra_centres=extra,
+            backward=pg_backward, frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
+            block_len=pg_block_len, neighbours=pg_neighbours)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,

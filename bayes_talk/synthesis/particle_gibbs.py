@@ -323,20 +323,35 @@ class ParticleGibbsMove:
     (:func:`~bayes_talk.synthesis.diagnostics.frame_update_rate` turns them into the
     per-frame update rate)."""
 
-    def __init__(self, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
-                 h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
-                 backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
-                 block_len: int = 1, neighbours: bool = False):
-        if int(block_len) < 1:
-            raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
-        self.ff = FrameFactors(dens)
-        self.q = MixtureProposal(self.ff, plan, rho, h, lookahead, extra_centres)
+    def __init__(self, ff, q, to_x, to_u, n_particles: int = 64, backward: bool = False, blocks=(),
+                 frame_tries: int = 0, q_blocks=None):
+        """From its parts: the frame factors ``ff`` (:class:`FrameFactors` or any object with
+        its methods), the sweep's proposal ``q``, the blocks [s, e) of the multiple-try
+        updates and their proposal ``q_blocks`` (default ``q``). :meth:`for_density` builds
+        the parts of the synthesis density; the tests pass densities with known moments."""
+        self.ff, self.q = ff, q
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
         self.frame_tries = int(frame_tries)
-        self.blocks = dynamics_blocks(self.ff, int(block_len)) if self.frame_tries > 0 else []
+        self.blocks = list(blocks) if self.frame_tries > 0 else []
+        self.q_blocks = q if q_blocks is None else q_blocks
+
+    @classmethod
+    def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
+                    h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
+                    backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
+                    block_len: int = 1, neighbours: bool = False) -> ParticleGibbsMove:
+        """The move on the synthesis density ``dens``: :class:`FrameFactors`, the
+        :class:`MixtureProposal` (``rho``, ``h``, ``lookahead``, ``extra_centres``), the
+        dynamics runs of at most ``block_len`` frames and, with ``tries_from_modes``, their
+        :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`."""
+        if int(block_len) < 1:
+            raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
+        ff = FrameFactors(dens)
+        q = MixtureProposal(ff, plan, rho, h, lookahead, extra_centres)
+        blocks = dynamics_blocks(ff, int(block_len)) if int(frame_tries) > 0 else []
         # the block updates' tries: from the block's own modes (BlockModeProposal) or the sweep's proposal
-        self.q_blocks = (BlockModeProposal(self.q, self.blocks, neighbours=neighbours)
-                         if tries_from_modes and self.blocks else self.q)
+        q_blocks = BlockModeProposal(q, blocks, neighbours=neighbours) if tries_from_modes and blocks else q
+        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks)
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         t0 = time.perf_counter()
