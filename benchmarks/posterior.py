@@ -38,7 +38,7 @@ approximation q: their row holds PSIS k̂ and the PSIS effective sample size of 
 draws (and ESS per second), ``reliable`` only where k̂ ≤ 0.7. ``--nuts-chains``, ``--nuts-warmup``,
 ``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
 ``budget``); ``--workers`` runs NUTS/pg-nuts chains in that many processes, ``--coords``
-sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off`` pg-nuts's
+sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off``, ``--pg-pairs on|off`` pg-nuts's
 updates of the isolated frames and short dynamics blocks (``sampler_kw``; default: the library's). NUTS and pg-nuts rows also hold the AAM parameters'
 ``aam_rhat_max``, ``aam_ess_bulk_min`` and ``aam_ess_tail_min`` (what users consume). Writes ``benchmarks/results/posterior_efficiency.json``:
 
@@ -157,6 +157,8 @@ def efficiency(args) -> None:
             skw["pg_frame_modes"] = args.pg_frame_modes == "on"
         if method == "pg-nuts" and args.pg_neighbours is not None:
             skw["pg_neighbours"] = args.pg_neighbours == "on"
+        if method == "pg-nuts" and args.pg_pairs is not None:
+            skw["pg_pairs"] = args.pg_pairs == "on"
         if method == "pg-nuts" and args.pg_block_len is not None:
             skw["pg_block_len"] = args.pg_block_len
         budget = _efficiency_budget(args, method)
@@ -255,6 +257,8 @@ def main() -> None:
                     help="--efficiency, pg-nuts: also update dynamics runs of up to this many frames (default: the library's)")
     ap.add_argument("--pg-neighbours", choices=("on", "off"), default=None,
                     help="--efficiency, pg-nuts: the blocks' modes conditioned on their neighbours (default: the library's)")
+    ap.add_argument("--pg-pairs", choices=("on", "off"), default=None,
+                    help="--efficiency, pg-nuts: also update consecutive blocks in pairs (default: the library's)")
     ap.add_argument("--coords", default=None,
                     help="--efficiency: NUTS/pg-nuts coordinates (sampler_kw['coords']; default: the method's)")
     ap.add_argument("--methods", default="map,laplace,nuts,emcee")

@@ -57,8 +57,11 @@ class _AR1:
 
     T, d, a, s, r = 5, 1, 0.8, 0.5, 0.7
 
-    def __init__(self, y):
+    def __init__(self, y, starts=()):
+        """``starts``: frames whose coupling to x_{t−1} stands for a smoothness factor, not a
+        dynamics one (block starts inside a group for :func:`block_mtm`); the density is the same."""
         self.y = y
+        self.dyn_gp = {t: 0 for t in range(1, self.T) if t not in starts}
 
     def log_f(self, t, Xprev, X):
         x = X[:, 0]
@@ -150,6 +153,44 @@ def test_block_mtm_leaves_a_known_posterior_invariant(blocks, broken):
     assert ok != broken, (D.mean(0), mean, D.var(0), var)
 
 
+class _BroadStarts:
+    """A group's joint proposal for :func:`block_mtm`: the starts iid N(0, 1.5²), state-independent."""
+
+    def sample_starts(self, s, e, N, rng, ref=None):
+        Y = 1.5 * rng.standard_normal((N, 2, 1))
+        if ref is not None:
+            Y[-1] = ref
+        return Y, (-0.5 * (Y / 1.5) ** 2).sum((1, 2))
+
+
+@pytest.mark.parametrize(("blocks", "broken"), [([(0, 5)], False), ([(1, 5)], False), ([(0, 5)], True)])
+def test_block_mtm_of_a_group_with_a_later_start_leaves_a_known_posterior_invariant(blocks, broken):
+    """A group of two consecutive blocks ([s, 3) and [3, 5), frame 3 without a dynamics factor
+    into it) updated at once, both starts' tries from a joint proposal and the other frames from
+    the dynamics: the block's conditional means and variances are kept (5 Monte-Carlo s.e.,
+    15 %); accepting every selected try does not."""
+    y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
+    m = _AR1(y, starts=(3,))
+    rng = np.random.default_rng(5)
+    x = np.zeros((m.T, 1))
+    draws = []
+    for it in range(3000):
+        x, moved = block_mtm(m, _BroadStarts(), x, blocks, 8, rng, _broken=broken)
+        assert moved.shape == (1,)
+        if it >= 200:
+            draws.append(x[:, 0].copy())
+    s, e = blocks[0]
+    D = np.array(draws)
+    assert np.all(D[:, :s] == 0)
+    cov = np.linalg.inv(_ar1_precision(m)[s:e, s:e])
+    mean, var = cov @ (y[s:e] / m.r ** 2), np.diag(cov)
+    D = D[:, s:e]
+    B = D.reshape(28, -1, D.shape[1]).mean(1)
+    se = B.std(0, ddof=1) / np.sqrt(len(B))
+    ok = np.all(np.abs(D.mean(0) - mean) < 5 * se) and np.all(np.abs(D.var(0) / var - 1) < 0.15)
+    assert ok != broken, (D.mean(0), mean, D.var(0), var)
+
+
 def _ar1_precision(m):
     T, a, s, r = m.T, m.a, m.s, m.r
     P = np.zeros((T, T))
@@ -206,6 +247,8 @@ def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_ra
                                       {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6},
                                       {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6,
                                        "pg_neighbours": True},
+                                      {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6,
+                                       "pg_pairs": True},
                                       {"coords": "noncentred-whitened", "pg_frame_tries": 4, "pg_frame_modes": True}])
 def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy, frame_kw):
     """PG ∘ NUTS in non-centred coordinates: after each sweep the sampler's cached potential
@@ -260,9 +303,53 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
     assert (d["pg_frame_tries"], d["pg_frame_modes"], d["pg_block_len"]) == (16, True, PG_NUTS_DEFAULTS["pg_block_len"])
     assert d["pg_neighbours"] == PG_NUTS_DEFAULTS["pg_neighbours"]
+    assert [d[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")] == [
+        PG_NUTS_DEFAULTS[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")]
+    assert isinstance(d["pg_blocks_without_modes"], list)
     assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
     with pytest.raises(ValueError, match="non-centred"):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
+
+
+def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
+    """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts`` are the own-mode proposal's δ, c and
+    starts (recorded in the diagnostics), out-of-range values are refused naming the key, and a
+    block whose mode search finds nothing (here the first block's, removed) is listed in
+    ``pg_blocks_without_modes`` while the others are not."""
+    import bayes_talk.synthesis.frame_updates as fu
+    import bayes_talk.synthesis.particle_gibbs as pg
+
+    model, u = toy
+    T = 10
+    seen, calls = [], []
+    real_modes = fu.factor_modes
+
+    class Recording(fu.BlockModeProposal):
+        def __init__(self, base, blocks, **kw):
+            seen.append(kw)
+            super().__init__(base, blocks, **kw)
+
+    def first_block_has_none(own, starts, **kw):
+        m, S, lw = real_modes(own, starts, **kw)
+        calls.append(len(m))
+        return (m[:0], S[:0], lw[:0]) if len(calls) == 1 else (m, S, lw)
+
+    monkeypatch.setattr(pg, "BlockModeProposal", Recording)
+    monkeypatch.setattr(fu, "factor_modes", first_block_has_none)
+    kw = {"n_draws": 8, "warmup": 2, "chains": 2, "seed": 1, "map_restarts": 0, "log_warnings": False}
+    r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
+                         sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
+                                     "pg_mode_starts": 8, "max_tree_depth": 3}, **kw)
+    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8}]
+    d = r.diagnostics
+    assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, 2.0, 8)
+    blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
+                             PG_NUTS_DEFAULTS["pg_block_len"])
+    assert len(blocks) > 1 and calls[0] > 0 and len(calls) == len(blocks)
+    assert d["pg_blocks_without_modes"] == [list(blocks[0])]
+    for bad in ({"pg_mode_delta": 0.0}, {"pg_mode_scale": -1.0}, {"pg_mode_starts": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=bad, **kw)
 
 
 def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
@@ -383,6 +470,53 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     assert near > 0.8 * 0.95, near
     with pytest.raises(ValueError, match="delta"):
         BlockModeProposal(q, [(s, e)], delta=0.0)
+
+
+def test_pair_proposal_matches_modes_through_the_link_and_samples_the_density_it_reports(toy20):
+    """``PairModeProposal`` over two consecutive blocks of the toy utterance: its pair weights
+    are (1 − δ) × the normalised w^a_k w^b_l exp(link between a_k's continued end and b_l) + δ
+    uniform, the link recomputed pair by pair; its draws and ln q agree (E_q[q_u/q] = 1 for q_u
+    the uniform-pair mixture, q_u/q ≤ 1/δ; fails if ln q misses the pairing or the draws come
+    from another mixture); the reference replaces the last draw."""
+    from bayes_talk.synthesis.frame_updates import (
+        BlockModeProposal,
+        PairModeProposal,
+        adjacent_pairs,
+        component_logpdf,
+    )
+
+    _, ff, x_map, q = toy20
+    blocks = dynamics_blocks(ff, 8)
+    bm = BlockModeProposal(q, blocks)
+    pairs = [p for p in adjacent_pairs(blocks) if p[0][0] in bm.modes and p[1][0] in bm.modes
+             and len(bm.modes[p[0][0]][0]) * len(bm.modes[p[1][0]][0]) > 1]
+    assert pairs, "the toy utterance needs consecutive blocks with modes"
+    (s, mid), (_, e) = pairs[0]
+    pq = PairModeProposal(bm, [pairs[0]])
+    assert pq.pairs == [(s, e)]
+    a, La, wa = bm.modes[s]
+    b, Lb, wb = bm.modes[mid]
+    lp = np.empty((len(a), len(b)))
+    for k in range(len(a)):
+        end = a[k][None]
+        for u in range(s + 1, mid):
+            end = ff.dynamics_mean_sd(u, end)[0]
+        for j in range(len(b)):
+            lp[k, j] = wa[k] + wb[j] + ff.link_logf(mid, end, b[j][None])[0]
+    want = 0.8 * np.exp(lp - logsumexp(lp)) + 0.2 / lp.size
+    np.testing.assert_allclose(np.exp(pq.groups[(s, e)][-1]), want, rtol=1e-10)
+    rng = np.random.default_rng(7)
+    N = 20000
+    Y, lq = pq.sample_starts(s, e, N, rng)
+    lu = (logsumexp(component_logpdf(Y[:, 0], a, La), axis=1) + logsumexp(component_logpdf(Y[:, 1], b, Lb), axis=1)
+          - np.log(lp.size))
+    w = np.exp(lu - lq)
+    assert w.max() <= 5 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    Y2, lq2 = pq.sample_starts(s, e, 3, rng, ref=x_map[[s, mid]])
+    assert np.array_equal(Y2[-1], x_map[[s, mid]])
+    assert lq2[-1] == pytest.approx(pq.sample_starts(s, e, 1, rng, ref=x_map[[s, mid]])[1][0], rel=1e-12)
+    with pytest.raises(ValueError, match="consecutive"):
+        PairModeProposal(bm, [((0, 2), (3, 5))])
 
 
 def test_block_factor_is_the_own_factors_along_the_dynamics_means_with_their_gradient(toy):

@@ -36,10 +36,16 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: the run's own modes (held-out ``utt0001``: R-hat 1.22 → 1.12, bulk ESS per second +60 %,
 #: wall +32 %; toy 1.014 → 1.025, with the modes' new convergence filter; docs/uncertainty.md
 #: "Short dynamics blocks' own modes"); ``pg_neighbours``: those modes conditioned on the
-#: smoothness factors into and out of the block given its current neighbours (off)
+#: smoothness factors into and out of the block given its current neighbours (off); ``pg_pairs``: then
+#: every pair of consecutive blocks updated together, their modes matched through the smoothness
+#: factor between them (off; docs/uncertainty.md "Pairs of blocks"); the own-mode
+#: proposal's defensive weight δ ``pg_mode_delta`` (0.2), its Laplace covariances' scale c
+#: ``pg_mode_scale`` (1.5) and the mode ascents' starts per block of more than one frame
+#: ``pg_mode_starts`` (64; :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`)
 PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
                     "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 16,
-                    "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False}
+                    "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False,
+                    "pg_pairs": False, "pg_mode_delta": 0.2, "pg_mode_scale": 1.5, "pg_mode_starts": 64}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}

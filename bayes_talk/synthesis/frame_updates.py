@@ -26,10 +26,13 @@ isolated frame the marginal is a mixture of narrow, separated bumps there
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
+from bayes_talk.synthesis.defaults import PG_NUTS_DEFAULTS
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 
@@ -48,7 +51,10 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
     proposal density is q(Y) = q_s(y_s) Π_u p_π(y_u | y_{u−1}) and the weight w = π/q has the
     dynamics terms cancelled (with noise 10⁻⁶ the rest of the path is nearly a function of y_s).
     Y = Y^J with probability ∝ w_J, accepted with probability min(1, Σ_k w_k / (Σ_k w_k − w_J
-    + w(x_{s:e}))). Each update leaves π, hence p(X | Ŷ), invariant. Returns the new path and,
+    + w(x_{s:e}))). A *group* [s, e) of consecutive blocks (frames after s without a dynamics
+    factor into them: later starts) takes all its starts' tries at once from
+    ``q.sample_starts`` (:class:`PairModeProposal`), the frames after each start from the
+    dynamics as above. Each update leaves π, hence p(X | Ŷ), invariant. Returns the new path and,
     per block, whether it moved. (``_broken``: accept always — not invariant; the tests'
     control.)"""
     x = np.array(x, dtype=np.float64, copy=True)
@@ -56,12 +62,21 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
     moved = np.zeros(len(blocks), dtype=bool)
     for i, (s, e) in enumerate(blocks):
         prev = None if s == 0 else np.repeat(x[s - 1][None], K + 1, 0)
-        Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s],           # K tries and the current x_s
-                              x_next=x[e] if e < T else None)
+        inner = [u for u in range(s + 1, e) if u not in ff.dyn_gp]      # later block starts (a group)
         P = np.empty((K + 1, e - s, ff.d))                                # the K tries and the current block
-        P[:K, 0], P[K] = Y[:K], x[s:e]
+        P[K] = x[s:e]
+        if inner:   # all the starts' tries at once from the group's joint proposal
+            Y, lq = q.sample_starts(s, e, K + 1, rng, ref=x[[s, *inner]])
+            P[:K, [0, *(u - s for u in inner)]] = Y[:K]
+        else:
+            Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s],           # K tries and the current x_s
+                                  x_next=x[e] if e < T else None)
+            P[:K, 0] = Y[:K]
         lw = ff.log_f(s, prev, P[:, 0]) - lq
         for u in range(s + 1, e):
+            if u in inner:
+                lw += ff.log_f(u, P[:, u - s - 1], P[:, u - s])
+                continue
             mu, sd = ff.dynamics_mean_sd(u, P[:K, u - s - 1])
             P[:K, u - s] = mu + sd * rng.standard_normal(mu.shape)
             lw += ff.log_f(u, P[:, u - s - 1], P[:, u - s]) - ff.dynamics_logpdf(u, P[:, u - s - 1], P[:, u - s])
@@ -173,16 +188,18 @@ class BlockModeProposal:
     utterance frame 63's chain draws sit in clusters near −0.13 and −0.03, each ~0.01 wide,
     and switch every ~30 draws), and a short dynamics block's first frame likewise (its path a
     function of that frame): tries from the bumps themselves land in them. q_s is fixed before
-    sampling and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone."""
+    sampling and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
+    (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``)."""
 
-    def __init__(self, base, blocks, delta: float = 0.2, scale: float = 1.5,
-                 n_starts: int | None = 64, neighbours: bool = False):
+    def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],
+                 scale: float = PG_NUTS_DEFAULTS["pg_mode_scale"],
+                 n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False):
         if not 0 < delta <= 1 or scale <= 0 or (n_starts is not None and n_starts < 1):
             raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scale > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
         self.base, self.ff, self.delta, self.scale = base, base.ff, float(delta), float(scale)
         self.neighbours = bool(neighbours)
-        self.modes, self.laplace, self.end = {}, {}, {}
+        self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
         for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
             starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
@@ -190,6 +207,8 @@ class BlockModeProposal:
                 L = np.linalg.cholesky(S * self.scale ** 2)
                 self.modes[s], self.end[s] = (m, L, lw), e
                 self.laplace[s] = (np.linalg.inv(S), lw)
+            else:
+                self.without_modes.append((s, e))
 
     def components(self, s: int, x_prev: np.ndarray | None, x_next: np.ndarray | None):
         """The mixture's components (means (K, d), Cholesky factors of the covariances
@@ -221,12 +240,70 @@ class BlockModeProposal:
         if ref is not None:
             X[-1] = ref
         _, lq0 = self.base.sample_logq(t, Xprev, N, rng, X)
-        z = np.linalg.solve(L[None], (X[:, None, :] - m[None])[..., None])[..., 0]        # (N, K, d)
-        lg = -0.5 * (z * z).sum(-1) - np.log(np.diagonal(L, axis1=1, axis2=2)).sum(1)[None] - 0.5 * d * LOG_2PI
-        lm = logsumexp(lw[None] + lg, axis=1)
+        lm = logsumexp(lw[None] + component_logpdf(X, m, L), axis=1)
         if self.delta == 1.0:
             return X, lq0
         return X, np.logaddexp(np.log1p(-self.delta) + lm, np.log(self.delta) + lq0)
+
+
+def component_logpdf(X: np.ndarray, m: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """ln N(x_i; m_k, L_k L_kᵀ) for rows X (N, d), means m (K, d), Cholesky factors L (K, d, d) → (N, K)."""
+    z = np.linalg.solve(L[None], (X[:, None, :] - m[None])[..., None])[..., 0]        # (N, K, d)
+    return -0.5 * (z * z).sum(-1) - np.log(np.diagonal(L, axis1=1, axis2=2)).sum(1)[None] - 0.5 * X.shape[1] * LOG_2PI
+
+
+class PairModeProposal:
+    """A joint independence proposal for the two starts of a pair of consecutive blocks
+    [s, m) and [m, e) (a group of :func:`block_mtm`; :func:`adjacent_pairs`): when the blocks'
+    modes must be matched (a mode of one block compatible with only some of the other's through
+    the smoothness factor between them), updating one block given the other cannot switch both.
+
+        q(y_s, y_m) = Σ_{k,l} π'_kl N(y_s; a_k, c² Σ^a_k) N(y_m; b_l, c² Σ^b_l),
+        π_kl ∝ w^a_k w^b_l exp(ℓ_m(ā_k, b_l)),   π' = (1 − δ) π + δ / (K_a K_b),
+
+    with (a_k, Σ^a_k, w^a_k), (b_l, Σ^b_l, w^b_l) the blocks' own modes
+    (:class:`BlockModeProposal`, its scale c and δ), ā_k the end of the path the dynamics
+    means continue from a_k, ℓ_m the terms of f_m linking frame m to its predecessor (the
+    smoothness factor; :meth:`~bayes_talk.synthesis.particle_gibbs.FrameFactors.link_logf`).
+    Fixed before sampling; the uniform δ share keeps every pair of modes proposed. Pairs where
+    either block has no mode are left out (``pairs``: the groups kept)."""
+
+    def __init__(self, modes: BlockModeProposal, pairs):
+        self.ff, self.delta, self.groups = modes.ff, modes.delta, {}
+        for (s, m), (m2, e) in pairs:
+            if m != m2:
+                raise ValueError(f"a pair needs consecutive blocks, got [{s}, {m}) and [{m2}, {e})")
+            if s not in modes.modes or m not in modes.modes:
+                continue
+            (a, La, lwa), (b, Lb, lwb) = modes.modes[s], modes.modes[m]
+            end = a
+            for u in range(s + 1, m):
+                end, _ = self.ff.dynamics_mean_sd(u, end)
+            link = self.ff.link_logf(m, np.repeat(end, len(b), 0), np.tile(b, (len(a), 1))).reshape(len(a), len(b))
+            lp = lwa[:, None] + lwb[None] + link
+            lp = np.logaddexp(np.log1p(-self.delta) + lp - logsumexp(lp), np.log(self.delta) - np.log(lp.size))
+            self.groups[(s, e)] = (a, La, b, Lb, lp)
+        self.pairs = list(self.groups)
+
+    def sample_starts(self, s: int, e: int, N: int, rng: np.random.Generator,
+                      ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """N draws (N, 2, d) of the group [s, e)'s two starts and their ln q (N,); ``ref`` (2, d):
+        the last draw replaced by it before ln q is evaluated."""
+        a, La, b, Lb, lp = self.groups[(s, e)]
+        d = self.ff.d
+        kl = rng.choice(lp.size, size=N, p=np.exp(lp.ravel()))
+        k, l = np.divmod(kl, lp.shape[1])
+        Y = np.stack([a[k] + np.einsum("nij,nj->ni", La[k], rng.standard_normal((N, d))),
+                      b[l] + np.einsum("nij,nj->ni", Lb[l], rng.standard_normal((N, d)))], 1)
+        if ref is not None:
+            Y[-1] = ref
+        ga, gb = component_logpdf(Y[:, 0], a, La), component_logpdf(Y[:, 1], b, Lb)
+        return Y, logsumexp(lp[None] + ga[:, :, None] + gb[:, None, :], axis=(1, 2))
+
+
+def adjacent_pairs(blocks) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """The pairs of consecutive blocks [s, m), [m, e) of ``blocks`` (:func:`dynamics_blocks`)."""
+    return [(b1, b2) for b1, b2 in itertools.pairwise(blocks) if b1[1] == b2[0]]
 
 
 def neighbour_adjusted(ff, s: int, e: int, m: np.ndarray, P: np.ndarray, lw: np.ndarray,
@@ -307,5 +384,5 @@ def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
     return out
 
 
-__all__ = ["BlockModeProposal", "block_factor", "block_mtm", "dynamics_blocks", "factor_modes",
-           "neighbour_adjusted"]
+__all__ = ["BlockModeProposal", "PairModeProposal", "adjacent_pairs", "block_factor", "block_mtm",
+           "component_logpdf", "dynamics_blocks", "factor_modes", "neighbour_adjusted"]

@@ -291,7 +291,12 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     (:func:`~bayes_talk.synthesis.frame_updates.block_mtm`); ``skw["pg_frame_modes"]`` (default False):
     those tries from the block's own modes
     (:class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`), with ``skw["pg_neighbours"]``
-    (default False) conditioned on the block's neighbours' smoothness factors. ``run``: the NUTS
+    (default False) conditioned on the block's neighbours' smoothness factors, with
+    ``skw["pg_pairs"]`` (default False) the pairs of consecutive blocks updated together too
+    (:class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`), and
+    ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]`` its ``delta``,
+    ``scale``, ``n_starts`` (its defaults when absent); the blocks without modes are in the draws'
+    ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
@@ -324,6 +329,9 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_frame_modes = bool(skw.pop("pg_frame_modes", False))
     pg_block_len = int(skw.pop("pg_block_len", 1))
     pg_neighbours = bool(skw.pop("pg_neighbours", False))
+    pg_pairs = bool(skw.pop("pg_pairs", False))
+    mode_kw = {k: skw.pop(key) for k, key in (("delta", "pg_mode_delta"), ("scale", "pg_mode_scale"),
+                                               ("n_starts", "pg_mode_starts")) if key in skw}
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
         from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 
@@ -332,12 +340,14 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
         skw["extra_move"] = ParticleGibbsMove.for_density(
             dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h, lookahead=pg_lookahead, extra_centres=extra,
             backward=pg_backward, frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
-            block_len=pg_block_len, neighbours=pg_neighbours)
+            block_len=pg_block_len, neighbours=pg_neighbours, mode_kw=mode_kw, pairs=pg_pairs)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,
                 chains=chains, seed=seed, jumps=jumps, **skw)
     draws.stats["pilot"] = 0
+    if pg_every > 0:
+        draws.stats["pg_blocks_without_modes"] = [list(b) for b in skw["extra_move"].blocks_without_modes]
     draws.stats["coords"] = "noncentred-whitened" if whiten else "noncentred"
     return draws, target
 

@@ -33,7 +33,13 @@ from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.diagnostics import frame_update_rate
-from bayes_talk.synthesis.frame_updates import BlockModeProposal, block_mtm, dynamics_blocks
+from bayes_talk.synthesis.frame_updates import (
+    BlockModeProposal,
+    PairModeProposal,
+    adjacent_pairs,
+    block_mtm,
+    dynamics_blocks,
+)
 from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothness_weights
 from bayes_talk.synthesis.segment_objective import LOG_2PI
@@ -314,7 +320,10 @@ class ParticleGibbsMove:
     :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (the block's own modes)
     instead of the sweep's proposal, with ``neighbours`` conditioned on the smoothness factors
     at the block's two ends given its current neighbours
-    (:func:`~bayes_talk.synthesis.frame_updates.neighbour_adjusted`).
+    (:func:`~bayes_talk.synthesis.frame_updates.neighbour_adjusted`); ``pairs`` (with
+    ``tries_from_modes``): then an update of every pair of consecutive blocks together, the
+    two starts' tries from their modes matched through the smoothness factor between them
+    (:class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`).
 
     A call returns (u', record): ``record["pg_sweep"]`` True (a sweep ran) and
     ``record["pg_frame_moved"]`` (T,) whether the move (sweep and frame updates) changed
@@ -324,34 +333,48 @@ class ParticleGibbsMove:
     per-frame update rate)."""
 
     def __init__(self, ff, q, to_x, to_u, n_particles: int = 64, backward: bool = False, blocks=(),
-                 frame_tries: int = 0, q_blocks=None):
+                 frame_tries: int = 0, q_blocks=None, q_pairs=None):
         """From its parts: the frame factors ``ff`` (:class:`FrameFactors` or any object with
         its methods), the sweep's proposal ``q``, the blocks [s, e) of the multiple-try
-        updates and their proposal ``q_blocks`` (default ``q``). :meth:`for_density` builds
-        the parts of the synthesis density; the tests pass densities with known moments."""
+        updates and their proposal ``q_blocks`` (default ``q``), and the joint proposal of the
+        pairs of blocks updated together ``q_pairs`` (its ``pairs``; None: no pair updates).
+        :meth:`for_density` builds the parts of the synthesis density; the tests pass densities
+        with known moments."""
         self.ff, self.q = ff, q
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
         self.frame_tries = int(frame_tries)
         self.blocks = list(blocks) if self.frame_tries > 0 else []
         self.q_blocks = q if q_blocks is None else q_blocks
+        self.q_pairs = q_pairs if self.frame_tries > 0 and q_pairs is not None and q_pairs.pairs else None
 
     @classmethod
     def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                     h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
                     backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
-                    block_len: int = 1, neighbours: bool = False) -> ParticleGibbsMove:
+                    block_len: int = 1, neighbours: bool = False, mode_kw: dict | None = None,
+                    pairs: bool = False) -> ParticleGibbsMove:
         """The move on the synthesis density ``dens``: :class:`FrameFactors`, the
         :class:`MixtureProposal` (``rho``, ``h``, ``lookahead``, ``extra_centres``), the
         dynamics runs of at most ``block_len`` frames and, with ``tries_from_modes``, their
-        :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`."""
+        :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (``neighbours`` and
+        ``mode_kw``: its ``delta``, ``scale``, ``n_starts``), with ``pairs`` the consecutive
+        blocks' :class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`."""
         if int(block_len) < 1:
             raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         ff = FrameFactors(dens)
         q = MixtureProposal(ff, plan, rho, h, lookahead, extra_centres)
         blocks = dynamics_blocks(ff, int(block_len)) if int(frame_tries) > 0 else []
         # the block updates' tries: from the block's own modes (BlockModeProposal) or the sweep's proposal
-        q_blocks = BlockModeProposal(q, blocks, neighbours=neighbours) if tries_from_modes and blocks else q
-        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks)
+        q_blocks = (BlockModeProposal(q, blocks, neighbours=neighbours, **(mode_kw or {}))
+                    if tries_from_modes and blocks else q)
+        q_pairs = PairModeProposal(q_blocks, adjacent_pairs(blocks)) if pairs and q_blocks is not q else None
+        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs)
+
+    @property
+    def blocks_without_modes(self) -> list[tuple[int, int]]:
+        """The blocks [s, e) whose tries come from the sweep's proposal alone because their
+        own-mode proposal found no maximum ([] when the tries are not from modes)."""
+        return list(getattr(self.q_blocks, "without_modes", []))
 
     def __call__(self, u: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         t0 = time.perf_counter()
@@ -359,6 +382,8 @@ class ParticleGibbsMove:
         x_new, _ = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
         if self.blocks:
             x_new, _ = block_mtm(self.ff, self.q_blocks, x_new, self.blocks, self.frame_tries, rng)
+        if self.q_pairs is not None:
+            x_new, _ = block_mtm(self.ff, self.q_pairs, x_new, self.q_pairs.pairs, self.frame_tries, rng)
         moved = np.any(x_new != x, axis=1)
         u_new = np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64) if moved.any() else u
         return u_new, {"pg_sweep": True, "pg_frame_moved": moved, "pg_seconds": time.perf_counter() - t0}

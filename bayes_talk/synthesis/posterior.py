@@ -167,7 +167,8 @@ def sample_synthesis(
         "noncentred-whitened": those whitened by their own Laplace); emcee: ``n_walkers``, ``max_steps``, ``autocorr_tol``;
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
-        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False);
+        ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
+        ``pg_pairs`` (False), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -271,12 +272,19 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 if int(skw["pg_every"]) < 1 or int(skw["pg_particles"]) < 2:
                     raise ValueError(f"pg-nuts needs pg_every >= 1 and pg_particles >= 2, got "
                                      f"{skw['pg_every']} and {skw['pg_particles']}")
+                if not (0 < float(skw["pg_mode_delta"]) <= 1 and float(skw["pg_mode_scale"]) > 0
+                        and int(skw["pg_mode_starts"]) >= 1):
+                    raise ValueError(f"pg-nuts needs 0 < pg_mode_delta <= 1, pg_mode_scale > 0 and pg_mode_starts "
+                                     f">= 1, got {skw['pg_mode_delta']}, {skw['pg_mode_scale']} and "
+                                     f"{skw['pg_mode_starts']}")
                 diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
                             pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
                             pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
                             pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]),
-                            pg_neighbours=bool(skw["pg_neighbours"]))
+                            pg_neighbours=bool(skw["pg_neighbours"]), pg_pairs=bool(skw["pg_pairs"]),
+                            pg_mode_delta=float(skw["pg_mode_delta"]),
+                            pg_mode_scale=float(skw["pg_mode_scale"]), pg_mode_starts=int(skw["pg_mode_starts"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
@@ -396,6 +404,8 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
             if "pg_seconds" in ss:   # the move's seconds over the kept draws (warm-up not recorded)
                 out["pg_seconds_per_chain"] = [float(v) for v in ss["pg_seconds"].sum(1)]
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
+        if "pg_blocks_without_modes" in st:   # blocks whose tries fall back to the sweep's proposal
+            out["pg_blocks_without_modes"] = st["pg_blocks_without_modes"]
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
         out["acceptance_min"] = float(st["acceptance_min"])
