@@ -22,6 +22,7 @@ accepted without a Metropolis test.
 from __future__ import annotations
 
 import functools
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -80,6 +81,8 @@ class Chain:
     miss q_t is visibly biased)."""
 
     T, d, rho, h, q_pos = T, 1, 0.3, 0.5, 0.1
+    dyn_gp: ClassVar[dict] = {2: 0}        # frame 2 follows frame 1 through the "dynamics"; frame 1 starts a block
+
 
     def log_f(self, t, Xprev, X):
         out = _log_g(X[:, 0], t)
