@@ -361,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
         EMCEE_WARMUP,
         INFERENCE,
         NUTS_DEFAULTS,
+        PG_NUTS_BUDGET,
         PG_NUTS_DEFAULTS,
         draws_help,
     )
@@ -471,7 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"posterior draws pooled over chains ({draws_help()})")
     s.add_argument("--chains", type=_positive_int, default=None, help=f"NUTS chains (default {NUTS_DEFAULTS['chains']})")
     s.add_argument("--warmup", type=_non_negative_int, default=None,
-                   help=f"NUTS warm-up iterations per chain (default {NUTS_DEFAULTS['warmup']}) / emcee burn-in steps "
+                   help=f"NUTS warm-up iterations per chain (default {NUTS_DEFAULTS['warmup']}; pg-nuts "
+                        f"{PG_NUTS_BUDGET['warmup']}) / emcee burn-in steps "
                         f"(default {EMCEE_WARMUP})")
     s.add_argument("--target-accept", type=float, default=None,
                    help=f"NUTS target acceptance statistic of the step-size adaptation "

@@ -159,6 +159,8 @@ def efficiency(args) -> None:
             skw["pg_neighbours"] = args.pg_neighbours == "on"
         if method == "pg-nuts" and args.pg_pairs is not None:
             skw["pg_pairs"] = args.pg_pairs == "on"
+        if method == "pg-nuts" and args.pg_mode_scale is not None:
+            skw["pg_mode_scale"] = tuple(float(c) for c in args.pg_mode_scale.split(","))
         if method == "pg-nuts" and args.pg_block_len is not None:
             skw["pg_block_len"] = args.pg_block_len
         budget = _efficiency_budget(args, method)
@@ -259,6 +261,8 @@ def main() -> None:
                     help="--efficiency, pg-nuts: the blocks' modes conditioned on their neighbours (default: the library's)")
     ap.add_argument("--pg-pairs", choices=("on", "off"), default=None,
                     help="--efficiency, pg-nuts: also update consecutive blocks in pairs (default: the library's)")
+    ap.add_argument("--pg-mode-scale", default=None,
+                    help="--efficiency, pg-nuts: the own-mode proposal's scale factors, comma-separated (default: the library's)")
     ap.add_argument("--coords", default=None,
                     help="--efficiency: NUTS/pg-nuts coordinates (sampler_kw['coords']; default: the method's)")
     ap.add_argument("--methods", default="map,laplace,nuts,emcee")

@@ -8,7 +8,7 @@ import pytest
 from scipy.special import logsumexp
 from toydata import make_utterances
 
-from bayes_talk.synthesis.defaults import PG_NUTS_DEFAULTS
+from bayes_talk.synthesis.defaults import NUTS_DEFAULTS, PG_NUTS_BUDGET, PG_NUTS_DEFAULTS
 from bayes_talk.synthesis.frame_updates import block_factor, block_mtm, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.particle_gibbs import (
@@ -156,7 +156,7 @@ def test_block_mtm_leaves_a_known_posterior_invariant(blocks, broken):
 class _BroadStarts:
     """A group's joint proposal for :func:`block_mtm`: the starts iid N(0, 1.5²), state-independent."""
 
-    def sample_starts(self, s, e, N, rng, ref=None):
+    def sample_starts(self, s, e, N, rng, ref=None, x_prev=None, x_next=None):
         Y = 1.5 * rng.standard_normal((N, 2, 1))
         if ref is not None:
             Y[-1] = ref
@@ -249,6 +249,8 @@ def test_particle_gibbs_on_the_synthesis_density_records_its_draws_and_update_ra
                                        "pg_neighbours": True},
                                       {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6,
                                        "pg_pairs": True},
+                                      {"pg_frame_tries": 4, "pg_frame_modes": True, "pg_block_len": 6,
+                                       "pg_pairs": False},
                                       {"coords": "noncentred-whitened", "pg_frame_tries": 4, "pg_frame_modes": True}])
 def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy, frame_kw):
     """PG ∘ NUTS in non-centred coordinates: after each sweep the sampler's cached potential
@@ -294,7 +296,8 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
                                        "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
                                        "pg_mode_centres": True, "pg_frame_tries": 16, "pg_frame_modes": True,
                                        "pg_block_len": PG_NUTS_DEFAULTS["pg_block_len"],
-                                       "pg_neighbours": PG_NUTS_DEFAULTS["pg_neighbours"]},
+                                       "pg_neighbours": PG_NUTS_DEFAULTS["pg_neighbours"],
+                                       "pg_pairs": PG_NUTS_DEFAULTS["pg_pairs"]},
                            **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
@@ -302,13 +305,43 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
     assert (d["pg_frame_tries"], d["pg_frame_modes"], d["pg_block_len"]) == (16, True, PG_NUTS_DEFAULTS["pg_block_len"])
-    assert d["pg_neighbours"] == PG_NUTS_DEFAULTS["pg_neighbours"]
+    assert (d["pg_neighbours"], d["pg_pairs"]) == (PG_NUTS_DEFAULTS["pg_neighbours"], PG_NUTS_DEFAULTS["pg_pairs"])
     assert [d[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")] == [
-        PG_NUTS_DEFAULTS[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")]
+        PG_NUTS_DEFAULTS["pg_mode_delta"], list(np.atleast_1d(PG_NUTS_DEFAULTS["pg_mode_scale"])),
+        PG_NUTS_DEFAULTS["pg_mode_starts"]]
     assert isinstance(d["pg_blocks_without_modes"], list)
     assert "aam_rhat_max" in d and "ebfmi_min" in d and r.sample_stats["lp"].shape == (2, 4)
     with pytest.raises(ValueError, match="non-centred"):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw={"coords": "whitened"}, **kw)
+
+
+@pytest.mark.parametrize(("method", "budget"), [("pg-nuts", PG_NUTS_BUDGET), ("nuts", NUTS_DEFAULTS)])
+def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, method, budget):
+    """Without ``warmup`` and ``n_draws``, pg-nuts runs ``PG_NUTS_BUDGET`` (200 warm-up + 500
+    draws per chain) and NUTS in the same coordinates its own defaults (500 + 250): what the
+    runner receives, and the default draws the CLI states."""
+    import bayes_talk.synthesis.posterior as post
+    from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, draws_help
+
+    class Stop(Exception):
+        pass
+
+    got = {}
+
+    def recorder(dens, mp, modes, z0, L, per_chain, warmup, chains, seed, skw, whiten=False):
+        got.update(per_chain=per_chain, warmup=warmup, chains=chains)
+        raise Stop
+
+    monkeypatch.setattr(post, "nuts_noncentred", recorder)
+    model, u = toy
+    T = 6
+    with pytest.raises(Stop):
+        sample_synthesis(model, u.mfcc[:T], u.labels[:T], method=method, map_restarts=0, log_warnings=False,
+                         sampler_kw={"coords": "noncentred"})
+    assert got == {"per_chain": budget["draws_per_chain"], "warmup": budget["warmup"],
+                   "chains": NUTS_DEFAULTS["chains"]}
+    assert DEFAULT_DRAWS[method] == NUTS_DEFAULTS["chains"] * budget["draws_per_chain"]
+    assert f"{method} {NUTS_DEFAULTS['chains']} x {budget['draws_per_chain']}" in draws_help()
 
 
 def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
@@ -342,7 +375,7 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
                                      "pg_mode_starts": 8, "max_tree_depth": 3}, **kw)
     assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8}]
     d = r.diagnostics
-    assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, 2.0, 8)
+    assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, [2.0], 8)
     blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
                              PG_NUTS_DEFAULTS["pg_block_len"])
     assert len(blocks) > 1 and calls[0] > 0 and len(calls) == len(blocks)
@@ -468,8 +501,51 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     r2 = np.einsum("kij,nkj->nki", Li, X[:, None, :] - m[None])
     near = (np.sqrt((r2 ** 2).sum(-1)) < 3.0).any(1).mean()
     assert near > 0.8 * 0.95, near
-    with pytest.raises(ValueError, match="delta"):
-        BlockModeProposal(q, [(s, e)], delta=0.0)
+    # several scales: each mode once per scale c, covariance c² Σ_k, an equal share of w_k
+    fw = BlockModeProposal(q, [(s, e)], delta=0.2, scale=(1.0, 3.0))
+    mw, Lw, lww = fw.modes[s]
+    m1, (P1, lw1) = fm.modes[s][0], fm.laplace[s]             # the same modes at one scale
+    S1, K = np.linalg.inv(P1), len(m1)
+    np.testing.assert_allclose(mw, np.vstack([m1, m1]))
+    np.testing.assert_allclose(np.einsum("kij,klj->kil", Lw, Lw), np.concatenate([S1, 9.0 * S1]), rtol=1e-8)
+    np.testing.assert_allclose(lww, np.concatenate([lw1, lw1]) - np.log(2), atol=1e-12)
+    Xw, _ = _draws_match_their_density(fw, q, s, x_map[s - 1], 5.0, rng)
+    X1, _ = _draws_match_their_density(fm, q, s, x_map[s - 1], 5.0, rng)
+
+    def far(X):   # the share of draws beyond 4 sd (scale 1) of every mode
+        r = np.einsum("kij,nkj->nki", np.linalg.inv(Lw[:K]), X[:, None, :] - m1[None])
+        return (np.sqrt((r ** 2).sum(-1)) > 4.0).all(1).mean()
+
+    # modes' draws beyond 4 sd: at scale 3 0.4 · P(χ₃ > 4/3) ≈ 0.24, at 1.5 0.8 · P(χ₃ > 8/3) ≈ 0.02
+    assert far(Xw) > far(X1) + 0.1, (far(Xw), far(X1))
+    for bad in ({"delta": 0.0}, {"scale": (1.0, -1.0)}, {"scale": ()}):
+        with pytest.raises(ValueError, match="delta"):
+            BlockModeProposal(q, [(s, e)], **bad)
+
+
+def _pair_weights_by_hand(ff, s, mid, a, wa, b, wb):
+    """ln π'_kl of a pair [s, mid), [mid, e): (1 − δ) w^a_k w^b_l exp(link) normalised + δ uniform
+    (δ = 0.2), the link from a_k's path continued by the dynamics means, pair by pair."""
+    lp = np.empty((len(a), len(b)))
+    for k in range(len(a)):
+        end = a[k][None]
+        for u in range(s + 1, mid):
+            end = ff.dynamics_mean_sd(u, end)[0]
+        for j in range(len(b)):
+            lp[k, j] = wa[k] + wb[j] + ff.link_logf(mid, end, b[j][None])[0]
+    return np.log(0.8 * np.exp(lp - logsumexp(lp)) + 0.2 / lp.size)
+
+
+def _pair_draws_match_their_density(pq, s, e, a, La, b, Lb, rng, N=20000, **neighbours):
+    """A pair proposal's draws and ln q agree: E_q[q_u/q] = 1 (4 s.e.) and q_u/q ≤ 1/δ for q_u
+    the mixture of the components (a, La) × (b, Lb) with uniform pair weights."""
+    from bayes_talk.synthesis.frame_updates import component_logpdf
+
+    Y, lq = pq.sample_starts(s, e, N, rng, **neighbours)
+    lu = (logsumexp(component_logpdf(Y[:, 0], a, La), axis=1) + logsumexp(component_logpdf(Y[:, 1], b, Lb), axis=1)
+          - np.log(len(a) * len(b)))
+    w = np.exp(lu - lq)
+    assert w.max() <= 5 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
 
 
 def test_pair_proposal_matches_modes_through_the_link_and_samples_the_density_it_reports(toy20):
@@ -482,7 +558,6 @@ def test_pair_proposal_matches_modes_through_the_link_and_samples_the_density_it
         BlockModeProposal,
         PairModeProposal,
         adjacent_pairs,
-        component_logpdf,
     )
 
     _, ff, x_map, q = toy20
@@ -496,27 +571,51 @@ def test_pair_proposal_matches_modes_through_the_link_and_samples_the_density_it
     assert pq.pairs == [(s, e)]
     a, La, wa = bm.modes[s]
     b, Lb, wb = bm.modes[mid]
-    lp = np.empty((len(a), len(b)))
-    for k in range(len(a)):
-        end = a[k][None]
-        for u in range(s + 1, mid):
-            end = ff.dynamics_mean_sd(u, end)[0]
-        for j in range(len(b)):
-            lp[k, j] = wa[k] + wb[j] + ff.link_logf(mid, end, b[j][None])[0]
-    want = 0.8 * np.exp(lp - logsumexp(lp)) + 0.2 / lp.size
-    np.testing.assert_allclose(np.exp(pq.groups[(s, e)][-1]), want, rtol=1e-10)
-    rng = np.random.default_rng(7)
-    N = 20000
-    Y, lq = pq.sample_starts(s, e, N, rng)
-    lu = (logsumexp(component_logpdf(Y[:, 0], a, La), axis=1) + logsumexp(component_logpdf(Y[:, 1], b, Lb), axis=1)
-          - np.log(lp.size))
-    w = np.exp(lu - lq)
-    assert w.max() <= 5 + 1e-9 and abs(w.mean() - 1) < 4 * w.std() / np.sqrt(N), (w.mean(), w.std())
+    np.testing.assert_allclose(pq.groups[(s, e)][-1], _pair_weights_by_hand(ff, s, mid, a, wa, b, wb), rtol=1e-10)
+    _pair_draws_match_their_density(pq, s, e, a, La, b, Lb, np.random.default_rng(7))
+    rng = np.random.default_rng(8)
     Y2, lq2 = pq.sample_starts(s, e, 3, rng, ref=x_map[[s, mid]])
     assert np.array_equal(Y2[-1], x_map[[s, mid]])
     assert lq2[-1] == pytest.approx(pq.sample_starts(s, e, 1, rng, ref=x_map[[s, mid]])[1][0], rel=1e-12)
     with pytest.raises(ValueError, match="consecutive"):
         PairModeProposal(bm, [((0, 2), (3, 5))])
+
+
+def test_pair_proposal_with_neighbours_conditions_each_block_on_its_outer_neighbour(toy20):
+    """``PairModeProposal`` over modes with ``neighbours``: block [s, m)'s components are its
+    modes conditioned on the factor from x_{s−1} only, block [m, e)'s on the one into x_e only
+    (``BlockModeProposal.components``), the pair weights recomputed from them through the link;
+    draws and ln q agree with that mixture (E_q[q_u/q] = 1 for q_u its uniform-pair version;
+    fails if the draws or ln q use the unconditioned modes); without ``neighbours`` the
+    neighbours change nothing."""
+    from bayes_talk.synthesis.frame_updates import (
+        BlockModeProposal,
+        PairModeProposal,
+        adjacent_pairs,
+    )
+
+    T, ff, x_map, q = toy20
+    blocks = dynamics_blocks(ff, 8)
+    pairs = [p for p in adjacent_pairs(blocks) if p[0][0] > 0 and p[1][1] < T]
+    plain = BlockModeProposal(q, blocks)
+    cond = BlockModeProposal(q, blocks, neighbours=True)
+    pair = next(p for p in pairs if p[0][0] in cond.modes and p[1][0] in cond.modes)
+    (s, mid), (_, e) = pair
+    x_prev, x_next = x_map[s - 1] + 0.1, x_map[e] - 0.1            # away from the MAP: a real pull
+    pq = PairModeProposal(cond, [pair])
+    a, La, wa = cond.components(s, x_prev, None)
+    b, Lb, wb = cond.components(mid, None, x_next)
+    assert not np.allclose(a, plain.modes[s][0]) and not np.allclose(b, plain.modes[mid][0])
+    np.testing.assert_allclose(pq._pair_weights(s, mid, a, wa, b, wb), _pair_weights_by_hand(ff, s, mid, a, wa, b, wb),
+                               rtol=1e-10)
+    rng = np.random.default_rng(11)
+    _pair_draws_match_their_density(pq, s, e, a, La, b, Lb, rng, x_prev=x_prev, x_next=x_next)
+    ref = x_map[[s, mid]]
+    pp = PairModeProposal(plain, [pair])
+    r1 = pp.sample_starts(s, e, 1, np.random.default_rng(0), ref=ref)[1]
+    r2 = pp.sample_starts(s, e, 1, np.random.default_rng(0), ref=ref, x_prev=x_prev, x_next=x_next)[1]
+    assert r1[0] == r2[0]
+    assert pq.sample_starts(s, e, 1, rng, ref=ref, x_prev=x_prev, x_next=x_next)[1][0] != r1[0]
 
 
 def test_block_factor_is_the_own_factors_along_the_dynamics_means_with_their_gradient(toy):

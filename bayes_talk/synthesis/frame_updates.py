@@ -53,8 +53,8 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
     Y = Y^J with probability ∝ w_J, accepted with probability min(1, Σ_k w_k / (Σ_k w_k − w_J
     + w(x_{s:e}))). A *group* [s, e) of consecutive blocks (frames after s without a dynamics
     factor into them: later starts) takes all its starts' tries at once from
-    ``q.sample_starts`` (:class:`PairModeProposal`), the frames after each start from the
-    dynamics as above. Each update leaves π, hence p(X | Ŷ), invariant. Returns the new path and,
+    ``q.sample_starts`` (:class:`PairModeProposal`, given the group's neighbours x_{s−1} and
+    x_e), the frames after each start from the dynamics as above. Each update leaves π, hence p(X | Ŷ), invariant. Returns the new path and,
     per block, whether it moved. (``_broken``: accept always — not invariant; the tests'
     control.)"""
     x = np.array(x, dtype=np.float64, copy=True)
@@ -66,7 +66,8 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
         P = np.empty((K + 1, e - s, ff.d))                                # the K tries and the current block
         P[K] = x[s:e]
         if inner:   # all the starts' tries at once from the group's joint proposal
-            Y, lq = q.sample_starts(s, e, K + 1, rng, ref=x[[s, *inner]])
+            Y, lq = q.sample_starts(s, e, K + 1, rng, ref=x[[s, *inner]], x_prev=None if s == 0 else x[s - 1],
+                                    x_next=x[e] if e < T else None)
             P[:K, [0, *(u - s for u in inner)]] = Y[:K]
         else:
             Y, lq = q.sample_logq(s, prev, K + 1, rng, ref=x[s],           # K tries and the current x_s
@@ -176,8 +177,9 @@ def factor_modes(own, starts: np.ndarray, n_iter: int = 40, max_step: float = 0.
 
 class BlockModeProposal:
     """An independence proposal for the first frame s of a block's multiple-try update
-    (:func:`block_mtm`): q_s(x | x_{s−1}) = (1 − δ) Σ_k w_k N(x; m_k, c² Σ_k) + δ q⁰_s(x | x_{s−1})
-    with (m_k, Σ_k, w_k) the Laplace approximations at the local maxima of the block's own
+    (:func:`block_mtm`): q_s(x | x_{s−1}) = (1 − δ) Σ_k w_k C⁻¹ Σ_c N(x; m_k, c² Σ_k) + δ q⁰_s(x | x_{s−1})
+    (c over the C ``scale`` factors: a wider copy of each mode for a full conditional broader than
+    the own factor's bump) with (m_k, Σ_k, w_k) the Laplace approximations at the local maxima of the block's own
     factor G_s (:func:`block_factor`; :func:`factor_modes`, found once, from the frame's
     proposal centres: its state model's training latents and any extra centres; for a block of
     more than one frame only the ``n_starts`` of highest weight (None: all) — on held-out
@@ -192,23 +194,33 @@ class BlockModeProposal:
     (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``)."""
 
     def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],
-                 scale: float = PG_NUTS_DEFAULTS["pg_mode_scale"],
+                 scale: float | tuple = PG_NUTS_DEFAULTS["pg_mode_scale"],
                  n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False):
-        if not 0 < delta <= 1 or scale <= 0 or (n_starts is not None and n_starts < 1):
-            raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scale > 0 and n_starts >= 1, got {delta}, "
+        scales = np.atleast_1d(np.asarray(scale, dtype=np.float64))
+        if (not 0 < delta <= 1 or scales.ndim != 1 or not scales.size or np.any(~(scales > 0))
+                or (n_starts is not None and n_starts < 1)):
+            raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scales > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
-        self.base, self.ff, self.delta, self.scale = base, base.ff, float(delta), float(scale)
+        self.base, self.ff, self.delta, self.scales = base, base.ff, float(delta), scales
         self.neighbours = bool(neighbours)
         self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
         for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
             starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
             if len(m):
-                L = np.linalg.cholesky(S * self.scale ** 2)
-                self.modes[s], self.end[s] = (m, L, lw), e
+                self.modes[s], self.end[s] = self._scaled(m, S, lw), e
                 self.laplace[s] = (np.linalg.inv(S), lw)
             else:
                 self.without_modes.append((s, e))
+
+    def _scaled(self, m: np.ndarray, S: np.ndarray, lw: np.ndarray):
+        """Components N(m_k, c² S_k) for every mode k and scale c of ``scales``, each scale an
+        equal share of the mode's weight: means (C·K, d), Cholesky factors (C·K, d, d), log
+        weights (C·K,), scale-major."""
+        C, (K, d) = len(self.scales), m.shape
+        L = np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)))
+        return (np.tile(m, (C, 1)), (self.scales[:, None, None, None] * L[None]).reshape(C * K, d, d),
+                np.tile(lw, C) - np.log(C))
 
     def components(self, s: int, x_prev: np.ndarray | None, x_next: np.ndarray | None):
         """The mixture's components (means (K, d), Cholesky factors of the covariances
@@ -218,9 +230,8 @@ class BlockModeProposal:
         if not self.neighbours:
             return self.modes[s]
         P, lw = self.laplace[s]
-        m, Pn, lwn = neighbour_adjusted(self.ff, s, self.end[s], self.modes[s][0], P, lw, x_prev, x_next)
-        S = np.linalg.inv(Pn)
-        return m, np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)) * self.scale ** 2), lwn
+        m, Pn, lwn = neighbour_adjusted(self.ff, s, self.end[s], self.modes[s][0][:len(lw)], P, lw, x_prev, x_next)
+        return self._scaled(m, np.linalg.inv(Pn), lwn)
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
                     X: np.ndarray | None = None, ref: np.ndarray | None = None,
@@ -265,31 +276,46 @@ class PairModeProposal:
     (:class:`BlockModeProposal`, its scale c and δ), ā_k the end of the path the dynamics
     means continue from a_k, ℓ_m the terms of f_m linking frame m to its predecessor (the
     smoothness factor; :meth:`~bayes_talk.synthesis.particle_gibbs.FrameFactors.link_logf`).
-    Fixed before sampling; the uniform δ share keeps every pair of modes proposed. Pairs where
-    either block has no mode are left out (``pairs``: the groups kept)."""
+    With the modes' ``neighbours`` the components are conditioned on the pair's outer
+    smoothness factors (:func:`neighbour_adjusted`: block [s, m)'s modes on the factor from
+    x_{s−1}, block [m, e)'s on the one into x_e) and π recomputed from them at every update; the
+    proposal still depends on the neighbours only. Otherwise it is fixed before sampling. The
+    uniform δ share keeps every pair of modes proposed. Pairs where either block has no mode are
+    left out (``pairs``: the groups kept)."""
 
     def __init__(self, modes: BlockModeProposal, pairs):
-        self.ff, self.delta, self.groups = modes.ff, modes.delta, {}
+        self.modes, self.ff, self.delta, self.groups = modes, modes.ff, modes.delta, {}
         for (s, m), (m2, e) in pairs:
             if m != m2:
                 raise ValueError(f"a pair needs consecutive blocks, got [{s}, {m}) and [{m2}, {e})")
             if s not in modes.modes or m not in modes.modes:
                 continue
             (a, La, lwa), (b, Lb, lwb) = modes.modes[s], modes.modes[m]
-            end = a
-            for u in range(s + 1, m):
-                end, _ = self.ff.dynamics_mean_sd(u, end)
-            link = self.ff.link_logf(m, np.repeat(end, len(b), 0), np.tile(b, (len(a), 1))).reshape(len(a), len(b))
-            lp = lwa[:, None] + lwb[None] + link
-            lp = np.logaddexp(np.log1p(-self.delta) + lp - logsumexp(lp), np.log(self.delta) - np.log(lp.size))
-            self.groups[(s, e)] = (a, La, b, Lb, lp)
+            self.groups[(s, e)] = (m, a, La, b, Lb, self._pair_weights(s, m, a, lwa, b, lwb))
         self.pairs = list(self.groups)
 
-    def sample_starts(self, s: int, e: int, N: int, rng: np.random.Generator,
-                      ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _pair_weights(self, s: int, m: int, a: np.ndarray, lwa: np.ndarray, b: np.ndarray,
+                      lwb: np.ndarray) -> np.ndarray:
+        """ln π'_kl (K_a, K_b) of the pair [s, m), [m, e) with components a, b of log weights lwa, lwb."""
+        end = a
+        for u in range(s + 1, m):
+            end, _ = self.ff.dynamics_mean_sd(u, end)
+        link = self.ff.link_logf(m, np.repeat(end, len(b), 0), np.tile(b, (len(a), 1))).reshape(len(a), len(b))
+        lp = lwa[:, None] + lwb[None] + link
+        return np.logaddexp(np.log1p(-self.delta) + lp - logsumexp(lp), np.log(self.delta) - np.log(lp.size))
+
+    def sample_starts(self, s: int, e: int, N: int, rng: np.random.Generator, ref: np.ndarray | None = None,
+                      x_prev: np.ndarray | None = None, x_next: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
         """N draws (N, 2, d) of the group [s, e)'s two starts and their ln q (N,); ``ref`` (2, d):
-        the last draw replaced by it before ln q is evaluated."""
-        a, La, b, Lb, lp = self.groups[(s, e)]
+        the last draw replaced by it before ln q is evaluated; ``x_prev``, ``x_next`` (d,): the
+        frames before and after the group (None at the ends or when unknown), read with the
+        modes' ``neighbours``."""
+        m, a, La, b, Lb, lp = self.groups[(s, e)]
+        if self.modes.neighbours:
+            a, La, lwa = self.modes.components(s, x_prev, None)
+            b, Lb, lwb = self.modes.components(m, None, x_next)
+            lp = self._pair_weights(s, m, a, lwa, b, lwb)
         d = self.ff.d
         kl = rng.choice(lp.size, size=N, p=np.exp(lp.ravel()))
         k, l = np.divmod(kl, lp.shape[1])

@@ -151,8 +151,9 @@ def sample_synthesis(
     """The synthesis posterior of one utterance by ``method`` (see the module docstring).
 
     n_draws: draws kept in all, pooled over chains (default :data:`DEFAULT_DRAWS`: Laplace
-        64, NUTS 4 × 250; NUTS: ceil(n_draws / chains) per chain after ``warmup``
-        adaptation steps, default 500; emcee: burn-in ``warmup`` steps, default 500, then
+        64, NUTS 4 × 250, pg-nuts 4 × 500; NUTS: ceil(n_draws / chains) per chain after
+        ``warmup`` adaptation steps, default 500 (pg-nuts 200,
+        :data:`~bayes_talk.synthesis.defaults.PG_NUTS_BUDGET`); emcee: burn-in ``warmup`` steps, default 500, then
         draws of 16 reported walkers thinned by ``emcee_thin`` or more).
     chains: NUTS chains (default 4), started overdispersed at z ~ N(0, 2² I) in the
         whitened coordinates (X = X_MAP + L z).
@@ -168,7 +169,7 @@ def sample_synthesis(
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
-        ``pg_pairs`` (False), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64);
+        ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64);
         :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
@@ -263,7 +264,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
     else:
         if method in ("nuts", "pg-nuts"):
             z0 = INIT_SCALE * rng.standard_normal((chains, T * d)) if chains > 1 else np.zeros(T * d)
-            warmup = NUTS_DEFAULTS["warmup"] if warmup is None else warmup
+            warmup = spec.options["warmup"] if warmup is None else warmup
             if method == "pg-nuts":
                 if skw.get("coords", "noncentred") not in ("noncentred", "noncentred-whitened"):
                     raise ValueError(f"pg-nuts samples in the non-centred coordinates; got sampler_kw['coords'] = "
@@ -272,7 +273,9 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 if int(skw["pg_every"]) < 1 or int(skw["pg_particles"]) < 2:
                     raise ValueError(f"pg-nuts needs pg_every >= 1 and pg_particles >= 2, got "
                                      f"{skw['pg_every']} and {skw['pg_particles']}")
-                if not (0 < float(skw["pg_mode_delta"]) <= 1 and float(skw["pg_mode_scale"]) > 0
+                scales = np.atleast_1d(np.asarray(skw["pg_mode_scale"], dtype=np.float64))
+                if not (0 < float(skw["pg_mode_delta"]) <= 1 and scales.ndim == 1 and scales.size
+                        and np.all(scales > 0)
                         and int(skw["pg_mode_starts"]) >= 1):
                     raise ValueError(f"pg-nuts needs 0 < pg_mode_delta <= 1, pg_mode_scale > 0 and pg_mode_starts "
                                      f">= 1, got {skw['pg_mode_delta']}, {skw['pg_mode_scale']} and "
@@ -284,7 +287,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                             pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]),
                             pg_neighbours=bool(skw["pg_neighbours"]), pg_pairs=bool(skw["pg_pairs"]),
                             pg_mode_delta=float(skw["pg_mode_delta"]),
-                            pg_mode_scale=float(skw["pg_mode_scale"]), pg_mode_starts=int(skw["pg_mode_starts"]))
+                            pg_mode_scale=[float(c) for c in scales], pg_mode_starts=int(skw["pg_mode_starts"]))
             coords = skw.pop("coords", spec.options["coords"])
             if coords not in NUTS_COORDS:
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
