@@ -504,7 +504,7 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     # several scales: each mode once per scale c, covariance c² Σ_k, an equal share of w_k
     fw = BlockModeProposal(q, [(s, e)], delta=0.2, scale=(1.0, 3.0))
     mw, Lw, lww = fw.modes[s]
-    m1, (P1, lw1) = fm.modes[s][0], fm.laplace[s]             # the same modes at one scale
+    m1, P1, lw1 = fm.laplace[s]                                # the same modes at one scale
     S1, K = np.linalg.inv(P1), len(m1)
     np.testing.assert_allclose(mw, np.vstack([m1, m1]))
     np.testing.assert_allclose(np.einsum("kij,klj->kil", Lw, Lw), np.concatenate([S1, 9.0 * S1]), rtol=1e-8)

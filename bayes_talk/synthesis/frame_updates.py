@@ -209,7 +209,7 @@ class BlockModeProposal:
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
             if len(m):
                 self.modes[s], self.end[s] = self._scaled(m, S, lw), e
-                self.laplace[s] = (np.linalg.inv(S), lw)
+                self.laplace[s] = (m, np.linalg.inv(S), lw)   # the modes' own Laplace: means, precisions, weights
             else:
                 self.without_modes.append((s, e))
 
@@ -229,8 +229,8 @@ class BlockModeProposal:
         smoothness factors at the block's two ends."""
         if not self.neighbours:
             return self.modes[s]
-        P, lw = self.laplace[s]
-        m, Pn, lwn = neighbour_adjusted(self.ff, s, self.end[s], self.modes[s][0][:len(lw)], P, lw, x_prev, x_next)
+        m, P, lw = self.laplace[s]
+        m, Pn, lwn = neighbour_adjusted(self.ff, s, self.end[s], m, P, lw, x_prev, x_next)
         return self._scaled(m, np.linalg.inv(Pn), lwn)
 
     def sample_logq(self, t: int, Xprev: np.ndarray | None, N: int, rng: np.random.Generator,
