@@ -139,7 +139,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                     calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None,
                     sampler_options={"chains": args.chains, "warmup": args.warmup,
                                      "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
-                                     "pg_particles": args.pg_particles})
+                                     "pg_particles": args.pg_particles, "workers": args.workers})
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -481,6 +481,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-tree-depth", type=_positive_int, default=None, help=f"NUTS max tree depth (default {NUTS_DEFAULTS['max_tree_depth']})")
     s.add_argument("--pg-particles", type=_positive_int, default=None,
                    help=f"pg-nuts: particles of each particle Gibbs sweep (default {PG_NUTS_DEFAULTS['pg_particles']})")
+    s.add_argument("--workers", type=_positive_int, default=None,
+                   help="nuts/pg-nuts: processes running the chains in parallel (default 1); the draws depend "
+                        "on --seed only, not on this")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "

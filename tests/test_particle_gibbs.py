@@ -3,6 +3,8 @@ density to round-off, and conditional SMC with ancestor sampling leaves a known 
 invariant (a linear-Gaussian chain whose posterior is computed exactly)."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy.special import logsumexp
@@ -521,6 +523,110 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     for bad in ({"delta": 0.0}, {"scale": (1.0, -1.0)}, {"scale": ()}):
         with pytest.raises(ValueError, match="delta"):
             BlockModeProposal(q, [(s, e)], **bad)
+
+
+def _conditional_mode_masses(ff, bm, s, x, N, rng):
+    """Importance estimate of the full conditional's mass at each of isolated frame s's own modes
+    given the neighbours in x: draws from ``bm``'s proposal weighted by exp(f_s + f_{s+1}) / q,
+    each assigned by its responsibilities under the modes' Laplace approximations (equal
+    weights), written out here apart from ``BlockModeProposal.record``. Returns (masses, ESS)."""
+    from bayes_talk.synthesis.frame_updates import component_logpdf
+
+    m, P, _ = bm.laplace[s]
+    Y, lq = bm.sample_logq(s, np.repeat(x[s - 1][None], N, 0), N, rng)
+    lw = ff.log_f(s, np.repeat(x[s - 1][None], N, 0), Y) + ff.link_logf(s + 1, Y, np.repeat(x[s + 1][None], N, 0)) - lq
+    lr = component_logpdf(Y, m, np.linalg.cholesky(np.linalg.inv(P)))
+    w = np.exp(lw - logsumexp(lw))
+    return w @ np.exp(lr - logsumexp(lr, axis=1, keepdims=True)), 1.0 / np.sum(w * w)
+
+
+def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_keep_its_conditional(toy20):
+    """``BlockModeProposal``'s warm-up adaptation on an isolated frame whose neighbours are moved
+    off the MAP so that its full conditional sits at a mode of own weight < 1 % (the held-out
+    `utt0002` case), chains started there: with the own weights the multiple-try updates
+    almost never switch mode;
+    after 200 adapting updates the frozen weights are (1 − ½) × the estimated masses + ½ × the
+    own ones, the chain switches modes often, and its share of time at the heavy mode matches
+    the conditional's mass (an importance estimate through the adapted proposal, which now
+    covers that mode: 5 s.e., batch means and the estimate's own from its ESS). ``begin_adaptation`` restores the own weights;
+    nothing is tallied outside adaptation; the pairs' weights follow (``refresh``)."""
+    from bayes_talk.synthesis.frame_updates import (
+        BlockModeProposal,
+        PairModeProposal,
+        adjacent_pairs,
+        component_logpdf,
+    )
+
+    T, ff, x_map, q = toy20
+    rng = np.random.default_rng(21)
+    probe = BlockModeProposal(q, dynamics_blocks(ff, 1))
+    case = None
+    for (s, e), shift in itertools.product(dynamics_blocks(ff, 1), (0.05, 0.1, -0.1)):
+        if s == 0 or e == T or s not in probe.modes or len(probe.modes[s][0]) < 2:
+            continue
+        x = x_map.copy()
+        x[s - 1] += shift
+        x[e] += shift
+        M, _ = _conditional_mode_masses(ff, probe, s, x, 20000, rng)
+        k = int(np.argmax(M))
+        if M[k] > 0.5 and np.exp(probe.own_weights[s][k]) < 0.01:
+            case = s, x, k
+            break
+    assert case is not None, "the toy utterance needs a frame whose neighbours can move its conditional's mode"
+    s, x, k = case
+    m, P, lw0 = probe.laplace[s]
+    L = np.linalg.cholesky(np.linalg.inv(P))
+
+    def run(bm, y, n):
+        at_k, switches, last = [], 0, None
+        for _ in range(n):
+            y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+            j = int(np.argmax(component_logpdf(y[s][None], m, L)[0]))
+            switches += last is not None and j != last
+            at_k.append(j == k)
+            last = j
+        return y, np.array(at_k), switches
+
+    y0 = x.copy()
+    y0[s] = m[k]                                         # start where the conditional's mass is
+    own = BlockModeProposal(q, [(s, s + 1)])
+    _, _, own_switches = run(own, y0.copy(), 1000)
+    assert own.adapting is False and own._mass == {}
+    ad = BlockModeProposal(q, [(s, s + 1)])
+    ad.begin_adaptation()
+    y, _, _ = run(ad, y0.copy(), 200)
+    n = ad._mass[s][1]
+    tally = ad._mass[s][0].copy()
+    ad.end_adaptation()
+    assert n == 200 and not ad.adapting
+    np.testing.assert_allclose(np.exp(ad.laplace[s][2]), 0.5 * tally / n + 0.5 * np.exp(lw0), rtol=1e-10)
+    assert np.exp(ad.laplace[s][2][k]) > np.exp(lw0[k]) + 0.02 and ad.weight_shift()[s] > 0.02
+    np.testing.assert_allclose(ad.modes[s][2], ad.laplace[s][2] - np.log(len(ad.scales)), atol=1e-12)
+    y, at_k, switches = run(ad, y, 2000)
+    assert ad._mass[s][1] == 200                         # frozen: nothing more tallied
+    assert own_switches <= 5 and switches >= 50, (own_switches, switches)
+    M, ess = _conditional_mode_masses(ff, ad, s, x, 40000, rng)
+    assert ess > 200, ess
+    B = at_k.reshape(40, -1).mean(1)
+    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
+    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+    ad.begin_adaptation()                                # a new warm-up starts from the own weights
+    np.testing.assert_array_equal(ad.laplace[s][2], lw0)
+    # pairs: refresh recomputes the pair weights from the adapted modes' weights
+    blocks = dynamics_blocks(ff, 8)
+    bm = BlockModeProposal(q, blocks)
+    (s1, mid), (_, e1) = pair = next(p for p in adjacent_pairs(blocks) if p[0][0] in bm.modes and p[1][0] in bm.modes
+                                             and len(bm.laplace[p[0][0]][0]) > 1)
+    pq = PairModeProposal(bm, [pair])
+    bm.begin_adaptation()
+    a = bm.laplace[s1][0]
+    bm.record(s1, a[[0]], np.zeros(1), a[-1])              # all the tally at the first and last modes
+    bm.end_adaptation()
+    pq.refresh()
+    a, _, wa = bm.modes[s1]
+    b, _, wb = bm.modes[mid]
+    assert not np.allclose(wa, np.tile(bm.own_weights[s1], len(bm.scales)) - np.log(len(bm.scales)))
+    np.testing.assert_allclose(pq.groups[(s1, e1)][-1], _pair_weights_by_hand(ff, s1, mid, a, wa, b, wb), rtol=1e-10)
 
 
 def _pair_weights_by_hand(ff, s, mid, a, wa, b, wb):

@@ -731,18 +731,22 @@ def test_bands_are_exact_mixture_quantiles_and_cover_held_out_toy_data_near_nomi
     assert all(abs(cov[k] - k) <= 0.1 for k in levels), cov
 
 
-def test_synth_cli_sampler_options_reach_sample_synthesis():
+def test_synth_cli_sampler_options_reach_sample_synthesis(tmp_path):
     from bayes_talk.cli import build_parser
+    from bayes_talk.pipeline import synth
     from bayes_talk.pipeline.talking_face import _sampler_args
 
     a = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "nuts",
                                    "--chains", "2", "--warmup", "30", "--target-accept", "0.9",
-                                   "--max-tree-depth", "6"])
-    assert (a.chains, a.warmup, a.target_accept, a.max_tree_depth, a.draws) == (2, 30, 0.9, 6, None)
+                                   "--max-tree-depth", "6", "--workers", "2"])
+    assert (a.chains, a.warmup, a.target_accept, a.max_tree_depth, a.draws, a.workers) == (2, 30, 0.9, 6, None, 2)
     opts = {"chains": a.chains, "warmup": a.warmup, "target_accept": a.target_accept,
-            "max_tree_depth": a.max_tree_depth}
+            "max_tree_depth": a.max_tree_depth, "workers": a.workers}
     assert _sampler_args(opts) == {"chains": 2, "warmup": 30,
-                                   "sampler_kw": {"target_accept": 0.9, "max_tree_depth": 6}}
+                                   "sampler_kw": {"target_accept": 0.9, "max_tree_depth": 6, "workers": 2}}
+    with pytest.raises(ValueError, match="--workers .* applies to --posterior nuts or pg-nuts, not 'laplace'"):
+        synth(tmp_path / "no-model", "x.wav", None, tmp_path / "out", posterior="laplace",
+              sampler_options={"workers": 2})
     assert _sampler_args({"chains": None, "warmup": None}) == {}
     with pytest.raises(ValueError, match="unknown sampler options"):
         _sampler_args({"step": 1})

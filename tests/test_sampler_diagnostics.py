@@ -94,6 +94,45 @@ def test_an_extra_moves_records_are_kept_per_draw_and_blank_where_it_did_not_run
     np.testing.assert_array_equal(d.sample_stats["value"][:, ::2], 7.0)
 
 
+class _AdaptingMove:
+    """An ``extra_move`` with a warm-up adaptation: it counts its calls while adapting and
+    reports, per call, whether it is adapting and that count."""
+
+    def __init__(self):
+        self.adapting, self.calls_adapting = False, 0
+
+    def begin_adaptation(self):
+        self.adapting, self.calls_adapting = True, 0
+
+    def end_adaptation(self):
+        self.adapting = False
+
+    def __call__(self, x, rng):
+        self.calls_adapting += self.adapting
+        return x, {"adapting": self.adapting, "calls_adapting": self.calls_adapting}
+
+
+def test_an_extra_moves_adaptation_spans_exactly_each_chains_warmup():
+    """``run_nuts`` starts an adapting move's adaptation before a chain's first iteration and
+    ends it after its warm-up: every kept draw comes from the frozen move, which adapted during
+    exactly the ``warmup`` iterations; each chain adapts a copy of its own (the caller's move is
+    untouched, and the second chain, run after the first in this process, does not inherit its
+    state); with no warm-up there is no adaptation."""
+    import torch
+
+    from bayes_talk.synthesis.samplers import run_nuts
+
+    move = _AdaptingMove()
+    d = run_nuts(lambda x: -0.5 * torch.sum(x * x), np.zeros(2), n_draws=4, warmup=5, chains=2, seed=0,
+                 extra_move=move)
+    np.testing.assert_array_equal(d.sample_stats["adapting"], False)
+    np.testing.assert_array_equal(d.sample_stats["calls_adapting"], 5)
+    assert (move.adapting, move.calls_adapting) == (False, 0)
+    d0 = run_nuts(lambda x: -0.5 * torch.sum(x * x), np.zeros(2), n_draws=3, warmup=0, chains=1, seed=0,
+                  extra_move=move)
+    np.testing.assert_array_equal(d0.sample_stats["calls_adapting"], 0)
+
+
 def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatch, tmp_path):
     """The sweeps' per-frame record (``pg_frame_moved``) equals a recount from the states before
     and after every sweep, the draw is the state after the sweep of its iteration, the update

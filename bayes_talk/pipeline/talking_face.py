@@ -120,6 +120,9 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
     if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
         raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
+    if (sampler_options or {}).get("workers") is not None and posterior not in ("nuts", "pg-nuts"):
+        raise ValueError(f"--workers runs NUTS chains in parallel: it applies to --posterior nuts or pg-nuts, "
+                         f"not {posterior!r}")
     tm = load_trained(model_dir)
     choices = tm.model.synthesis_options
     if posterior is None:
@@ -237,9 +240,10 @@ def _synthesis_options(choices: dict, posterior: str, algorithm: str, init: str 
 
 def _sampler_args(options: dict | None) -> dict:
     """``sample_synthesis`` keywords from synth's sampler options (``chains``, ``warmup``,
-    ``target_accept``, ``max_tree_depth``, ``pg_particles``; None entries keep the library defaults)."""
+    ``target_accept``, ``max_tree_depth``, ``pg_particles``, ``workers``: processes running the
+    chains; None entries keep the library defaults)."""
     opts = {k: v for k, v in (options or {}).items() if v is not None}
-    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles"}
+    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles", "workers"}
     if unknown:
         raise ValueError(f"unknown sampler options {sorted(unknown)}")
     kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}

@@ -89,6 +89,11 @@ def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
         if _broken or np.log(rng.random()) < s_y - s_x:
             x[s:e] = P[j]
             moved[i] = True
+        if getattr(q, "adapting", False):   # a warm-up: the proposal learns its modes' weights
+            if inner:
+                q.record(s, e, Y[:K], lw[:K], x[[s, *inner]])
+            else:
+                q.record(s, P[:K, 0], lw[:K], x[s])
     return x, moved
 
 
@@ -204,12 +209,14 @@ class BlockModeProposal:
         self.base, self.ff, self.delta, self.scales = base, base.ff, float(delta), scales
         self.neighbours = bool(neighbours)
         self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
+        self.adapting, self.own_weights, self._mass = False, {}, {}
         for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
             starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
             if len(m):
                 self.modes[s], self.end[s] = self._scaled(m, S, lw), e
                 self.laplace[s] = (m, np.linalg.inv(S), lw)   # the modes' own Laplace: means, precisions, weights
+                self.own_weights[s] = lw
             else:
                 self.without_modes.append((s, e))
 
@@ -221,6 +228,62 @@ class BlockModeProposal:
         L = np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)))
         return (np.tile(m, (C, 1)), (self.scales[:, None, None, None] * L[None]).reshape(C * K, d, d),
                 np.tile(lw, C) - np.log(C))
+
+    def _set_weights(self, s: int, lw: np.ndarray) -> None:
+        m, P, _ = self.laplace[s]
+        self.laplace[s] = (m, P, lw)
+        self.modes[s] = self._scaled(m, np.linalg.inv(P), lw)
+
+    def begin_adaptation(self) -> None:
+        """Start learning the modes' weights (a sampler's warm-up): the own factor's weights
+        restored, the tallies of :meth:`record` cleared. Until :meth:`end_adaptation` the
+        proposal changes with the chain's history, so draws taken meanwhile are warm-up only."""
+        for s, lw in self.own_weights.items():
+            self._set_weights(s, lw)
+        self._mass = {s: [np.zeros(len(lw)), 0] for s, lw in self.own_weights.items()}
+        self.adapting = True
+
+    def record(self, s: int, Y: np.ndarray, lw: np.ndarray, x_s: np.ndarray) -> None:
+        """Tally one multiple-try update of block s while adapting: its tries Y (K, d) of the
+        block's first frame, their log weights ln π − ln q (:func:`block_mtm`: the full
+        conditional's) and the first frame x_s (d,) after the update. Two estimates of each
+        mode's mass under the full conditional are summed over the updates: the
+        self-normalised importance one, Σ_i w̄_i r_k(y_i) (w̄ the normalised weights), and the
+        chain's own, r_k(x_s) — r_k(y) the responsibility of mode k for y under the modes' own
+        Laplace approximations with equal weights. The first sees modes the chain has not
+        reached yet; the second, modes the tries rarely land in (where the importance estimate
+        rests on a handful of tries)."""
+        if not self.adapting or s not in self._mass:
+            return
+        m, P, _ = self.laplace[s]
+        L = np.linalg.cholesky(np.linalg.inv(P))
+        lr = component_logpdf(np.vstack([Y, np.reshape(x_s, (1, -1))]).astype(np.float64), m, L)
+        r = np.exp(lr - logsumexp(lr, axis=1, keepdims=True))
+        w = np.exp(lw - logsumexp(lw))
+        if np.all(np.isfinite(w)) and np.all(np.isfinite(r)):
+            tally = self._mass[s]
+            tally[0] += 0.5 * (w @ r[:-1] + r[-1])
+            tally[1] += 1
+
+    def end_adaptation(self, share: float = 0.5) -> None:
+        """Freeze the weights learnt while adapting: w_k = (1 − share) M̄_k + share · w⁰_k, M̄
+        the mean over the recorded updates of the two estimates of the full conditional's mode
+        masses (:meth:`record`, averaged), w⁰ the own factor's Laplace masses (kept so that
+        every mode stays proposed). The own factor misses the smoothness factors at the
+        block's two ends: on held-out `utt0002` the first block's chains sit at a mode of own
+        weight ≈ 0. From here the proposal is fixed again, so the updates leave the posterior
+        invariant."""
+        for s, (tally, n) in self._mass.items():
+            if n:
+                w = (1 - share) * tally / n + share * np.exp(self.own_weights[s])
+                self._set_weights(s, np.log(w / w.sum()))
+        self.adapting = False
+
+    def weight_shift(self) -> dict[int, float]:
+        """Per block s with modes, the total-variation distance ½ Σ_k |w_k − w⁰_k| between the
+        current weights and the own factor's (0 before any adaptation)."""
+        return {s: float(0.5 * np.abs(np.exp(self.laplace[s][2]) - np.exp(lw)).sum())
+                for s, lw in self.own_weights.items()}
 
     def components(self, s: int, x_prev: np.ndarray | None, x_next: np.ndarray | None):
         """The mixture's components (means (K, d), Cholesky factors of the covariances
@@ -293,6 +356,24 @@ class PairModeProposal:
             (a, La, lwa), (b, Lb, lwb) = modes.modes[s], modes.modes[m]
             self.groups[(s, e)] = (m, a, La, b, Lb, self._pair_weights(s, m, a, lwa, b, lwb))
         self.pairs = list(self.groups)
+
+    @property
+    def adapting(self) -> bool:
+        return self.modes.adapting
+
+    def record(self, s: int, e: int, Y: np.ndarray, lw: np.ndarray, x_starts: np.ndarray) -> None:
+        """While the modes adapt, tally one update of the group [s, e): each start's tries
+        Y[:, 0], Y[:, 1] with the joint log weights and its value after the update, x_starts
+        (2, d) (:meth:`BlockModeProposal.record`)."""
+        m = self.groups[(s, e)][0]
+        self.modes.record(s, Y[:, 0], lw, x_starts[0])
+        self.modes.record(m, Y[:, 1], lw, x_starts[1])
+
+    def refresh(self) -> None:
+        """The pair weights π recomputed from the modes' current weights (after they adapted)."""
+        for (s, e), (m, _, _, _, _, _) in list(self.groups.items()):
+            (a, La, lwa), (b, Lb, lwb) = self.modes.modes[s], self.modes.modes[m]
+            self.groups[(s, e)] = (m, a, La, b, Lb, self._pair_weights(s, m, a, lwa, b, lwb))
 
     def _pair_weights(self, s: int, m: int, a: np.ndarray, lwa: np.ndarray, b: np.ndarray,
                       lwb: np.ndarray) -> np.ndarray:

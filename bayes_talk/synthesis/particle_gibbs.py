@@ -333,7 +333,7 @@ class ParticleGibbsMove:
     per-frame update rate)."""
 
     def __init__(self, ff, q, to_x, to_u, n_particles: int = 64, backward: bool = False, blocks=(),
-                 frame_tries: int = 0, q_blocks=None, q_pairs=None):
+                 frame_tries: int = 0, q_blocks=None, q_pairs=None, adapt_weights: bool = False):
         """From its parts: the frame factors ``ff`` (:class:`FrameFactors` or any object with
         its methods), the sweep's proposal ``q``, the blocks [s, e) of the multiple-try
         updates and their proposal ``q_blocks`` (default ``q``), and the joint proposal of the
@@ -346,19 +346,39 @@ class ParticleGibbsMove:
         self.blocks = list(blocks) if self.frame_tries > 0 else []
         self.q_blocks = q if q_blocks is None else q_blocks
         self.q_pairs = q_pairs if self.frame_tries > 0 and q_pairs is not None and q_pairs.pairs else None
+        self.adapt_weights = bool(adapt_weights) and hasattr(self.q_blocks, "begin_adaptation")
+
+    def begin_adaptation(self) -> None:
+        """A sampler's warm-up begins: with ``adapt_weights`` the blocks' own-mode proposal
+        starts learning its modes' weights from the multiple-try updates
+        (:meth:`~bayes_talk.synthesis.frame_updates.BlockModeProposal.begin_adaptation`);
+        otherwise nothing changes."""
+        if self.adapt_weights:
+            self.q_blocks.begin_adaptation()
+            if self.q_pairs is not None:
+                self.q_pairs.refresh()
+
+    def end_adaptation(self) -> None:
+        """The warm-up ends: the learnt weights are frozen (the pairs' weights recomputed from
+        them), and the move is a fixed posterior-invariant kernel again."""
+        if self.adapt_weights and self.q_blocks.adapting:
+            self.q_blocks.end_adaptation()
+            if self.q_pairs is not None:
+                self.q_pairs.refresh()
 
     @classmethod
     def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                     h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
                     backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
                     block_len: int = 1, neighbours: bool = False, mode_kw: dict | None = None,
-                    pairs: bool = False) -> ParticleGibbsMove:
+                    pairs: bool = False, adapt_weights: bool = False) -> ParticleGibbsMove:
         """The move on the synthesis density ``dens``: :class:`FrameFactors`, the
         :class:`MixtureProposal` (``rho``, ``h``, ``lookahead``, ``extra_centres``), the
         dynamics runs of at most ``block_len`` frames and, with ``tries_from_modes``, their
         :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (``neighbours`` and
         ``mode_kw``: its ``delta``, ``scale``, ``n_starts``), with ``pairs`` the consecutive
-        blocks' :class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`."""
+        blocks' :class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`; ``adapt_weights``:
+        the modes' weights learnt during a sampler's warm-up (:meth:`begin_adaptation`)."""
         if int(block_len) < 1:
             raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         ff = FrameFactors(dens)
@@ -368,7 +388,7 @@ class ParticleGibbsMove:
         q_blocks = (BlockModeProposal(q, blocks, neighbours=neighbours, **(mode_kw or {}))
                     if tries_from_modes and blocks else q)
         q_pairs = PairModeProposal(q_blocks, adjacent_pairs(blocks)) if pairs and q_blocks is not q else None
-        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs)
+        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs, adapt_weights)
 
     @property
     def blocks_without_modes(self) -> list[tuple[int, int]]:

@@ -169,8 +169,8 @@ def sample_synthesis(
         laplace: ``khat_draws`` (200); vi: ``steps``, ``particles``, ``lr``, ``khat_draws``;
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
-        ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64);
-        :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
+        ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64),
+        ``pg_adapt_weights`` (False); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -286,6 +286,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                             pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
                             pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]),
                             pg_neighbours=bool(skw["pg_neighbours"]), pg_pairs=bool(skw["pg_pairs"]),
+                            pg_adapt_weights=bool(skw["pg_adapt_weights"]),
                             pg_mode_delta=float(skw["pg_mode_delta"]),
                             pg_mode_scale=[float(c) for c in scales], pg_mode_starts=int(skw["pg_mode_starts"]))
             coords = skw.pop("coords", spec.options["coords"])

@@ -32,6 +32,7 @@ Torch runs with one thread inside every sampler (:func:`bayes_talk.gp.threads.to
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections.abc import Callable
@@ -153,6 +154,8 @@ class _RecordingNUTS:
                     z = self._extra(z)
                 if self._t == self._warmup_steps:
                     self.warmup_end = time.perf_counter()
+                    if hasattr(extra_move, "end_adaptation"):   # the move's own warm-up ends with NUTS's
+                        extra_move.end_adaptation()
                 if self._t > self._warmup_steps:
                     n = self._t - self._warmup_steps   # the running mean restarts after warm-up
                     rec = self.records
@@ -207,12 +210,16 @@ def _nuts_chain(task) -> dict:
         return -log_prob(params["x"])
 
     t_chain = time.perf_counter()
+    move = kw.get("extra_move")
+    if hasattr(move, "begin_adaptation") and warmup > 0:
+        move = copy.deepcopy(move)   # its warm-up adaptation is this chain's own, whatever the executor
+        move.begin_adaptation()
     with torch_threads(1):
         pyro.set_rng_seed(seed + c)
         kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
                                      full_mass=False, target_accept_prob=kw["target_accept"],
                                      max_tree_depth=kw["max_tree_depth"], jumps=kw["jumps"],
-                                     jump_attempts=kw["jump_attempts"], extra_move=kw.get("extra_move"),
+                                     jump_attempts=kw["jump_attempts"], extra_move=move,
                                      extra_every=kw.get("extra_every", 1),
                                      rng=np.random.default_rng([seed, c, 0x6A756D70]))
         mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": _as_tensor(start)},
