@@ -194,8 +194,9 @@ class BlockModeProposal:
     component. An isolated frame's marginal is a mixture of narrow, separated bumps (on the toy
     utterance frame 63's chain draws sit in clusters near −0.13 and −0.03, each ~0.01 wide,
     and switch every ~30 draws), and a short dynamics block's first frame likewise (its path a
-    function of that frame): tries from the bumps themselves land in them. q_s is fixed before
-    sampling and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
+    function of that frame): tries from the bumps themselves land in them. q_s is fixed while the
+    kept draws are taken (its weights w_k may be learnt in the warm-up: :meth:`begin_adaptation`)
+    and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
     (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``)."""
 
     def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],

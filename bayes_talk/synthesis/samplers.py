@@ -259,7 +259,10 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     invariant kernels is invariant. A move may return ``(x', record)``, ``record`` a dict of
     arrays of fixed shapes: each key becomes a per-draw statistic (chains, n_draws, ...) of
     ``Draws.sample_stats``, zero (False) at the iterations where the move did not run (the
-    sweep's ``pg_sweep`` and ``pg_frame_moved``).
+    sweep's ``pg_sweep`` and ``pg_frame_moved``). A move with ``begin_adaptation()`` and
+    ``end_adaptation()`` (the sweep with ``pg_adapt_weights``) adapts during the warm-up only:
+    each chain deep-copies it, begins before its first iteration and ends after its last warm-up
+    iteration, so the kept draws come from a fixed kernel and the caller's move is not changed.
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``jumps`` (mode jumps accepted),
