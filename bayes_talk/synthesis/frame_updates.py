@@ -360,6 +360,7 @@ class PairModeProposal:
 
     @property
     def adapting(self) -> bool:
+        """Whether the modes' weights are being learnt (:meth:`BlockModeProposal.begin_adaptation`)."""
         return self.modes.adapting
 
     def record(self, s: int, e: int, Y: np.ndarray, lw: np.ndarray, x_starts: np.ndarray) -> None:
