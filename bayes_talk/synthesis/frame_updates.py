@@ -242,6 +242,7 @@ class BlockModeProposal:
         for s, lw in self.own_weights.items():
             self._set_weights(s, lw)
         self._mass = {s: [np.zeros(len(lw)), 0] for s, lw in self.own_weights.items()}
+        self._laplace_chol = {s: np.linalg.cholesky(np.linalg.inv(P)) for s, (_, P, _) in self.laplace.items()}
         self.adapting = True
 
     def record(self, s: int, Y: np.ndarray, lw: np.ndarray, x_s: np.ndarray) -> None:
@@ -256,9 +257,8 @@ class BlockModeProposal:
         rests on a handful of tries)."""
         if not self.adapting or s not in self._mass:
             return
-        m, P, _ = self.laplace[s]
-        L = np.linalg.cholesky(np.linalg.inv(P))
-        lr = component_logpdf(np.vstack([Y, np.reshape(x_s, (1, -1))]).astype(np.float64), m, L)
+        lr = component_logpdf(np.vstack([Y, np.reshape(x_s, (1, -1))]).astype(np.float64), self.laplace[s][0],
+                              self._laplace_chol[s])
         r = np.exp(lr - logsumexp(lr, axis=1, keepdims=True))
         w = np.exp(lw - logsumexp(lw))
         if np.all(np.isfinite(w)) and np.all(np.isfinite(r)):
@@ -354,8 +354,8 @@ class PairModeProposal:
                 raise ValueError(f"a pair needs consecutive blocks, got [{s}, {m}) and [{m2}, {e})")
             if s not in modes.modes or m not in modes.modes:
                 continue
-            (a, La, lwa), (b, Lb, lwb) = modes.modes[s], modes.modes[m]
-            self.groups[(s, e)] = (m, a, La, b, Lb, self._pair_weights(s, m, a, lwa, b, lwb))
+            self.groups[(s, e)] = (m,)
+        self.refresh()
         self.pairs = list(self.groups)
 
     @property
@@ -372,8 +372,9 @@ class PairModeProposal:
         self.modes.record(m, Y[:, 1], lw, x_starts[1])
 
     def refresh(self) -> None:
-        """The pair weights π recomputed from the modes' current weights (after they adapted)."""
-        for (s, e), (m, _, _, _, _, _) in list(self.groups.items()):
+        """Each group's components and pair weights π from the modes' current weights (at
+        construction, and after the modes' weights were learnt)."""
+        for (s, e), (m, *_) in list(self.groups.items()):
             (a, La, lwa), (b, Lb, lwb) = self.modes.modes[s], self.modes.modes[m]
             self.groups[(s, e)] = (m, a, La, b, Lb, self._pair_weights(s, m, a, lwa, b, lwb))
 
