@@ -155,6 +155,42 @@ def test_block_mtm_leaves_a_known_posterior_invariant(blocks, broken):
     assert ok != broken, (D.mean(0), mean, D.var(0), var)
 
 
+def test_block_sweeps_repeat_the_block_updates_and_keep_a_known_posterior(monkeypatch):
+    """``block_sweeps`` = R: after each CSMC sweep the move runs R passes of the multiple-try
+    block updates (counted), and the composition keeps the AR(1) chain's exact posterior means
+    and variances (5 Monte-Carlo s.e., 15 %); R < 1 is refused."""
+    import bayes_talk.synthesis.particle_gibbs as pg
+
+    y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
+    m = _AR1(y)
+    mean, var = m.exact()
+    calls = []
+    real = pg.block_mtm
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(pg, "block_mtm", counted)
+    move = pg.ParticleGibbsMove(m, m, lambda u: u, lambda x: x, n_particles=2, blocks=[(0, 2), (2, 3), (3, 5)],
+                                frame_tries=4, block_sweeps=3)
+    rng = np.random.default_rng(5)
+    u = np.zeros((m.T, 1))
+    draws = []
+    for it in range(3000):
+        u, rec = move(u, rng)
+        assert len(calls) == 3 * (it + 1) and rec["pg_frame_moved"].shape == (m.T,)
+        if it >= 200:
+            draws.append(u[:, 0].copy())
+    D = np.array(draws)
+    B = D.reshape(28, -1, m.T).mean(1)
+    se = B.std(0, ddof=1) / np.sqrt(len(B))
+    assert np.all(np.abs(D.mean(0) - mean) < 5 * se), (D.mean(0), mean, se)
+    assert np.all(np.abs(D.var(0) / var - 1) < 0.15), (D.var(0), var)
+    with pytest.raises(ValueError, match="block_sweeps"):
+        pg.ParticleGibbsMove(m, m, lambda u: u, lambda x: x, blocks=[(0, 2)], frame_tries=4, block_sweeps=0)
+
+
 class _BroadStarts:
     """A group's joint proposal for :func:`block_mtm`: the starts iid N(0, 1.5²), state-independent."""
 
@@ -348,7 +384,8 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
 
 def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
     """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts`` are the own-mode proposal's δ, c and
-    starts (recorded in the diagnostics), out-of-range values are refused naming the key, and a
+    starts and ``pg_block_sweeps`` the move's passes of block updates (recorded in the
+    diagnostics), out-of-range values are refused naming the key, and a
     block whose mode search finds nothing (here the first block's, removed) is listed in
     ``pg_blocks_without_modes`` while the others are not."""
     import bayes_talk.synthesis.frame_updates as fu
@@ -369,22 +406,55 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
         calls.append(len(m))
         return (m[:0], S[:0], lw[:0]) if len(calls) == 1 else (m, S, lw)
 
+    sweeps = []
+
+    class RecordingMove(pg.ParticleGibbsMove):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            sweeps.append(self.block_sweeps)
+
     monkeypatch.setattr(pg, "BlockModeProposal", Recording)
+    monkeypatch.setattr(pg, "ParticleGibbsMove", RecordingMove)
     monkeypatch.setattr(fu, "factor_modes", first_block_has_none)
     kw = {"n_draws": 8, "warmup": 2, "chains": 2, "seed": 1, "map_restarts": 0, "log_warnings": False}
     r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                          sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
-                                     "pg_mode_starts": 8, "max_tree_depth": 3}, **kw)
-    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8}]
+                                     "pg_mode_starts": 8, "pg_block_sweeps": 2, "max_tree_depth": 3}, **kw)
+    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8}] and sweeps == [2]
     d = r.diagnostics
     assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, [2.0], 8)
     blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
                              PG_NUTS_DEFAULTS["pg_block_len"])
     assert len(blocks) > 1 and calls[0] > 0 and len(calls) == len(blocks)
     assert d["pg_blocks_without_modes"] == [list(blocks[0])]
-    for bad in ({"pg_mode_delta": 0.0}, {"pg_mode_scale": -1.0}, {"pg_mode_starts": 0}):
+    assert d["pg_block_sweeps"] == 2
+    for bad in ({"pg_mode_delta": 0.0}, {"pg_mode_scale": -1.0}, {"pg_mode_starts": 0}, {"pg_block_sweeps": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=bad, **kw)
+
+
+def test_pg_nuts_reports_the_mode_weights_each_chain_learnt_in_its_warmup(toy):
+    """With ``pg_adapt_weights`` the diagnostics hold, per chain, how far the learnt weights of
+    every block with modes moved from the own ones (total variation in [0, 1], its maximum; the
+    adaptation ran in the chains' own copies of the move); without it there is no such entry."""
+    model, u = toy
+    T = 10
+    kw = {"n_draws": 8, "warmup": 4, "chains": 2, "seed": 3, "map_restarts": 0, "log_warnings": False}
+    skw = {"pg_particles": 8, "max_tree_depth": 3, "pg_mode_starts": 8}
+    r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
+                         sampler_kw={**skw, "pg_adapt_weights": True}, **kw)
+    per_chain = r.diagnostics["pg_weight_shift_per_chain"]
+    blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
+                             PG_NUTS_DEFAULTS["pg_block_len"])
+    with_modes = {str(s) for s, _ in blocks} - {str(b[0]) for b in r.diagnostics["pg_blocks_without_modes"]}
+    assert len(per_chain) == 2
+    for c in per_chain:
+        assert set(c["weight_shift"]) == with_modes
+        assert all(0.0 <= v <= 1.0 for v in c["weight_shift"].values())
+        assert c["weight_shift_max"] == max(c["weight_shift"].values())
+    assert max(c["weight_shift_max"] for c in per_chain) > 0, "the warm-up learnt nothing"
+    r0 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=skw, **kw)
+    assert "pg_weight_shift_per_chain" not in r0.diagnostics
 
 
 def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):

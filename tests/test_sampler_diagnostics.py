@@ -111,13 +111,17 @@ class _AdaptingMove:
         self.calls_adapting += self.adapting
         return x, {"adapting": self.adapting, "calls_adapting": self.calls_adapting}
 
+    def adaptation_summary(self):
+        return {"calls": self.calls_adapting}
+
 
 def test_an_extra_moves_adaptation_spans_exactly_each_chains_warmup():
     """``run_nuts`` starts an adapting move's adaptation before a chain's first iteration and
     ends it after its warm-up: every kept draw comes from the frozen move, which adapted during
     exactly the ``warmup`` iterations; each chain adapts a copy of its own (the caller's move is
     untouched, and the second chain, run after the first in this process, does not inherit its
-    state); with no warm-up there is no adaptation."""
+    state), and what each copy learnt comes back in ``stats["extra_move_adaptation"]``; with no
+    warm-up there is no adaptation."""
     import torch
 
     from bayes_talk.synthesis.samplers import run_nuts
@@ -127,10 +131,12 @@ def test_an_extra_moves_adaptation_spans_exactly_each_chains_warmup():
                  extra_move=move)
     np.testing.assert_array_equal(d.sample_stats["adapting"], False)
     np.testing.assert_array_equal(d.sample_stats["calls_adapting"], 5)
+    assert d.stats["extra_move_adaptation"] == [{"calls": 5}, {"calls": 5}]   # each chain's copy, reported
     assert (move.adapting, move.calls_adapting) == (False, 0)
     d0 = run_nuts(lambda x: -0.5 * torch.sum(x * x), np.zeros(2), n_draws=3, warmup=0, chains=1, seed=0,
                   extra_move=move)
     np.testing.assert_array_equal(d0.sample_stats["calls_adapting"], 0)
+    assert d0.stats["extra_move_adaptation"] == [{"calls": 0}]
 
 
 def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatch, tmp_path):

@@ -294,7 +294,8 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     (default False) conditioned on the block's neighbours' smoothness factors, with
     ``skw["pg_pairs"]`` (default False) the pairs of consecutive blocks updated together too
     (:class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`), with ``skw["pg_adapt_weights"]``
-    (default False) the modes' weights learnt during the warm-up and then frozen, and
+    (default False) the modes' weights learnt during the warm-up and then frozen,
+    ``skw["pg_block_sweeps"]`` (default 1) passes of the block and pair updates after each sweep, and
     ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]`` its ``delta``,
     ``scale``, ``n_starts`` (its defaults when absent); the blocks without modes are in the draws'
     ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
@@ -332,6 +333,7 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_neighbours = bool(skw.pop("pg_neighbours", False))
     pg_pairs = bool(skw.pop("pg_pairs", False))
     pg_adapt_weights = bool(skw.pop("pg_adapt_weights", False))
+    pg_block_sweeps = int(skw.pop("pg_block_sweeps", 1))
     mode_kw = {k: skw.pop(key) for k, key in (("delta", "pg_mode_delta"), ("scale", "pg_mode_scale"),
                                                ("n_starts", "pg_mode_starts")) if key in skw}
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
@@ -343,7 +345,7 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
             dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h, lookahead=pg_lookahead, extra_centres=extra,
             backward=pg_backward, frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
             block_len=pg_block_len, neighbours=pg_neighbours, mode_kw=mode_kw, pairs=pg_pairs,
-            adapt_weights=pg_adapt_weights)
+            adapt_weights=pg_adapt_weights, block_sweeps=pg_block_sweeps)
         skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
     draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,

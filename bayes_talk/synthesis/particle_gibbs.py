@@ -333,13 +333,18 @@ class ParticleGibbsMove:
     per-frame update rate)."""
 
     def __init__(self, ff, q, to_x, to_u, n_particles: int = 64, backward: bool = False, blocks=(),
-                 frame_tries: int = 0, q_blocks=None, q_pairs=None, adapt_weights: bool = False):
+                 frame_tries: int = 0, q_blocks=None, q_pairs=None, adapt_weights: bool = False,
+                 block_sweeps: int = 1):
         """From its parts: the frame factors ``ff`` (:class:`FrameFactors` or any object with
         its methods), the sweep's proposal ``q``, the blocks [s, e) of the multiple-try
         updates and their proposal ``q_blocks`` (default ``q``), and the joint proposal of the
         pairs of blocks updated together ``q_pairs`` (its ``pairs``; None: no pair updates).
         :meth:`for_density` builds the parts of the synthesis density; the tests pass densities
-        with known moments."""
+        with known moments. ``block_sweeps``: passes of the multiple-try updates (blocks, then
+        pairs) after each sweep."""
+        if int(block_sweeps) < 1:
+            raise ValueError(f"block_sweeps must be >= 1, got {block_sweeps}")
+        self.block_sweeps = int(block_sweeps)
         self.ff, self.q = ff, q
         self.to_x, self.to_u, self.n, self.backward = to_x, to_u, int(n_particles), bool(backward)
         self.frame_tries = int(frame_tries)
@@ -366,19 +371,31 @@ class ParticleGibbsMove:
             if self.q_pairs is not None:
                 self.q_pairs.refresh()
 
+    def adaptation_summary(self) -> dict | None:
+        """What the warm-up adaptation learnt (None without ``adapt_weights``): per block start
+        (a string key) the total-variation distance between the learnt and the own modes' weights
+        (:meth:`~bayes_talk.synthesis.frame_updates.BlockModeProposal.weight_shift`), and its
+        maximum over the blocks."""
+        if not self.adapt_weights:
+            return None
+        shift = self.q_blocks.weight_shift()
+        return {"weight_shift": {str(s): v for s, v in shift.items()},
+                "weight_shift_max": max(shift.values(), default=0.0)}
+
     @classmethod
     def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
                     h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
                     backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
                     block_len: int = 1, neighbours: bool = False, mode_kw: dict | None = None,
-                    pairs: bool = False, adapt_weights: bool = False) -> ParticleGibbsMove:
+                    pairs: bool = False, adapt_weights: bool = False, block_sweeps: int = 1) -> ParticleGibbsMove:
         """The move on the synthesis density ``dens``: :class:`FrameFactors`, the
         :class:`MixtureProposal` (``rho``, ``h``, ``lookahead``, ``extra_centres``), the
         dynamics runs of at most ``block_len`` frames and, with ``tries_from_modes``, their
         :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` (``neighbours`` and
         ``mode_kw``: its ``delta``, ``scale``, ``n_starts``), with ``pairs`` the consecutive
         blocks' :class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`; ``adapt_weights``:
-        the modes' weights learnt during a sampler's warm-up (:meth:`begin_adaptation`)."""
+        the modes' weights learnt during a sampler's warm-up (:meth:`begin_adaptation`);
+        ``block_sweeps``: passes of the block and pair updates after each sweep."""
         if int(block_len) < 1:
             raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         ff = FrameFactors(dens)
@@ -388,7 +405,8 @@ class ParticleGibbsMove:
         q_blocks = (BlockModeProposal(q, blocks, neighbours=neighbours, **(mode_kw or {}))
                     if tries_from_modes and blocks else q)
         q_pairs = PairModeProposal(q_blocks, adjacent_pairs(blocks)) if pairs and q_blocks is not q else None
-        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs, adapt_weights)
+        return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs, adapt_weights,
+                   block_sweeps)
 
     @property
     def blocks_without_modes(self) -> list[tuple[int, int]]:
@@ -400,10 +418,10 @@ class ParticleGibbsMove:
         t0 = time.perf_counter()
         x = np.asarray(self.to_x(u), dtype=np.float64).reshape(self.ff.T, self.ff.d)
         x_new, _ = csmc_as(self.ff, self.q, x, self.n, rng, self.backward)
-        if self.blocks:
+        for _ in range(self.block_sweeps if self.blocks else 0):
             x_new, _ = block_mtm(self.ff, self.q_blocks, x_new, self.blocks, self.frame_tries, rng)
-        if self.q_pairs is not None:
-            x_new, _ = block_mtm(self.ff, self.q_pairs, x_new, self.q_pairs.pairs, self.frame_tries, rng)
+            if self.q_pairs is not None:
+                x_new, _ = block_mtm(self.ff, self.q_pairs, x_new, self.q_pairs.pairs, self.frame_tries, rng)
         moved = np.any(x_new != x, axis=1)
         u_new = np.asarray(self.to_u(x_new.reshape(np.shape(u))), dtype=np.float64) if moved.any() else u
         return u_new, {"pg_sweep": True, "pg_frame_moved": moved, "pg_seconds": time.perf_counter() - t0}

@@ -170,7 +170,7 @@ def sample_synthesis(
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
         ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64),
-        ``pg_adapt_weights`` (False); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
+        ``pg_adapt_weights`` (False), ``pg_block_sweeps`` (1); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -276,17 +276,17 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 scales = np.atleast_1d(np.asarray(skw["pg_mode_scale"], dtype=np.float64))
                 if not (0 < float(skw["pg_mode_delta"]) <= 1 and scales.ndim == 1 and scales.size
                         and np.all(scales > 0)
-                        and int(skw["pg_mode_starts"]) >= 1):
-                    raise ValueError(f"pg-nuts needs 0 < pg_mode_delta <= 1, pg_mode_scale > 0 and pg_mode_starts "
-                                     f">= 1, got {skw['pg_mode_delta']}, {skw['pg_mode_scale']} and "
-                                     f"{skw['pg_mode_starts']}")
+                        and int(skw["pg_mode_starts"]) >= 1 and int(skw["pg_block_sweeps"]) >= 1):
+                    raise ValueError(f"pg-nuts needs 0 < pg_mode_delta <= 1, pg_mode_scale > 0, pg_mode_starts "
+                                     f">= 1 and pg_block_sweeps >= 1, got {skw['pg_mode_delta']}, "
+                                     f"{skw['pg_mode_scale']}, {skw['pg_mode_starts']} and {skw['pg_block_sweeps']}")
                 diag.update(pg_every=int(skw["pg_every"]), pg_particles=int(skw["pg_particles"]),
                             pg_h=[float(h) for h in np.atleast_1d(skw["pg_h"])],
                             pg_lookahead=bool(skw["pg_lookahead"]), pg_mode_centres=bool(skw["pg_mode_centres"]),
                             pg_backward=bool(skw["pg_backward"]), pg_frame_tries=int(skw["pg_frame_tries"]),
                             pg_frame_modes=bool(skw["pg_frame_modes"]), pg_block_len=int(skw["pg_block_len"]),
                             pg_neighbours=bool(skw["pg_neighbours"]), pg_pairs=bool(skw["pg_pairs"]),
-                            pg_adapt_weights=bool(skw["pg_adapt_weights"]),
+                            pg_adapt_weights=bool(skw["pg_adapt_weights"]), pg_block_sweeps=int(skw["pg_block_sweeps"]),
                             pg_mode_delta=float(skw["pg_mode_delta"]),
                             pg_mode_scale=[float(c) for c in scales], pg_mode_starts=int(skw["pg_mode_starts"]))
             coords = skw.pop("coords", spec.options["coords"])
@@ -410,6 +410,8 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
         if "pg_blocks_without_modes" in st:   # blocks whose tries fall back to the sweep's proposal
             out["pg_blocks_without_modes"] = st["pg_blocks_without_modes"]
+        if "extra_move_adaptation" in st:     # pg_adapt_weights: each chain's learnt mode weights
+            out["pg_weight_shift_per_chain"] = st["extra_move_adaptation"]
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
         out["acceptance_min"] = float(st["acceptance_min"])

@@ -230,7 +230,8 @@ def _nuts_chain(task) -> dict:
     return {"samples": mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1),
             "step_size": float(kernel.step_size), "records": kernel.records, "jump_counts": kernel.jump_counts,
             "warmup_seconds": (kernel.warmup_end or t_chain) - t_chain, "n_gradients": counter[0],
-            "seconds": time.perf_counter() - t_chain}
+            "seconds": time.perf_counter() - t_chain,
+            "move_adaptation": move.adaptation_summary() if hasattr(move, "adaptation_summary") else None}
 
 
 def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chain"],
@@ -262,7 +263,9 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     sweep's ``pg_sweep`` and ``pg_frame_moved``). A move with ``begin_adaptation()`` and
     ``end_adaptation()`` (the sweep with ``pg_adapt_weights``) adapts during the warm-up only:
     each chain deep-copies it, begins before its first iteration and ends after its last warm-up
-    iteration, so the kept draws come from a fixed kernel and the caller's move is not changed.
+    iteration, so the kept draws come from a fixed kernel and the caller's move is not changed;
+    what each chain's copy learnt, its ``adaptation_summary()`` (if it has one) after the chain,
+    is ``stats["extra_move_adaptation"]`` (one entry per chain).
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``jumps`` (mode jumps accepted),
@@ -311,6 +314,8 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              "chain_seconds": [float(r["seconds"]) for r in res],
              "n_jumps": 0 if jumps is None else len(jumps), "jump_attempts": [int(a) for a, _ in jump_counts],
              "jumps_accepted": [int(b) for _, b in jump_counts]}
+    if any(r["move_adaptation"] is not None for r in res):   # what each chain's copy of the move learnt
+        stats["extra_move_adaptation"] = [r["move_adaptation"] for r in res]
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
 
 
