@@ -335,7 +335,8 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
                                        "pg_mode_centres": True, "pg_frame_tries": 16, "pg_frame_modes": True,
                                        "pg_block_len": PG_NUTS_DEFAULTS["pg_block_len"],
                                        "pg_neighbours": PG_NUTS_DEFAULTS["pg_neighbours"],
-                                       "pg_pairs": PG_NUTS_DEFAULTS["pg_pairs"]},
+                                       "pg_pairs": PG_NUTS_DEFAULTS["pg_pairs"],
+                                       "pg_block_sweeps": PG_NUTS_DEFAULTS["pg_block_sweeps"]},
                            **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
@@ -343,7 +344,8 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
     assert (d["pg_frame_tries"], d["pg_frame_modes"], d["pg_block_len"]) == (16, True, PG_NUTS_DEFAULTS["pg_block_len"])
-    assert (d["pg_neighbours"], d["pg_pairs"]) == (PG_NUTS_DEFAULTS["pg_neighbours"], PG_NUTS_DEFAULTS["pg_pairs"])
+    assert (d["pg_neighbours"], d["pg_pairs"], d["pg_block_sweeps"]) == (
+        PG_NUTS_DEFAULTS["pg_neighbours"], PG_NUTS_DEFAULTS["pg_pairs"], PG_NUTS_DEFAULTS["pg_block_sweeps"])
     assert [d[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")] == [
         PG_NUTS_DEFAULTS["pg_mode_delta"], list(np.atleast_1d(PG_NUTS_DEFAULTS["pg_mode_scale"])),
         PG_NUTS_DEFAULTS["pg_mode_starts"]]
