@@ -38,7 +38,7 @@ approximation q: their row holds PSIS k̂ and the PSIS effective sample size of 
 draws (and ESS per second), ``reliable`` only where k̂ ≤ 0.7. ``--nuts-chains``, ``--nuts-warmup``,
 ``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
 ``budget``); ``--workers`` runs NUTS/pg-nuts chains in that many processes, ``--coords``
-sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off``, ``--pg-pairs on|off``, ``--pg-adapt-weights on|off``, ``--pg-block-sweeps R`` pg-nuts's
+sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off``, ``--pg-pairs on|off``, ``--pg-adapt-weights on|off``, ``--pg-block-sweeps R``, ``--pg-adapt-moments on|off`` pg-nuts's
 updates of the isolated frames and short dynamics blocks (``sampler_kw``; default: the library's). NUTS and pg-nuts rows also hold the AAM parameters'
 ``aam_rhat_max``, ``aam_ess_bulk_min`` and ``aam_ess_tail_min`` (what users consume). Writes ``benchmarks/results/posterior_efficiency.json``:
 
@@ -163,6 +163,8 @@ def efficiency(args) -> None:
             skw["pg_adapt_weights"] = args.pg_adapt_weights == "on"
         if method == "pg-nuts" and args.pg_block_sweeps is not None:
             skw["pg_block_sweeps"] = args.pg_block_sweeps
+        if method == "pg-nuts" and args.pg_adapt_moments is not None:
+            skw["pg_adapt_moments"] = args.pg_adapt_moments == "on"
         if method == "pg-nuts" and args.pg_mode_scale is not None:
             skw["pg_mode_scale"] = tuple(float(c) for c in args.pg_mode_scale.split(","))
         if method == "pg-nuts" and args.pg_block_len is not None:
@@ -269,6 +271,9 @@ def main() -> None:
                     help="--efficiency, pg-nuts: learn the modes' weights during warm-up (default: the library's)")
     ap.add_argument("--pg-block-sweeps", type=int, default=None,
                     help="--efficiency, pg-nuts: passes of the block and pair updates after each sweep (default: the library's)")
+    ap.add_argument("--pg-adapt-moments", choices=("on", "off"), default=None,
+                    help="--efficiency, pg-nuts: learn the modes' means and covariances under the full conditional "
+                         "during warm-up too (default: the library's)")
     ap.add_argument("--pg-mode-scale", default=None,
                     help="--efficiency, pg-nuts: the own-mode proposal's scale factors, comma-separated (default: the library's)")
     ap.add_argument("--coords", default=None,

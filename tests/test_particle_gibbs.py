@@ -337,7 +337,8 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
                                        "pg_neighbours": PG_NUTS_DEFAULTS["pg_neighbours"],
                                        "pg_pairs": PG_NUTS_DEFAULTS["pg_pairs"],
                                        "pg_block_sweeps": PG_NUTS_DEFAULTS["pg_block_sweeps"],
-                                       "pg_adapt_weights": PG_NUTS_DEFAULTS["pg_adapt_weights"]},
+                                       "pg_adapt_weights": PG_NUTS_DEFAULTS["pg_adapt_weights"],
+                                       "pg_adapt_moments": PG_NUTS_DEFAULTS["pg_adapt_moments"]},
                            **kw)
     assert r.method == "pg-nuts" and r.latent_draws.shape == (2, 4, T, 3)
     assert np.array_equal(r.latent_draws, ref.latent_draws)
@@ -345,8 +346,9 @@ def test_pg_nuts_method_is_the_composition_in_noncentred_coordinates(toy):
     assert (d["coords"], d["pg_every"], d["pg_particles"]) == ("noncentred", 1, 8)
     assert (d["pg_h"], d["pg_lookahead"], d["pg_mode_centres"]) == ([0.005, 0.02, 0.05], True, True)
     assert (d["pg_frame_tries"], d["pg_frame_modes"], d["pg_block_len"]) == (16, True, PG_NUTS_DEFAULTS["pg_block_len"])
-    assert (d["pg_neighbours"], d["pg_pairs"], d["pg_block_sweeps"]) == (
-        PG_NUTS_DEFAULTS["pg_neighbours"], PG_NUTS_DEFAULTS["pg_pairs"], PG_NUTS_DEFAULTS["pg_block_sweeps"])
+    assert (d["pg_neighbours"], d["pg_pairs"], d["pg_block_sweeps"], d["pg_adapt_moments"]) == (
+        PG_NUTS_DEFAULTS["pg_neighbours"], PG_NUTS_DEFAULTS["pg_pairs"], PG_NUTS_DEFAULTS["pg_block_sweeps"],
+        PG_NUTS_DEFAULTS["pg_adapt_moments"])
     assert [d[k] for k in ("pg_mode_delta", "pg_mode_scale", "pg_mode_starts")] == [
         PG_NUTS_DEFAULTS["pg_mode_delta"], list(np.atleast_1d(PG_NUTS_DEFAULTS["pg_mode_scale"])),
         PG_NUTS_DEFAULTS["pg_mode_starts"]]
@@ -386,8 +388,8 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
 
 
 def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
-    """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts`` are the own-mode proposal's δ, c and
-    starts and ``pg_block_sweeps`` the move's passes of block updates (recorded in the
+    """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts``/``pg_adapt_moments`` are the own-mode
+    proposal's δ, c, starts and ``moments``, and ``pg_block_sweeps`` the move's passes of block updates (recorded in the
     diagnostics), out-of-range values are refused naming the key, and a
     block whose mode search finds nothing (here the first block's, removed) is listed in
     ``pg_blocks_without_modes`` while the others are not."""
@@ -422,15 +424,17 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
     kw = {"n_draws": 8, "warmup": 2, "chains": 2, "seed": 1, "map_restarts": 0, "log_warnings": False}
     r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                          sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
-                                     "pg_mode_starts": 8, "pg_block_sweeps": 2, "max_tree_depth": 3}, **kw)
-    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8}] and sweeps == [2]
+                                     "pg_mode_starts": 8, "pg_block_sweeps": 2, "pg_adapt_moments": True,
+                                     "max_tree_depth": 3}, **kw)
+    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8, "moments": True}]
+    assert sweeps == [2]
     d = r.diagnostics
     assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, [2.0], 8)
     blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
                              PG_NUTS_DEFAULTS["pg_block_len"])
     assert len(blocks) > 1 and calls[0] > 0 and len(calls) == len(blocks)
     assert d["pg_blocks_without_modes"] == [list(blocks[0])]
-    assert d["pg_block_sweeps"] == 2
+    assert d["pg_block_sweeps"] == 2 and d["pg_adapt_moments"] is True
     for bad in ({"pg_mode_delta": 0.0}, {"pg_mode_scale": -1.0}, {"pg_mode_starts": 0}, {"pg_block_sweeps": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=bad, **kw)
@@ -455,7 +459,14 @@ def test_pg_nuts_reports_the_mode_weights_each_chain_learnt_in_its_warmup(toy):
         assert set(c["weight_shift"]) == with_modes
         assert all(0.0 <= v <= 1.0 for v in c["weight_shift"].values())
         assert c["weight_shift_max"] == max(c["weight_shift"].values())
+        assert c["modes_with_learnt_moments"] == {}
     assert max(c["weight_shift_max"] for c in per_chain) > 0, "the warm-up learnt nothing"
+    # with the moments: the blocks whose modes gathered enough mass in the (short) warm-up
+    rm = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
+                          sampler_kw={**skw, "pg_adapt_weights": True, "pg_adapt_moments": True}, **kw)
+    learnt = [c["modes_with_learnt_moments"] for c in rm.diagnostics["pg_weight_shift_per_chain"]]
+    assert all(set(c) <= with_modes and all(v >= 1 for v in c.values()) for c in learnt)
+    assert any(learnt), "no block gathered enough mass for its moments"
     r0 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                           sampler_kw={**skw, "pg_adapt_weights": False}, **kw)
     assert "pg_weight_shift_per_chain" not in r0.diagnostics
@@ -604,7 +615,7 @@ def _conditional_mode_masses(ff, bm, s, x, N, rng):
     given the neighbours in x: draws from ``bm``'s proposal weighted by exp(f_s + f_{s+1}) / q,
     each assigned by its responsibilities under the modes' Laplace approximations (equal
     weights), written out here apart from ``BlockModeProposal.record``. Returns (masses, ESS)."""
-    from bayes_talk.synthesis.frame_updates import component_logpdf
+    from bayes_talk.synthesis.mode_adaptation import component_logpdf
 
     m, P, _ = bm.laplace[s]
     Y, lq = bm.sample_logq(s, np.repeat(x[s - 1][None], N, 0), N, rng)
@@ -612,6 +623,26 @@ def _conditional_mode_masses(ff, bm, s, x, N, rng):
     lr = component_logpdf(Y, m, np.linalg.cholesky(np.linalg.inv(P)))
     w = np.exp(lw - logsumexp(lw))
     return w @ np.exp(lr - logsumexp(lr, axis=1, keepdims=True)), 1.0 / np.sum(w * w)
+
+
+def _frame_at_a_light_mode(T, ff, x_map, q, rng):
+    """(s, x, k): the first isolated frame s of the toy utterance and shift of its two neighbours
+    in x (off the MAP) that put more than half of its full conditional's mass at an own mode k
+    of own weight < 1 % (the held-out `utt0002` case)."""
+    from bayes_talk.synthesis.frame_updates import BlockModeProposal
+
+    probe = BlockModeProposal(q, dynamics_blocks(ff, 1))
+    for (s, e), shift in itertools.product(dynamics_blocks(ff, 1), (0.05, 0.1, -0.1)):
+        if s == 0 or e == T or s not in probe.modes or len(probe.modes[s][0]) < 2:
+            continue
+        x = x_map.copy()
+        x[s - 1] += shift
+        x[e] += shift
+        M, _ = _conditional_mode_masses(ff, probe, s, x, 20000, rng)
+        k = int(np.argmax(M))
+        if M[k] > 0.5 and np.exp(probe.own_weights[s][k]) < 0.01:
+            return s, x, k
+    raise AssertionError("the toy utterance needs a frame whose neighbours can move its conditional's mode")
 
 
 def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_keep_its_conditional(toy20):
@@ -633,22 +664,8 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
 
     T, ff, x_map, q = toy20
     rng = np.random.default_rng(21)
-    probe = BlockModeProposal(q, dynamics_blocks(ff, 1))
-    case = None
-    for (s, e), shift in itertools.product(dynamics_blocks(ff, 1), (0.05, 0.1, -0.1)):
-        if s == 0 or e == T or s not in probe.modes or len(probe.modes[s][0]) < 2:
-            continue
-        x = x_map.copy()
-        x[s - 1] += shift
-        x[e] += shift
-        M, _ = _conditional_mode_masses(ff, probe, s, x, 20000, rng)
-        k = int(np.argmax(M))
-        if M[k] > 0.5 and np.exp(probe.own_weights[s][k]) < 0.01:
-            case = s, x, k
-            break
-    assert case is not None, "the toy utterance needs a frame whose neighbours can move its conditional's mode"
-    s, x, k = case
-    m, P, lw0 = probe.laplace[s]
+    s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
+    m, P, lw0 = BlockModeProposal(q, [(s, s + 1)]).laplace[s]
     L = np.linalg.cholesky(np.linalg.inv(P))
 
     def run(bm, y, n):
@@ -665,19 +682,19 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
     y0[s] = m[k]                                         # start where the conditional's mass is
     own = BlockModeProposal(q, [(s, s + 1)])
     _, _, own_switches = run(own, y0.copy(), 1000)
-    assert own.adapting is False and own._mass == {}
+    assert own.adapting is False and own.tally == {}
     ad = BlockModeProposal(q, [(s, s + 1)])
     ad.begin_adaptation()
     y, _, _ = run(ad, y0.copy(), 200)
-    n = ad._mass[s][1]
-    tally = ad._mass[s][0].copy()
+    n = ad.tally[s].n
+    tally = ad.tally[s].mass.copy()
     ad.end_adaptation()
     assert n == 200 and not ad.adapting
     np.testing.assert_allclose(np.exp(ad.laplace[s][2]), 0.5 * tally / n + 0.5 * np.exp(lw0), rtol=1e-10)
     assert np.exp(ad.laplace[s][2][k]) > np.exp(lw0[k]) + 0.02 and ad.weight_shift()[s] > 0.02
     np.testing.assert_allclose(ad.modes[s][2], ad.laplace[s][2] - np.log(len(ad.scales)), atol=1e-12)
     y, at_k, switches = run(ad, y, 2000)
-    assert ad._mass[s][1] == 200                         # frozen: nothing more tallied
+    assert ad.tally[s].n == 200                          # frozen: nothing more tallied
     assert own_switches <= 5 and switches >= 50, (own_switches, switches)
     M, ess = _conditional_mode_masses(ff, ad, s, x, 40000, rng)
     assert ess > 200, ess
@@ -703,6 +720,62 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
     np.testing.assert_allclose(pq.groups[(s1, e1)][-1], _pair_weights_by_hand(ff, s1, mid, a, wa, b, wb), rtol=1e-10)
 
 
+def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_and_keep_the_conditional(toy20):
+    """``BlockModeProposal(moments=True)`` on the isolated frame of the weights test above: after
+    200 adapting updates every mode that gathered enough mass (at least the conditional's heavy
+    mode k) gets a component at the tally's mean and covariance, with half of the mode's learnt
+    weight (the other half stays on its own Laplace component), every component at each scale;
+    the proposal's draws and its ln q agree (E_q[u/q] = 1 for u the learnt components alone,
+    equal weights: fails if ln q misses them or the draws come from another mixture); the chain
+    then keeps the conditional (time at mode k against its mass, as above); a new warm-up drops
+    the learnt components."""
+    from bayes_talk.synthesis.frame_updates import BlockModeProposal
+    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+
+    T, ff, x_map, q = toy20
+    rng = np.random.default_rng(21)
+    s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
+    bm = BlockModeProposal(q, [(s, s + 1)], moments=True)
+    m, P, _ = bm.laplace[s]
+    K, C = len(m), len(bm.scales)
+    L = np.linalg.cholesky(np.linalg.inv(P))
+    bm.begin_adaptation()
+    y = x.copy()
+    y[s] = m[k]
+    for _ in range(200):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+    idx, mu, cov = bm.tally[s].moments(np.linalg.inv(P))
+    bm.end_adaptation()
+    assert k in idx and list(bm.learnt[s][0]) == list(idx)
+    np.testing.assert_allclose(bm.learnt[s][1], mu, rtol=1e-12)
+    np.testing.assert_allclose(bm.learnt[s][2], cov, rtol=1e-12)
+    means, Lc, lw = bm.modes[s]
+    J = len(idx)
+    assert means.shape == (C * (K + J), ff.d)
+    w = np.exp(bm.laplace[s][2])
+    split = np.concatenate([w * np.where(np.isin(np.arange(K), idx), 0.5, 1.0), 0.5 * w[idx]]) / C
+    np.testing.assert_allclose(np.exp(lw), np.tile(split, C), rtol=1e-10)
+    np.testing.assert_allclose(means[K:K + J], mu, rtol=1e-12)
+    np.testing.assert_allclose(Lc[K:K + J] @ np.swapaxes(Lc[K:K + J], 1, 2), bm.scales[0] ** 2 * cov, rtol=1e-10)
+    N = 20000
+    Y, lq = bm.sample_logq(s, np.repeat(x[s - 1][None], N, 0), N, rng)
+    u = logsumexp(component_logpdf(Y, means[K:K + J], Lc[K:K + J]), axis=1) - np.log(J)
+    r = np.exp(u - lq)
+    assert abs(r.mean() - 1) < 4 * r.std() / np.sqrt(N), (r.mean(), r.std())
+    at_k = []
+    for _ in range(2000):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+        at_k.append(int(np.argmax(component_logpdf(y[s][None], m, L)[0])) == k)
+    at_k = np.array(at_k)
+    M, ess = _conditional_mode_masses(ff, bm, s, x, 40000, rng)
+    assert ess > 200, ess
+    B = at_k.reshape(40, -1).mean(1)
+    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
+    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+    bm.begin_adaptation()
+    assert bm.learnt == {} and len(bm.modes[s][0]) == C * K
+
+
 def _pair_weights_by_hand(ff, s, mid, a, wa, b, wb):
     """ln π'_kl of a pair [s, mid), [mid, e): (1 − δ) w^a_k w^b_l exp(link) normalised + δ uniform
     (δ = 0.2), the link from a_k's path continued by the dynamics means, pair by pair."""
@@ -719,7 +792,7 @@ def _pair_weights_by_hand(ff, s, mid, a, wa, b, wb):
 def _pair_draws_match_their_density(pq, s, e, a, La, b, Lb, rng, N=20000, **neighbours):
     """A pair proposal's draws and ln q agree: E_q[q_u/q] = 1 (4 s.e.) and q_u/q ≤ 1/δ for q_u
     the mixture of the components (a, La) × (b, Lb) with uniform pair weights."""
-    from bayes_talk.synthesis.frame_updates import component_logpdf
+    from bayes_talk.synthesis.mode_adaptation import component_logpdf
 
     Y, lq = pq.sample_starts(s, e, N, rng, **neighbours)
     lu = (logsumexp(component_logpdf(Y[:, 0], a, La), axis=1) + logsumexp(component_logpdf(Y[:, 1], b, Lb), axis=1)

@@ -33,7 +33,7 @@ from scipy.special import logsumexp
 
 from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.defaults import PG_NUTS_DEFAULTS
-from bayes_talk.synthesis.segment_objective import LOG_2PI
+from bayes_talk.synthesis.mode_adaptation import LearntModes, component_logpdf
 
 
 def block_mtm(ff, q, x: np.ndarray, blocks, K: int, rng: np.random.Generator,
@@ -180,7 +180,7 @@ def factor_modes(own, starts: np.ndarray, n_iter: int = 40, max_step: float = 0.
     return X[keep], S[keep], lw - logsumexp(lw)
 
 
-class BlockModeProposal:
+class BlockModeProposal(LearntModes):
     """An independence proposal for the first frame s of a block's multiple-try update
     (:func:`block_mtm`): q_s(x | x_{s−1}) = (1 − δ) Σ_k w_k C⁻¹ Σ_c N(x; m_k, c² Σ_k) + δ q⁰_s(x | x_{s−1})
     (c over the C ``scale`` factors: a wider copy of each mode for a full conditional broader than
@@ -195,22 +195,25 @@ class BlockModeProposal:
     utterance frame 63's chain draws sit in clusters near −0.13 and −0.03, each ~0.01 wide,
     and switch every ~30 draws), and a short dynamics block's first frame likewise (its path a
     function of that frame): tries from the bumps themselves land in them. q_s is fixed while the
-    kept draws are taken (its weights w_k may be learnt in the warm-up: :meth:`begin_adaptation`)
+    kept draws are taken (its weights w_k may be learnt in the warm-up: :meth:`begin_adaptation`;
+    with ``moments`` also a component per mode at its mean and covariance under the full
+    conditional, :mod:`~bayes_talk.synthesis.mode_adaptation`, used without ``neighbours``)
     and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
     (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``)."""
 
     def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],
                  scale: float | tuple = PG_NUTS_DEFAULTS["pg_mode_scale"],
-                 n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False):
+                 n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False,
+                 moments: bool = PG_NUTS_DEFAULTS["pg_adapt_moments"]):
         scales = np.atleast_1d(np.asarray(scale, dtype=np.float64))
         if (not 0 < delta <= 1 or scales.ndim != 1 or not scales.size or np.any(~(scales > 0))
                 or (n_starts is not None and n_starts < 1)):
             raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scales > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
         self.base, self.ff, self.delta, self.scales = base, base.ff, float(delta), scales
-        self.neighbours = bool(neighbours)
+        self.neighbours, self.learn_moments = bool(neighbours), bool(moments)
         self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
-        self.adapting, self.own_weights, self._mass = False, {}, {}
+        self.adapting, self.own_weights, self.tally, self.learnt = False, {}, {}, {}
         for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
             starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
             m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
@@ -229,62 +232,6 @@ class BlockModeProposal:
         L = np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)))
         return (np.tile(m, (C, 1)), (self.scales[:, None, None, None] * L[None]).reshape(C * K, d, d),
                 np.tile(lw, C) - np.log(C))
-
-    def _set_weights(self, s: int, lw: np.ndarray) -> None:
-        m, P, _ = self.laplace[s]
-        self.laplace[s] = (m, P, lw)
-        self.modes[s] = self._scaled(m, np.linalg.inv(P), lw)
-
-    def begin_adaptation(self) -> None:
-        """Start learning the modes' weights (a sampler's warm-up): the own factor's weights
-        restored, the tallies of :meth:`record` cleared. Until :meth:`end_adaptation` the
-        proposal changes with the chain's history, so draws taken meanwhile are warm-up only."""
-        for s, lw in self.own_weights.items():
-            self._set_weights(s, lw)
-        self._mass = {s: [np.zeros(len(lw)), 0] for s, lw in self.own_weights.items()}
-        self._laplace_chol = {s: np.linalg.cholesky(np.linalg.inv(P)) for s, (_, P, _) in self.laplace.items()}
-        self.adapting = True
-
-    def record(self, s: int, Y: np.ndarray, lw: np.ndarray, x_s: np.ndarray) -> None:
-        """Tally one multiple-try update of block s while adapting: its tries Y (K, d) of the
-        block's first frame, their log weights ln π − ln q (:func:`block_mtm`: the full
-        conditional's) and the first frame x_s (d,) after the update. Two estimates of each
-        mode's mass under the full conditional are summed over the updates: the
-        self-normalised importance one, Σ_i w̄_i r_k(y_i) (w̄ the normalised weights), and the
-        chain's own, r_k(x_s) — r_k(y) the responsibility of mode k for y under the modes' own
-        Laplace approximations with equal weights. The first sees modes the chain has not
-        reached yet; the second, modes the tries rarely land in (where the importance estimate
-        rests on a handful of tries)."""
-        if not self.adapting or s not in self._mass:
-            return
-        lr = component_logpdf(np.vstack([Y, np.reshape(x_s, (1, -1))]).astype(np.float64), self.laplace[s][0],
-                              self._laplace_chol[s])
-        r = np.exp(lr - logsumexp(lr, axis=1, keepdims=True))
-        w = np.exp(lw - logsumexp(lw))
-        if np.all(np.isfinite(w)) and np.all(np.isfinite(r)):
-            tally = self._mass[s]
-            tally[0] += 0.5 * (w @ r[:-1] + r[-1])
-            tally[1] += 1
-
-    def end_adaptation(self, share: float = 0.5) -> None:
-        """Freeze the weights learnt while adapting: w_k = (1 − share) M̄_k + share · w⁰_k, M̄
-        the mean over the recorded updates of the two estimates of the full conditional's mode
-        masses (:meth:`record`, averaged), w⁰ the own factor's Laplace masses (kept so that
-        every mode stays proposed). The own factor misses the smoothness factors at the
-        block's two ends: on held-out `utt0002` the first block's chains sit at a mode of own
-        weight ≈ 0. From here the proposal is fixed again, so the updates leave the posterior
-        invariant."""
-        for s, (tally, n) in self._mass.items():
-            if n:
-                w = (1 - share) * tally / n + share * np.exp(self.own_weights[s])
-                self._set_weights(s, np.log(w / w.sum()))
-        self.adapting = False
-
-    def weight_shift(self) -> dict[int, float]:
-        """Per block s with modes, the total-variation distance ½ Σ_k |w_k − w⁰_k| between the
-        current weights and the own factor's (0 before any adaptation)."""
-        return {s: float(0.5 * np.abs(np.exp(self.laplace[s][2]) - np.exp(lw)).sum())
-                for s, lw in self.own_weights.items()}
 
     def components(self, s: int, x_prev: np.ndarray | None, x_next: np.ndarray | None):
         """The mixture's components (means (K, d), Cholesky factors of the covariances
@@ -319,12 +266,6 @@ class BlockModeProposal:
         if self.delta == 1.0:
             return X, lq0
         return X, np.logaddexp(np.log1p(-self.delta) + lm, np.log(self.delta) + lq0)
-
-
-def component_logpdf(X: np.ndarray, m: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """ln N(x_i; m_k, L_k L_kᵀ) for rows X (N, d), means m (K, d), Cholesky factors L (K, d, d) → (N, K)."""
-    z = np.linalg.solve(L[None], (X[:, None, :] - m[None])[..., None])[..., 0]        # (N, K, d)
-    return -0.5 * (z * z).sum(-1) - np.log(np.diagonal(L, axis1=1, axis2=2)).sum(1)[None] - 0.5 * X.shape[1] * LOG_2PI
 
 
 class PairModeProposal:
@@ -495,4 +436,4 @@ def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
 
 
 __all__ = ["BlockModeProposal", "PairModeProposal", "adjacent_pairs", "block_factor", "block_mtm",
-           "component_logpdf", "dynamics_blocks", "factor_modes", "neighbour_adjusted"]
+           "dynamics_blocks", "factor_modes", "neighbour_adjusted"]

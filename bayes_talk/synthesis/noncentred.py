@@ -296,8 +296,8 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     (:class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`), with ``skw["pg_adapt_weights"]``
     (default False) the modes' weights learnt during the warm-up and then frozen,
     ``skw["pg_block_sweeps"]`` (default 1) passes of the block and pair updates after each sweep, and
-    ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]`` its ``delta``,
-    ``scale``, ``n_starts`` (its defaults when absent); the blocks without modes are in the draws'
+    ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]``, ``["pg_adapt_moments"]``
+    its ``delta``, ``scale``, ``n_starts``, ``moments`` (its defaults when absent); the blocks without modes are in the draws'
     ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
     the :class:`NonCentred` map)."""
@@ -335,7 +335,8 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_adapt_weights = bool(skw.pop("pg_adapt_weights", False))
     pg_block_sweeps = int(skw.pop("pg_block_sweeps", 1))
     mode_kw = {k: skw.pop(key) for k, key in (("delta", "pg_mode_delta"), ("scale", "pg_mode_scale"),
-                                               ("n_starts", "pg_mode_starts")) if key in skw}
+                                               ("n_starts", "pg_mode_starts"), ("moments", "pg_adapt_moments"))
+               if key in skw}
     if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
         from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
 

@@ -374,13 +374,15 @@ class ParticleGibbsMove:
     def adaptation_summary(self) -> dict | None:
         """What the warm-up adaptation learnt (None without ``adapt_weights``): per block start
         (a string key) the total-variation distance between the learnt and the own modes' weights
-        (:meth:`~bayes_talk.synthesis.frame_updates.BlockModeProposal.weight_shift`), and its
-        maximum over the blocks."""
+        (:meth:`~bayes_talk.synthesis.frame_updates.BlockModeProposal.weight_shift`), its
+        maximum over the blocks, and per block start the number of its modes proposed from their
+        learnt means and covariances too (``pg_adapt_moments``; {} without)."""
         if not self.adapt_weights:
             return None
         shift = self.q_blocks.weight_shift()
         return {"weight_shift": {str(s): v for s, v in shift.items()},
-                "weight_shift_max": max(shift.values(), default=0.0)}
+                "weight_shift_max": max(shift.values(), default=0.0),
+                "modes_with_learnt_moments": {str(s): len(idx) for s, (idx, _, _) in self.q_blocks.learnt.items()}}
 
     @classmethod
     def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,
