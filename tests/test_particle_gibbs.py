@@ -426,6 +426,9 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
                          sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
                                      "pg_mode_starts": 8, "pg_block_sweeps": 2, "pg_adapt_moments": True,
                                      "max_tree_depth": 3}, **kw)
+    from bayes_talk.executor import Executor
+
+    assert len(seen) == 1 and isinstance(seen[0].pop("executor"), Executor)   # the chains' executor
     assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8, "moments": True}]
     assert sweeps == [2]
     d = r.diagnostics

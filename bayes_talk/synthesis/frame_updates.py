@@ -180,6 +180,29 @@ def factor_modes(own, starts: np.ndarray, n_iter: int = 40, max_step: float = 0.
     return X[keep], S[keep], lw - logsumexp(lw)
 
 
+def _own_modes_task(task) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """An executor task: (ff, [(s, e, starts), …]) → :func:`factor_modes` of each block's own
+    factor :func:`block_factor` from its starts."""
+    ff, jobs = task
+    return [factor_modes(lambda X, s=s, e=e: block_factor(ff, s, e, X), starts) for s, e, starts in jobs]
+
+
+def own_modes(ff, jobs, executor=None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The own modes (:func:`factor_modes`) of blocks ``jobs`` = [(s, e, starts (N, d)), …], in
+    order. With an ``executor`` of n workers the blocks are dealt round-robin into n tasks (one
+    copy of ``ff`` sent per worker; one-frame and longer blocks alternate, so the tasks cost
+    about the same); without one they run here through a local executor, with one BLAS thread
+    as in a worker (:mod:`bayes_talk.executor`), so the modes do not depend on the executor."""
+    from bayes_talk.executor import executor_for
+
+    with executor_for(executor, 1) as ex:
+        n = max(1, min(ex.n_workers, len(jobs)))
+        out: list = [None] * len(jobs)
+        for i, found in enumerate(ex.map(_own_modes_task, [(ff, jobs[i::n]) for i in range(n)])):
+            out[i::n] = found
+    return out
+
+
 class BlockModeProposal(LearntModes):
     """An independence proposal for the first frame s of a block's multiple-try update
     (:func:`block_mtm`): q_s(x | x_{s−1}) = (1 − δ) Σ_k w_k C⁻¹ Σ_c N(x; m_k, c² Σ_k) + δ q⁰_s(x | x_{s−1})
@@ -199,12 +222,14 @@ class BlockModeProposal(LearntModes):
     with ``moments`` also a component per mode at its mean and covariance under the full
     conditional, :mod:`~bayes_talk.synthesis.mode_adaptation`, used without ``neighbours``)
     and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
-    (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``)."""
+    (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``). ``executor``
+    (a :class:`~bayes_talk.executor.Executor`): the blocks' mode searches spread over its
+    workers (:func:`own_modes`; the same modes whatever the executor)."""
 
     def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],
                  scale: float | tuple = PG_NUTS_DEFAULTS["pg_mode_scale"],
                  n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False,
-                 moments: bool = PG_NUTS_DEFAULTS["pg_adapt_moments"]):
+                 moments: bool = PG_NUTS_DEFAULTS["pg_adapt_moments"], executor=None):
         scales = np.atleast_1d(np.asarray(scale, dtype=np.float64))
         if (not 0 < delta <= 1 or scales.ndim != 1 or not scales.size or np.any(~(scales > 0))
                 or (n_starts is not None and n_starts < 1)):
@@ -214,9 +239,10 @@ class BlockModeProposal(LearntModes):
         self.neighbours, self.learn_moments = bool(neighbours), bool(moments)
         self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
         self.adapting, self.own_weights, self.tally, self.learnt = False, {}, {}, {}
-        for s, e in blocks:   # ascend from all centres (one frame) or the n_starts of highest weight
-            starts = base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]]
-            m, S, lw = factor_modes(lambda X, s=s, e=e: block_factor(self.ff, s, e, X), starts)
+        # ascend from all centres (one frame) or the n_starts of highest weight
+        jobs = [(s, e, base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]])
+                for s, e in blocks]
+        for (s, e, _), (m, S, lw) in zip(jobs, own_modes(self.ff, jobs, executor), strict=True):
             if len(m):
                 self.modes[s], self.end[s] = self._scaled(m, S, lw), e
                 self.laplace[s] = (m, np.linalg.inv(S), lw)   # the modes' own Laplace: means, precisions, weights
@@ -436,4 +462,4 @@ def dynamics_blocks(ff, max_len: int = 1) -> list[tuple[int, int]]:
 
 
 __all__ = ["BlockModeProposal", "PairModeProposal", "adjacent_pairs", "block_factor", "block_mtm",
-           "dynamics_blocks", "factor_modes", "neighbour_adjusted"]
+           "dynamics_blocks", "factor_modes", "neighbour_adjusted", "own_modes"]

@@ -299,8 +299,9 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]``, ``["pg_adapt_moments"]``
     its ``delta``, ``scale``, ``n_starts``, ``moments`` (its defaults when absent); the blocks without modes are in the draws'
     ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
-    runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`). Returns (draws in ε,
-    the :class:`NonCentred` map)."""
+    runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`); it and the blocks' mode
+    searches share one executor (``skw["executor"]``, else one for ``skw["workers"]``).
+    Returns (draws in ε, the :class:`NonCentred` map)."""
     from bayes_talk.synthesis.mode_search import mode_jumps
     from bayes_talk.synthesis.samplers import run_nuts
 
@@ -337,20 +338,25 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     mode_kw = {k: skw.pop(key) for k, key in (("delta", "pg_mode_delta"), ("scale", "pg_mode_scale"),
                                                ("n_starts", "pg_mode_starts"), ("moments", "pg_adapt_moments"))
                if key in skw}
-    if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
-        from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
+    from bayes_talk.executor import executor_for
 
-        extra = (np.stack([np.reshape(m.latents, (T, d)) for m in [mp, *modes]]) if pg_mode_centres else None)
-        to_u = target.to_u if whiten else nc.to_eps
-        skw["extra_move"] = ParticleGibbsMove.for_density(
-            dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h, lookahead=pg_lookahead, extra_centres=extra,
-            backward=pg_backward, frame_tries=pg_frame_tries, tries_from_modes=pg_frame_modes,
-            block_len=pg_block_len, neighbours=pg_neighbours, mode_kw=mode_kw, pairs=pg_pairs,
-            adapt_weights=pg_adapt_weights, block_sweeps=pg_block_sweeps)
-        skw["extra_every"] = pg_every
     run = run_nuts if run is None else run
-    draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,
-                chains=chains, seed=seed, jumps=jumps, **skw)
+    # one executor for the blocks' mode searches and the chains (its workers started once)
+    with executor_for(skw.pop("executor", None), int(skw.get("workers", 1))) as ex:
+        if pg_every > 0:   # particle Gibbs ∘ NUTS: a CSMC-AS sweep in x after every pg_every-th iteration
+            from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
+
+            extra = (np.stack([np.reshape(m.latents, (T, d)) for m in [mp, *modes]]) if pg_mode_centres else None)
+            to_u = target.to_u if whiten else nc.to_eps
+            skw["extra_move"] = ParticleGibbsMove.for_density(
+                dens, dens.plan, target.to_x, to_u, pg_particles, h=pg_h, lookahead=pg_lookahead,
+                extra_centres=extra, backward=pg_backward, frame_tries=pg_frame_tries,
+                tries_from_modes=pg_frame_modes, block_len=pg_block_len, neighbours=pg_neighbours,
+                mode_kw=mode_kw, pairs=pg_pairs, adapt_weights=pg_adapt_weights, block_sweeps=pg_block_sweeps,
+                executor=ex)
+            skw["extra_every"] = pg_every
+        draws = run(target.torch_fn(), starts if len(starts) > 1 else starts[0], n_draws=per_chain, warmup=warmup,
+                    chains=chains, seed=seed, jumps=jumps, executor=ex, **skw)
     draws.stats["pilot"] = 0
     if pg_every > 0:
         draws.stats["pg_blocks_without_modes"] = [list(b) for b in skw["extra_move"].blocks_without_modes]

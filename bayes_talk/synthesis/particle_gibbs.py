@@ -389,7 +389,8 @@ class ParticleGibbsMove:
                     h: float | tuple = 0.05, lookahead: bool = False, extra_centres: np.ndarray | None = None,
                     backward: bool = False, frame_tries: int = 0, tries_from_modes: bool = False,
                     block_len: int = 1, neighbours: bool = False, mode_kw: dict | None = None,
-                    pairs: bool = False, adapt_weights: bool = False, block_sweeps: int = 1) -> ParticleGibbsMove:
+                    pairs: bool = False, adapt_weights: bool = False, block_sweeps: int = 1,
+                    executor=None) -> ParticleGibbsMove:
         """The move on the synthesis density ``dens``: :class:`FrameFactors`, the
         :class:`MixtureProposal` (``rho``, ``h``, ``lookahead``, ``extra_centres``), the
         dynamics runs of at most ``block_len`` frames and, with ``tries_from_modes``, their
@@ -397,14 +398,15 @@ class ParticleGibbsMove:
         ``mode_kw``: its ``delta``, ``scale``, ``n_starts``), with ``pairs`` the consecutive
         blocks' :class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`; ``adapt_weights``:
         the modes' weights learnt during a sampler's warm-up (:meth:`begin_adaptation`);
-        ``block_sweeps``: passes of the block and pair updates after each sweep."""
+        ``block_sweeps``: passes of the block and pair updates after each sweep; ``executor``: where
+        the blocks' own-mode searches run (:func:`~bayes_talk.synthesis.frame_updates.own_modes`)."""
         if int(block_len) < 1:
             raise ValueError(f"block_len must be >= 1 (1: isolated frames only), got {block_len}")
         ff = FrameFactors(dens)
         q = MixtureProposal(ff, plan, rho, h, lookahead, extra_centres)
         blocks = dynamics_blocks(ff, int(block_len)) if int(frame_tries) > 0 else []
         # the block updates' tries: from the block's own modes (BlockModeProposal) or the sweep's proposal
-        q_blocks = (BlockModeProposal(q, blocks, neighbours=neighbours, **(mode_kw or {}))
+        q_blocks = (BlockModeProposal(q, blocks, neighbours=neighbours, executor=executor, **(mode_kw or {}))
                     if tries_from_modes and blocks else q)
         q_pairs = PairModeProposal(q_blocks, adjacent_pairs(blocks)) if pairs and q_blocks is not q else None
         return cls(ff, q, to_x, to_u, n_particles, backward, blocks, frame_tries, q_blocks, q_pairs, adapt_weights,
