@@ -52,8 +52,9 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: 181 → 442, its short dynamics block 45–49 no longer the limit, wall +8 %; docs/uncertainty.md
 #: "Two passes of the block updates"); ``pg_adapt_moments``: with ``pg_adapt_weights``, each mode
 #: that gathers enough of the full conditional's mass in the warm-up also proposed from its mean
-#: and covariance under that conditional (:mod:`~bayes_talk.synthesis.mode_adaptation`; off;
-#: docs/uncertainty.md "Modes moved to the full conditional").
+#: and covariance under that conditional (:mod:`~bayes_talk.synthesis.mode_adaptation`; on since
+#: session 29: held-out ``utt0002`` minimum bulk ESS 301 → 712, ``utt0004`` minimum tail ESS
+#: 116 → 1,124, R-hat ≤ 1.010 on both; docs/uncertainty.md "Modes moved to the full conditional").
 #: pg-nuts's own budget, in place of NUTS's warm-up and draws per chain (the other NUTS defaults
 #: apply): its sweeps and block updates move the chains between the modes, so NUTS's adaptation
 #: needs fewer iterations and the time goes to draws. Held-out ``utt0002`` (dev40), pairs of
@@ -64,7 +65,7 @@ PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.0
                     "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 16,
                     "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False,
                     "pg_pairs": True, "pg_mode_delta": 0.2, "pg_mode_scale": 1.5, "pg_mode_starts": 64,
-                    "pg_adapt_weights": True, "pg_block_sweeps": 2, "pg_adapt_moments": False}
+                    "pg_adapt_weights": True, "pg_block_sweeps": 2, "pg_adapt_moments": True}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}
