@@ -118,7 +118,8 @@ def main() -> None:
                                      "accept_stat_mean", "n_gradients", "sampler_seconds", "warmup_seconds",
                                      "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
                                      "pg_h", "pg_mode_centres", "pg_particles", "coords", "pg_every", "pg_backward", "pg_frame_tries",
-                                     "pg_frame_modes", "pg_block_len")},
+                                     "pg_frame_modes", "pg_block_len", "pg_neighbours", "pg_pairs", "pg_adapt_weights",
+                                     "pg_block_sweeps", "pg_adapt_moments")},
             # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
             "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
             # pg-nuts: how often the sweeps after the warm-up changed each frame (per chain)
