@@ -16,7 +16,9 @@ reject). Besides the χ²-Holm verdict (``passed``), every sampler gets the comb
 :func:`bayes_talk.evaluation.sbc_power.combined_verdict` (χ² Holm, the pooled dispersion test
 and the bias test at α/3 each: ``verdict``), and ``ranked_draws_le_ess`` says whether the
 ``--rank-draws`` ranked draws were at most the smallest bulk ESS of every simulation (MCMC
-draws are thinned evenly from the pooled chains; Talts et al. §4.1). Power of these tests:
+draws are thinned evenly from the pooled chains; Talts et al. §4.1); ``sampler_options``
+records the sampler's library options at the commit run (``INFERENCE[...].options``; the
+controls: Laplace's), which ``benchmarks/sbc_pool.py`` requires to agree. Power of these tests:
 ``benchmarks/sbc_power.py``.
 
     PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
@@ -44,7 +46,11 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
 from bayes_talk.executor import executor_for
+from bayes_talk.synthesis.defaults import INFERENCE
 
+#: the library method behind each sampler of --methods (the controls scale Laplace's draws)
+LIBRARY_METHOD = {"nuts": "nuts", "pg-nuts": "pg-nuts", "laplace": "laplace", "laplace-halved": "laplace",
+                  "laplace-0.85sd": "laplace", "emcee": "emcee"}
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
@@ -136,6 +142,8 @@ def main() -> None:
         if "worst_ess_bulk_min" in r.info and method in ("nuts", "pg-nuts", "emcee"):
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
+        # the sampler's own defaults at this commit (runs pooled by sbc_pool.py must agree on them)
+        out["sampler_options"] = json.loads(json.dumps(INFERENCE[LIBRARY_METHOD[method]].options))
         res["samplers"][method] = out
         print(json.dumps({k: v for k, v in out.items() if k not in ("p_values", "ranks")}, default=str), flush=True)
         save()

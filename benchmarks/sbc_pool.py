@@ -8,7 +8,9 @@ N₁ + N₂ + … simulations, tested exactly as one run of that size would be
 combined verdict of :func:`bayes_talk.evaluation.sbc_power.combined_verdict`). The runs
 must agree on everything but the seed and the number of simulations (model, corpus,
 utterance, stretch, smoothness, ranked draws, sampler settings); they must not share a seed.
-Per sampler the worst convergence figures over the runs are carried over (largest R-hat,
+A sampler's runs must also record the same ``sampler_options`` (its library options when it
+ran; older runs record none, and pool only with each other). Per sampler the worst
+convergence figures over the runs are carried over (largest R-hat,
 smallest bulk/tail ESS and E-BFMI, divergences summed), and ``ranked_draws_le_ess`` is true
 only if it was in every run.
 
@@ -68,6 +70,10 @@ def pool(runs: list[tuple[str, dict]]) -> dict:
         if len(n_draws) != 1:
             raise SystemExit(f"sampler {m}: the runs ranked among different numbers of draws {sorted(n_draws)}")
         L = n_draws.pop()
+        options = [json.dumps(p.get("sampler_options"), sort_keys=True) for p in parts]
+        if len(set(options)) != 1:
+            raise SystemExit(f"sampler {m}: the runs' sampler options differ ({sorted(set(options))}): they ran "
+                             "different samplers (another commit's defaults) and cannot be pooled")
         ranks = np.concatenate([np.asarray(p["ranks"], dtype=np.int64) for p in parts])
         p, p_adj, bins = uniformity_test(ranks, L)
         res = SBCResult(ranks, L, p, p_adj, bins).to_dict()
@@ -82,7 +88,7 @@ def pool(runs: list[tuple[str, dict]]) -> dict:
             conv["divergences"] = int(sum(p.get("divergences", 0) for p in parts))
         if any("ranked_draws_le_ess" in p for p in parts):
             conv["ranked_draws_le_ess"] = all(bool(p.get("ranked_draws_le_ess")) for p in parts)
-        out[m] = {**res, **conv}
+        out[m] = {**res, **conv, "sampler_options": parts[0].get("sampler_options")}
     return {"samplers": out, "not_pooled": missing}
 
 
