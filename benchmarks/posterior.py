@@ -42,7 +42,8 @@ sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, 
 updates of the isolated frames and short dynamics blocks (``sampler_kw``; default: the library's). NUTS and pg-nuts rows also hold the AAM parameters'
 ``aam_rhat_max``, ``aam_ess_bulk_min`` and ``aam_ess_tail_min`` (what users consume). Every row
 holds ``raw_accuracy``: the uncalibrated predictive's coverage of the utterance's own AAM track
-at 50/80/90/95 %, band widths, CRPS, NLPD and AMSE (as above, on the one utterance). Writes ``benchmarks/results/posterior_efficiency.json``:
+at 50/80/90/95 %, band widths, CRPS, NLPD and AMSE (as above, on the one utterance);
+``--save-draws STEM.npz`` keeps each sampler's draws (``STEM_METHOD.npz``). Writes ``benchmarks/results/posterior_efficiency.json``:
 
     PYTHONPATH=. python benchmarks/posterior.py --efficiency --model MODEL_DIR \
         --test-corpus data/v2/heldout40 --aam data/v2/train250/aam.npz \
@@ -179,6 +180,9 @@ def efficiency(args) -> None:
         # the raw (uncalibrated) predictive against the held-out utterance's own AAM track
         raw = evaluate([s.aam[:T]], [p.mean], [p.var], [p.quantiles(DEFAULT_LEVELS)],
                        [p.sample(1000)])
+        if args.save_draws and p.latent_draws is not None:
+            path = args.save_draws.with_name(f"{args.save_draws.stem}_{method}.npz")
+            np.savez(path, latents=p.latent_draws, aam_mean=p.draw_mean, truth=s.aam[:T])
         if method in ("vi", "laplace"):
             res["samplers"][method] = row = _iid_efficiency(p, wall, load0, budget)
             row["raw_accuracy"] = raw
@@ -285,6 +289,9 @@ def main() -> None:
                     help="--efficiency, pg-nuts: the own-mode proposal's scale factors, comma-separated (default: the library's)")
     ap.add_argument("--coords", default=None,
                     help="--efficiency: NUTS/pg-nuts coordinates (sampler_kw['coords']; default: the method's)")
+    ap.add_argument("--save-draws", type=Path, default=None,
+                    help="--efficiency: write each sampler's draws to STEM_METHOD.npz (latents (C, S, T, d), "
+                         "aam_mean (C, S, T, D), truth (T, D)) for analysis")
     ap.add_argument("--methods", default="map,laplace,nuts,emcee")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "posterior.json")
