@@ -47,6 +47,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
 from bayes_talk.executor import executor_for
 from bayes_talk.synthesis.defaults import INFERENCE
+from bayes_talk.synthesis.nuts_chain import WARMUP_ADAPTATION
 
 #: the library method behind each sampler of --methods (the controls scale Laplace's draws)
 LIBRARY_METHOD = {"nuts": "nuts", "pg-nuts": "pg-nuts", "laplace": "laplace", "laplace-halved": "laplace",
@@ -143,7 +144,8 @@ def main() -> None:
             out["ranked_draws_le_ess"] = bool(r.info["worst_ess_bulk_min"] >= r.n_draws)
         out.update(method=method, wall_seconds=time.perf_counter() - t0, loadavg_start_end=[load0, os.getloadavg()[0]])
         # the sampler's own defaults at this commit (runs pooled by sbc_pool.py must agree on them)
-        out["sampler_options"] = json.loads(json.dumps(INFERENCE[LIBRARY_METHOD[method]].options))
+        out["sampler_options"] = json.loads(json.dumps({**INFERENCE[LIBRARY_METHOD[method]].options,
+                                                        "warmup_adaptation": WARMUP_ADAPTATION}))
         res["samplers"][method] = out
         print(json.dumps({k: v for k, v in out.items() if k not in ("p_values", "ranks")}, default=str), flush=True)
         save()

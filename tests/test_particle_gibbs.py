@@ -443,36 +443,34 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
             sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=bad, **kw)
 
 
-def test_pg_nuts_reports_the_mode_weights_each_chain_learnt_in_its_warmup(toy):
-    """With ``pg_adapt_weights`` the diagnostics hold, per chain, how far the learnt weights of
-    every block with modes moved from the own ones (total variation in [0, 1], its maximum; the
-    adaptation ran in the chains' own copies of the move); without it there is no such entry."""
+def test_pg_nuts_reports_the_mode_weights_the_chains_warmups_taught(toy):
+    """With ``pg_adapt_weights`` the diagnostics hold how far the learnt weights of every block
+    with modes moved from the own ones (total variation in [0, 1], its maximum) in the one move
+    frozen from all the chains' warm-ups; without it there is no such entry."""
     model, u = toy
     T = 10
     kw = {"n_draws": 8, "warmup": 4, "chains": 2, "seed": 3, "map_restarts": 0, "log_warnings": False}
     skw = {"pg_particles": 8, "max_tree_depth": 3, "pg_mode_starts": 8}
     r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                          sampler_kw={**skw, "pg_adapt_weights": True, "pg_adapt_moments": False}, **kw)
-    per_chain = r.diagnostics["pg_weight_shift_per_chain"]
+    ad = r.diagnostics["pg_adaptation"]
     blocks = dynamics_blocks(FrameFactors(UtteranceDensity(make_plan(model, u.mfcc[:T], u.labels[:T]))),
                              PG_NUTS_DEFAULTS["pg_block_len"])
     with_modes = {str(s) for s, _ in blocks} - {str(b[0]) for b in r.diagnostics["pg_blocks_without_modes"]}
-    assert len(per_chain) == 2
-    for c in per_chain:
-        assert set(c["weight_shift"]) == with_modes
-        assert all(0.0 <= v <= 1.0 for v in c["weight_shift"].values())
-        assert c["weight_shift_max"] == max(c["weight_shift"].values())
-        assert c["modes_with_learnt_moments"] == {}
-    assert max(c["weight_shift_max"] for c in per_chain) > 0, "the warm-up learnt nothing"
-    # with the moments: the blocks whose modes gathered enough mass in the (short) warm-up
+    assert set(ad["weight_shift"]) == with_modes
+    assert all(0.0 <= v <= 1.0 for v in ad["weight_shift"].values())
+    assert ad["weight_shift_max"] == max(ad["weight_shift"].values())
+    assert ad["modes_with_learnt_moments"] == {}
+    assert ad["weight_shift_max"] > 0, "the warm-up learnt nothing"
+    # with the moments: the blocks whose modes gathered enough mass in the (short) warm-ups
     rm = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                           sampler_kw={**skw, "pg_adapt_weights": True, "pg_adapt_moments": True}, **kw)
-    learnt = [c["modes_with_learnt_moments"] for c in rm.diagnostics["pg_weight_shift_per_chain"]]
-    assert all(set(c) <= with_modes and all(v >= 1 for v in c.values()) for c in learnt)
-    assert any(learnt), "no block gathered enough mass for its moments"
+    learnt = rm.diagnostics["pg_adaptation"]["modes_with_learnt_moments"]
+    assert set(learnt) <= with_modes and all(v >= 1 for v in learnt.values())
+    assert learnt, "no block gathered enough mass for its moments"
     r0 = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                           sampler_kw={**skw, "pg_adapt_weights": False}, **kw)
-    assert "pg_weight_shift_per_chain" not in r0.diagnostics
+    assert "pg_adaptation" not in r0.diagnostics
 
 
 def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):

@@ -94,51 +94,6 @@ def test_an_extra_moves_records_are_kept_per_draw_and_blank_where_it_did_not_run
     np.testing.assert_array_equal(d.sample_stats["value"][:, ::2], 7.0)
 
 
-class _AdaptingMove:
-    """An ``extra_move`` with a warm-up adaptation: it counts its calls while adapting and
-    reports, per call, whether it is adapting and that count."""
-
-    def __init__(self):
-        self.adapting, self.calls_adapting = False, 0
-
-    def begin_adaptation(self):
-        self.adapting, self.calls_adapting = True, 0
-
-    def end_adaptation(self):
-        self.adapting = False
-
-    def __call__(self, x, rng):
-        self.calls_adapting += self.adapting
-        return x, {"adapting": self.adapting, "calls_adapting": self.calls_adapting}
-
-    def adaptation_summary(self):
-        return {"calls": self.calls_adapting}
-
-
-def test_an_extra_moves_adaptation_spans_exactly_each_chains_warmup():
-    """``run_nuts`` starts an adapting move's adaptation before a chain's first iteration and
-    ends it after its warm-up: every kept draw comes from the frozen move, which adapted during
-    exactly the ``warmup`` iterations; each chain adapts a copy of its own (the caller's move is
-    untouched, and the second chain, run after the first in this process, does not inherit its
-    state), and what each copy learnt comes back in ``stats["extra_move_adaptation"]``; with no
-    warm-up there is no adaptation."""
-    import torch
-
-    from bayes_talk.synthesis.samplers import run_nuts
-
-    move = _AdaptingMove()
-    d = run_nuts(lambda x: -0.5 * torch.sum(x * x), np.zeros(2), n_draws=4, warmup=5, chains=2, seed=0,
-                 extra_move=move)
-    np.testing.assert_array_equal(d.sample_stats["adapting"], False)
-    np.testing.assert_array_equal(d.sample_stats["calls_adapting"], 5)
-    assert d.stats["extra_move_adaptation"] == [{"calls": 5}, {"calls": 5}]   # each chain's copy, reported
-    assert (move.adapting, move.calls_adapting) == (False, 0)
-    d0 = run_nuts(lambda x: -0.5 * torch.sum(x * x), np.zeros(2), n_draws=3, warmup=0, chains=1, seed=0,
-                  extra_move=move)
-    np.testing.assert_array_equal(d0.sample_stats["calls_adapting"], 0)
-    assert d0.stats["extra_move_adaptation"] == [{"calls": 0}]
-
-
 def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatch, tmp_path):
     """The sweeps' per-frame record (``pg_frame_moved``) equals a recount from the states before
     and after every sweep, the draw is the state after the sweep of its iteration, the update
@@ -172,10 +127,11 @@ def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatc
     r = sample_synthesis(model, mfcc[:T], labels[:T], method="pg-nuts", n_draws=chains * per_chain, warmup=warmup,
                          chains=chains, seed=3, map_restarts=0, log_warnings=False,
                          sampler_kw={"pg_particles": 8, "max_tree_depth": 3, "pg_frame_tries": 0})
-    assert len(calls) == chains * (warmup + per_chain)    # one sweep per iteration, chains in turn
+    assert len(calls) == chains * (warmup + per_chain)    # one sweep per iteration: warm-ups in turn, then draws
+    kept = calls[chains * warmup:]
     nc = NonCentred(UtteranceDensity(make_plan(model, mfcc[:T], labels[:T])))
-    before = nc.to_x(np.stack([b for b, _ in calls])).reshape(chains, warmup + per_chain, T, 3)[:, warmup:]
-    after = nc.to_x(np.stack([a for _, a in calls])).reshape(chains, warmup + per_chain, T, 3)[:, warmup:]
+    before = nc.to_x(np.stack([b for b, _ in kept])).reshape(chains, per_chain, T, 3)
+    after = nc.to_x(np.stack([a for _, a in kept])).reshape(chains, per_chain, T, 3)
     np.testing.assert_array_equal(after, r.latent_draws)  # the draw is the state after its iteration's sweep
     recount = np.abs(after - before).max(axis=3) > 1e-9
     ss, d = r.sample_stats, r.diagnostics

@@ -60,6 +60,20 @@ class ModeTally:
         self.second += np.einsum("nk,ni,nj->kij", a, Y, Y) + b[:, None, None] * np.outer(x, x)[None]
         self.n += 1
 
+    @classmethod
+    def pooled(cls, tallies: list[ModeTally]) -> ModeTally:
+        """One tally of all the updates of ``tallies`` (the chains' warm-ups of one block, in
+        chain order): their sums and counts added."""
+        out = cls(*tallies[0].first.shape)
+        for t in tallies:
+            if t.first.shape != out.first.shape:
+                raise ValueError(f"cannot pool tallies of {t.first.shape} and {out.first.shape} (modes, d)")
+            out.mass += t.mass
+            out.first += t.first
+            out.second += t.second
+            out.n += t.n
+        return out
+
     def masses(self) -> np.ndarray:
         """M̄ (K,): each mode's mass under the full conditional, the mean over the updates of the
         two estimates (sums to 1 when every try and state is assigned to a mode)."""
@@ -142,7 +156,7 @@ class LearntModes:
         if np.all(np.isfinite(w)) and np.all(np.isfinite(r)) and np.all(np.isfinite(Yx)):
             self.tally[s].add(Yx[:-1], w, r[:-1], Yx[-1], r[-1])
 
-    def end_adaptation(self, share: float = 0.5) -> None:
+    def end_adaptation(self, tallies: list[dict] | None = None, share: float = 0.5) -> None:
         """Freeze the weights learnt while adapting: w_k = (1 − share) M̄_k + share · w⁰_k, M̄
         the mean over the recorded updates of the two estimates of the full conditional's mode
         masses (:meth:`record`; :meth:`~bayes_talk.synthesis.mode_adaptation.ModeTally.masses`),
@@ -151,8 +165,12 @@ class LearntModes:
         first block's chains sit at a mode of own weight ≈ 0. With ``moments``, every mode that
         gathered enough mass also gets a component at its mean and covariance under the full
         conditional (:meth:`~bayes_talk.synthesis.mode_adaptation.ModeTally.moments`), with a
-        ``share`` of its weight (:meth:`_set_weights`). From here the proposal is fixed again,
-        so the updates leave the posterior invariant."""
+        ``share`` of its weight (:meth:`_set_weights`). ``tallies``: the ``tally`` dicts of
+        several chains' warm-ups (:meth:`adaptation_state`), pooled block by block
+        (:meth:`ModeTally.pooled`) in place of this proposal's own. From here the proposal is
+        fixed again, so the updates leave the posterior invariant."""
+        if tallies is not None:   # [] (no warm-up): nothing learnt, the own weights stay
+            self.tally = {s: ModeTally.pooled([t[s] for t in tallies]) for s in self.own_weights} if tallies else {}
         for s, tally in self.tally.items():
             if tally.n:
                 if self.learn_moments:
@@ -162,6 +180,11 @@ class LearntModes:
                 w = (1 - share) * tally.masses() + share * np.exp(self.own_weights[s])
                 self._set_weights(s, np.log(w / w.sum()), share)
         self.adapting = False
+
+    def adaptation_state(self) -> dict[int, ModeTally]:
+        """What this proposal's warm-up recorded so far: its :class:`ModeTally` per block start
+        (picklable; :meth:`end_adaptation` pools several chains')."""
+        return self.tally
 
     def weight_shift(self) -> dict[int, float]:
         """Per block s with modes, the total-variation distance ½ Σ_k |w_k − w⁰_k| between the

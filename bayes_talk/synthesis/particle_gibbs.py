@@ -363,11 +363,18 @@ class ParticleGibbsMove:
             if self.q_pairs is not None:
                 self.q_pairs.refresh()
 
-    def end_adaptation(self) -> None:
-        """The warm-up ends: the learnt weights are frozen (the pairs' weights recomputed from
-        them), and the move is a fixed posterior-invariant kernel again."""
+    def adaptation_state(self):
+        """What this move's warm-up learnt (the blocks' proposal's tallies,
+        :meth:`~bayes_talk.synthesis.mode_adaptation.LearntModes.adaptation_state`; None without
+        ``adapt_weights``)."""
+        return self.q_blocks.adaptation_state() if self.adapt_weights else None
+
+    def end_adaptation(self, states: list | None = None) -> None:
+        """The warm-up ends: the learnt weights are frozen — from this move's own warm-up, or with
+        ``states`` from several chains' (their :meth:`adaptation_state`, pooled) — the pairs'
+        weights recomputed from them, and the move is a fixed posterior-invariant kernel again."""
         if self.adapt_weights and self.q_blocks.adapting:
-            self.q_blocks.end_adaptation()
+            self.q_blocks.end_adaptation(None if states is None else [st for st in states if st is not None])
             if self.q_pairs is not None:
                 self.q_pairs.refresh()
 

@@ -411,8 +411,8 @@ def _sampler_diagnostics(draws: Draws, latents: np.ndarray) -> dict:
             out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
         if "pg_blocks_without_modes" in st:   # blocks whose tries fall back to the sweep's proposal
             out["pg_blocks_without_modes"] = st["pg_blocks_without_modes"]
-        if "extra_move_adaptation" in st:     # pg_adapt_weights: each chain's learnt mode weights
-            out["pg_weight_shift_per_chain"] = st["extra_move_adaptation"]
+        if "extra_move_adaptation" in st:     # pg_adapt_weights: the mode weights the chains' warm-ups taught
+            out["pg_adaptation"] = st["extra_move_adaptation"]
     if "acceptance_fraction" in st:
         out["acceptance_fraction"] = float(st["acceptance_fraction"])
         out["acceptance_min"] = float(st["acceptance_min"])

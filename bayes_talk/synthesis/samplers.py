@@ -45,6 +45,7 @@ from bayes_talk import progress
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.defaults import NUTS_DEFAULTS
 from bayes_talk.synthesis.joint_map import floored_precision
+from bayes_talk.synthesis.nuts_chain import ChainState, draw_chain, warmup_chain
 
 log = logging.getLogger(__name__)
 
@@ -81,159 +82,6 @@ def _as_tensor(x) -> torch.Tensor:
 INIT_SCALE = 2.0
 
 
-class _RecordingNUTS:
-    """Builds a Pyro NUTS kernel that records, for every post-warm-up iteration, the
-    acceptance statistic (the mean Metropolis acceptance probability min(1, e^{−ΔH}) over
-    the trajectory's proposals, Hoffman & Gelman 2014 §3.2.1: what the step-size adaptation
-    targets; Pyro's ``diagnostics()["acceptance rate"]`` is the fraction of iterations that
-    moved, a different number), the number of leapfrog steps and the tree depth, whether
-    the iteration diverged, the Hamiltonian energy after the momentum draw (for E-BFMI)
-    and ln p at the draw.
-
-    Mode-jumping moves (``jumps``: (K, n) displacements δ_k, e.g. between the modes a
-    multi-start optimisation found; ``jump_attempts`` per displacement per iteration):
-    after each NUTS transition, propose z' = z + s δ_k with k uniform and s = ±1 with
-    probability ½ each, and accept with probability min(1, p(z')/p(z)). The proposal is
-    symmetric and does not depend on z, so the move leaves the target invariant (a
-    Metropolis kernel; composed with NUTS, the chain keeps its stationary distribution),
-    and it lets a chain cross between modes whose barrier NUTS cannot cross
-    (Tjelmeland & Hegstad 2001, "Mode jumping proposals in MCMC"). Runs in warm-up too;
-    recorded per iteration as ``jumps`` (accepted moves)."""
-
-    @staticmethod
-    def make(potential, counter: list, jumps: np.ndarray | None = None, jump_attempts: int = 0,
-             rng: np.random.Generator | None = None, extra_move=None, extra_every: int = 1, **kw):
-        from pyro.infer.mcmc import NUTS
-        from pyro.ops.integrator import potential_grad
-
-        n_jump = 0 if jumps is None else len(jumps) * int(jump_attempts)
-        jump_t = None if jumps is None else torch.as_tensor(np.asarray(jumps, dtype=np.float64))
-
-        class Kernel(NUTS):
-            def _sample_r(self, name):
-                r, r_unscaled = super()._sample_r(name)
-                if name.startswith("r_t="):
-                    self._energy_now = float(self._kinetic_energy(r_unscaled)) + float(self._potential_energy_last)
-                return r, r_unscaled
-
-            def _jump(self, z):
-                accepted = 0
-                pe = float(self._potential_energy_last)
-                for _ in range(n_jump):
-                    k, sign = int(rng.integers(len(jump_t))), (1.0 if rng.random() < 0.5 else -1.0)
-                    z_new = {"x": z["x"] + sign * jump_t[k]}
-                    grads, pe_new = potential_grad(self.potential_fn, z_new)
-                    pe_new = float(pe_new)
-                    if np.isfinite(pe_new) and np.log(rng.random()) < pe - pe_new:
-                        z, pe, accepted = z_new, pe_new, accepted + 1
-                        self._cache(z, torch.as_tensor(pe, dtype=torch.float64), grads)
-                self.jump_counts[0] += n_jump
-                self.jump_counts[1] += accepted
-                return z, accepted
-
-            def _extra(self, z):
-                """Another posterior-invariant kernel (e.g. a particle Gibbs sweep) on the state;
-                a move returning (x', record) has its record kept for this iteration."""
-                x = z["x"].detach().numpy()
-                out = extra_move(x, rng)
-                x_new, self._extra_record = out if isinstance(out, tuple) else (out, None)
-                x_new = np.asarray(x_new, dtype=np.float64)
-                if np.array_equal(x_new, x):
-                    return z
-                z = {"x": torch.as_tensor(x_new)}
-                grads, pe = potential_grad(self.potential_fn, z)
-                self._cache(z, pe, grads)
-                return z
-
-            def sample(self, params):
-                m_prev, n_div, n_grad = self._mean_accept_prob, len(self._divergences), counter[0]
-                self._extra_record = None
-                z = super().sample(params)
-                z, accepted = self._jump(z) if n_jump else (z, 0)
-                if extra_move is not None and self._t % extra_every == 0:
-                    z = self._extra(z)
-                if self._t == self._warmup_steps:
-                    self.warmup_end = time.perf_counter()
-                    if hasattr(extra_move, "end_adaptation"):   # the move's own warm-up ends with NUTS's
-                        extra_move.end_adaptation()
-                if self._t > self._warmup_steps:
-                    n = self._t - self._warmup_steps   # the running mean restarts after warm-up
-                    rec = self.records
-                    # undo Pyro's running mean m_n = m_{n-1} + (a_n − m_{n-1})/n (rounding: clip)
-                    rec["acceptance_rate"].append(min(1.0, max(0.0, m_prev + n * (self._mean_accept_prob - m_prev))))
-                    steps = counter[0] - n_grad
-                    rec["n_steps"].append(steps)
-                    rec["tree_depth"].append(int(np.ceil(np.log2(steps + 1))))
-                    rec["diverging"].append(len(self._divergences) > n_div)
-                    rec["energy"].append(self._energy_now)
-                    rec["lp"].append(-float(self._potential_energy_last))
-                    rec["jumps"].append(accepted)
-                    if extra_move is not None:
-                        rec["extra"].append(self._extra_record)
-                return z
-
-        k = Kernel(potential_fn=potential, **kw)
-        k.warmup_end = None
-        k.jump_counts = [0, 0]  # attempted, accepted (warm-up included)
-        k.records = {key: [] for key in ("acceptance_rate", "n_steps", "tree_depth", "diverging", "energy", "lp",
-                                         "jumps", *(("extra",) if extra_move is not None else ()))}
-        return k
-
-
-def _extra_records(records: list) -> dict:
-    """The per-iteration records of an ``extra_move`` (one dict of arrays, or None where the
-    move did not run or returned no record) as arrays (draws, ...): each key stacked over the
-    iterations, zeros (False) where there was no record; {} when there was none at all."""
-    have = [r for r in records if r is not None]
-    if not have:
-        return {}
-    out = {}
-    for key in have[0]:
-        blank = np.zeros_like(np.asarray(have[0][key]))
-        out[key] = np.stack([blank if r is None else np.asarray(r[key]) for r in records])
-    return out
-
-
-def _nuts_chain(task) -> dict:
-    """One NUTS chain (an executor task): (log_prob, start (n,), n_draws, warmup, seed, chain c,
-    kernel keywords) -> its draws, step size, per-draw records, jump counts, gradients and
-    seconds. Seeded by (seed, c) alone: Pyro's generators by ``seed + c``, the jump moves by
-    ``default_rng([seed, c, ·])``."""
-    import pyro
-    from pyro.infer.mcmc import MCMC
-
-    log_prob, start, n_draws, warmup, seed, c, kw = task
-    counter = [0]
-
-    def potential(params):
-        counter[0] += 1
-        return -log_prob(params["x"])
-
-    t_chain = time.perf_counter()
-    move = kw.get("extra_move")
-    if hasattr(move, "begin_adaptation") and warmup > 0:
-        move = copy.deepcopy(move)   # its warm-up adaptation is this chain's own, whatever the executor
-        move.begin_adaptation()
-    with torch_threads(1):
-        pyro.set_rng_seed(seed + c)
-        kernel = _RecordingNUTS.make(potential, counter, adapt_step_size=True, adapt_mass_matrix=True,
-                                     full_mass=False, target_accept_prob=kw["target_accept"],
-                                     max_tree_depth=kw["max_tree_depth"], jumps=kw["jumps"],
-                                     jump_attempts=kw["jump_attempts"], extra_move=move,
-                                     extra_every=kw.get("extra_every", 1),
-                                     rng=np.random.default_rng([seed, c, 0x6A756D70]))
-        mcmc = MCMC(kernel, num_samples=n_draws, warmup_steps=warmup, initial_params={"x": _as_tensor(start)},
-                    num_chains=1, disable_progbar=not progress.enabled())
-        log.info("NUTS chain %d: %d warm-up + %d draws", c + 1, warmup, n_draws)
-        mcmc.run()
-    kernel.records.update(_extra_records(kernel.records.pop("extra", [])))
-    return {"samples": mcmc.get_samples()["x"].detach().numpy().reshape(n_draws, -1),
-            "step_size": float(kernel.step_size), "records": kernel.records, "jump_counts": kernel.jump_counts,
-            "warmup_seconds": (kernel.warmup_end or t_chain) - t_chain, "n_gradients": counter[0],
-            "seconds": time.perf_counter() - t_chain,
-            "move_adaptation": move.adaptation_summary() if hasattr(move, "adaptation_summary") else None}
-
-
 def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chain"],
              warmup: int = NUTS_DEFAULTS["warmup"], chains: int = 1, seed: int = 0,
              target_accept: float = NUTS_DEFAULTS["target_accept"],
@@ -244,14 +92,15 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
     step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
     ``jumps`` (K, n): displacements for mode-jumping Metropolis moves after every
-    iteration, ``jump_attempts`` per displacement (:class:`_RecordingNUTS`; chain c's move
-    draws seeded by (seed, c)).
+    iteration, ``jump_attempts`` per displacement
+    (:class:`~bayes_talk.synthesis.nuts_chain.RecordingNUTS`; chain c's move draws seeded by
+    (seed, c)).
 
     Chains run through the project's executor (:func:`bayes_talk.executor.executor_for`:
     ``executor`` an :class:`~bayes_talk.executor.Executor` or a kind, else "processes" when
-    ``workers`` > 1, else this process), one task per chain, each seeded by (``seed``, its
-    chain index) only and run with one thread, so the draws do not depend on the worker
-    count or engine (tested). ``log_prob`` must then be picklable (a module-level function
+    ``workers`` > 1, else this process), two tasks per chain — its warm-up, then its kept draws
+    (:mod:`bayes_talk.synthesis.nuts_chain`) — each seeded by (``seed``, its chain index) only
+    and run with one thread, so the draws do not depend on the worker count or engine (tested). ``log_prob`` must then be picklable (a module-level function
     or an object of one: the synthesis densities are). ``warmup_seconds`` sums the chains'.
 
     ``extra_move(x, rng) -> x'`` (picklable): a further posterior-invariant kernel applied
@@ -260,12 +109,15 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     invariant kernels is invariant. A move may return ``(x', record)``, ``record`` a dict of
     arrays of fixed shapes: each key becomes a per-draw statistic (chains, n_draws, ...) of
     ``Draws.sample_stats``, zero (False) at the iterations where the move did not run (the
-    sweep's ``pg_sweep`` and ``pg_frame_moved``). A move with ``begin_adaptation()`` and
-    ``end_adaptation()`` (the sweep with ``pg_adapt_weights``) adapts during the warm-up only:
-    each chain deep-copies it, begins before its first iteration and ends after its last warm-up
-    iteration, so the kept draws come from a fixed kernel and the caller's move is not changed;
-    what each chain's copy learnt, its ``adaptation_summary()`` (if it has one) after the chain,
-    is ``stats["extra_move_adaptation"]`` (one entry per chain).
+    sweep's ``pg_sweep`` and ``pg_frame_moved``). A move with ``begin_adaptation()``,
+    ``adaptation_state()`` and ``end_adaptation(states)`` (the sweep with ``pg_adapt_weights``)
+    adapts during the warm-ups only: each chain deep-copies it and begins before its first
+    iteration; after every chain's warm-up, a copy of the caller's move pools the chains'
+    ``adaptation_state()`` (in chain order) and is frozen, and every chain takes its kept draws
+    with that one move — fixed, so the kept draws leave the posterior invariant, and the same for
+    all chains, so a mode only one chain's warm-up found is proposed in all. The caller's move is
+    not changed; the frozen move's ``adaptation_summary()`` (if it has one, and not None) is
+    ``stats["extra_move_adaptation"]``.
 
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``jumps`` (mode jumps accepted),
@@ -292,12 +144,21 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     starts = [(x0[c] if x0.ndim == 2 else x0).reshape(-1).clone().numpy() for c in range(chains)]
     kernel_kw = {"target_accept": target_accept, "max_tree_depth": max_tree_depth, "jumps": jumps,
                  "jump_attempts": jump_attempts, "extra_move": extra_move, "extra_every": int(extra_every)}
-    tasks = [(log_prob, starts[c], n_draws, warmup, seed, c, kernel_kw) for c in range(chains)]
     t0 = time.perf_counter()
     from bayes_talk.executor import executor_for
 
     with executor_for(executor, workers) as ex:
-        res = list(ex.map(_nuts_chain, tasks))
+        if warmup:
+            states = list(ex.map(warmup_chain, [(log_prob, starts[c], warmup, seed, c, kernel_kw)
+                                                for c in range(chains)]))
+        else:
+            states = [ChainState(starts[c]) for c in range(chains)]
+        if hasattr(extra_move, "begin_adaptation"):   # one move, frozen from every chain's warm-up
+            kernel_kw["extra_move"] = copy.deepcopy(extra_move)
+            kernel_kw["extra_move"].begin_adaptation()
+            kernel_kw["extra_move"].end_adaptation([st.adaptation for st in states])
+        res = list(ex.map(draw_chain, [(log_prob, states[c], n_draws, warmup, seed, c, kernel_kw)
+                                       for c in range(chains)]))
     out = [r["samples"] for r in res]
     steps = [r["step_size"] for r in res]
     recs = [r["records"] for r in res]
@@ -314,8 +175,9 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              "chain_seconds": [float(r["seconds"]) for r in res],
              "n_jumps": 0 if jumps is None else len(jumps), "jump_attempts": [int(a) for a, _ in jump_counts],
              "jumps_accepted": [int(b) for _, b in jump_counts]}
-    if any(r["move_adaptation"] is not None for r in res):   # what each chain's copy of the move learnt
-        stats["extra_move_adaptation"] = [r["move_adaptation"] for r in res]
+    learnt = getattr(kernel_kw["extra_move"], "adaptation_summary", lambda: None)()
+    if learnt is not None:   # what the chains' warm-ups taught the move
+        stats["extra_move_adaptation"] = learnt
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
 
 
