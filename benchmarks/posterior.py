@@ -38,7 +38,7 @@ approximation q: their row holds PSIS k̂ and the PSIS effective sample size of 
 draws (and ESS per second), ``reliable`` only where k̂ ≤ 0.7. ``--nuts-chains``, ``--nuts-warmup``,
 ``--draws`` (pooled) and ``--emcee-warmup`` override the library defaults (recorded under
 ``budget``); ``--workers`` runs NUTS/pg-nuts chains in that many processes, ``--coords``
-sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off``, ``--pg-pairs on|off``, ``--pg-adapt-weights on|off``, ``--pg-block-sweeps R``, ``--pg-adapt-moments on|off`` pg-nuts's
+sets their coordinates and ``--pg-frame-tries K``, ``--pg-frame-modes on|off``, ``--pg-block-len L``, ``--pg-neighbours on|off``, ``--pg-pairs on|off``, ``--pg-adapt-weights on|off``, ``--pg-block-sweeps R``, ``--pg-adapt-moments on|off``, ``--pg-adapt-clusters on|off`` pg-nuts's
 updates of the isolated frames and short dynamics blocks (``sampler_kw``; default: the library's). NUTS and pg-nuts rows also hold the AAM parameters'
 ``aam_rhat_max``, ``aam_ess_bulk_min`` and ``aam_ess_tail_min`` (what users consume). Every row
 holds ``raw_accuracy``: the uncalibrated predictive's coverage of the utterance's own AAM track
@@ -168,6 +168,8 @@ def efficiency(args) -> None:
             skw["pg_block_sweeps"] = args.pg_block_sweeps
         if method == "pg-nuts" and args.pg_adapt_moments is not None:
             skw["pg_adapt_moments"] = args.pg_adapt_moments == "on"
+        if method == "pg-nuts" and args.pg_adapt_clusters is not None:
+            skw["pg_adapt_clusters"] = args.pg_adapt_clusters == "on"
         if method == "pg-nuts" and args.pg_mode_scale is not None:
             skw["pg_mode_scale"] = tuple(float(c) for c in args.pg_mode_scale.split(","))
         if method == "pg-nuts" and args.pg_block_len is not None:
@@ -285,6 +287,9 @@ def main() -> None:
     ap.add_argument("--pg-adapt-moments", choices=("on", "off"), default=None,
                     help="--efficiency, pg-nuts: learn the modes' means and covariances under the full conditional "
                          "during warm-up too (default: the library's)")
+    ap.add_argument("--pg-adapt-clusters", choices=("on", "off"), default=None,
+                    help="--efficiency, pg-nuts: propose from a Gaussian mixture fitted to each block's warm-up "
+                         "states too (default: the library's)")
     ap.add_argument("--pg-mode-scale", default=None,
                     help="--efficiency, pg-nuts: the own-mode proposal's scale factors, comma-separated (default: the library's)")
     ap.add_argument("--coords", default=None,

@@ -388,8 +388,8 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
 
 
 def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
-    """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts``/``pg_adapt_moments`` are the own-mode
-    proposal's δ, c, starts and ``moments``, and ``pg_block_sweeps`` the move's passes of block updates (recorded in the
+    """``sampler_kw`` ``pg_mode_delta``/``_scale``/``_starts``/``pg_adapt_moments``/``pg_adapt_clusters``
+    are the own-mode proposal's δ, c, starts, ``moments`` and ``clusters``, and ``pg_block_sweeps`` the move's passes of block updates (recorded in the
     diagnostics), out-of-range values are refused naming the key, and a
     block whose mode search finds nothing (here the first block's, removed) is listed in
     ``pg_blocks_without_modes`` while the others are not."""
@@ -425,11 +425,12 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
     r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
                          sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
                                      "pg_mode_starts": 8, "pg_block_sweeps": 2, "pg_adapt_moments": True,
-                                     "max_tree_depth": 3}, **kw)
+                                     "pg_adapt_clusters": True, "max_tree_depth": 3}, **kw)
     from bayes_talk.executor import Executor
 
     assert len(seen) == 1 and isinstance(seen[0].pop("executor"), Executor)   # the chains' executor
-    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8, "moments": True}]
+    assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8, "moments": True,
+                     "clusters": True}]
     assert sweeps == [2]
     d = r.diagnostics
     assert (d["pg_mode_delta"], d["pg_mode_scale"], d["pg_mode_starts"]) == (0.5, [2.0], 8)
@@ -437,7 +438,7 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
                              PG_NUTS_DEFAULTS["pg_block_len"])
     assert len(blocks) > 1 and calls[0] > 0 and len(calls) == len(blocks)
     assert d["pg_blocks_without_modes"] == [list(blocks[0])]
-    assert d["pg_block_sweeps"] == 2 and d["pg_adapt_moments"] is True
+    assert d["pg_block_sweeps"] == 2 and d["pg_adapt_moments"] is True and d["pg_adapt_clusters"] is True
     for bad in ({"pg_mode_delta": 0.0}, {"pg_mode_scale": -1.0}, {"pg_mode_starts": 0}, {"pg_block_sweeps": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=bad, **kw)

@@ -149,3 +149,59 @@ def test_pooled_warmup_tallies_freeze_the_proposal_one_chain_recording_every_upd
     assert not np.allclose(a.laplace[s][2], one.laplace[s][2])
     with pytest.raises(ValueError, match="cannot pool"):
         ModeTally.pooled([ModeTally(2, 3), ModeTally(3, 3)])
+
+
+def test_clusters_of_the_pooled_late_warmup_states_become_proposal_components(block_proposal):
+    """With ``clusters`` on, the warm-up states of the chains' second halves (pooled) are fitted
+    by a Gaussian mixture whose number of components BIC picks: states from two separated
+    clusters (70 / 30 %, neither at an own mode) give two components at their means with their
+    weights, proposed with ``CLUSTER_SHARE`` of the mixture (the mixture's weights still sum to
+    one); the first halves (the chains' starts) are left out; one cluster gives one component,
+    and too few states none."""
+    from scipy.special import logsumexp
+
+    from bayes_talk.synthesis.mode_adaptation import CLUSTER_SHARE
+
+    base, s = block_proposal
+    m = base.laplace[s][0]
+    d = m.shape[1]
+    rng = np.random.default_rng(11)
+    A, B = m[0] + 0.3, m[0] - 0.3
+    chains = []
+    for c in range(2):
+        p = copy.deepcopy(base)
+        p.learn_clusters = True
+        p.begin_adaptation()
+        for i in range(200):   # first half far off (the start), second half 70 % at A and 30 % at B
+            x = m[0] + 5.0 if i < 100 else (A if rng.random() < 0.7 else B) + 0.01 * rng.standard_normal(d)
+            p.record(s, m[:1], np.zeros(1), x)
+        chains.append(p)
+    pooled = copy.deepcopy(base)
+    pooled.learn_clusters = True
+    pooled.begin_adaptation()
+    pooled.end_adaptation([p.adaptation_state() for p in chains])
+    mu, C, w = pooled.clustered[s]
+    order = np.argsort(-w)
+    assert len(w) == 2 and np.all(np.linalg.eigvalsh(C) > 0)
+    np.testing.assert_allclose(mu[order], [A, B], atol=0.01)
+    np.testing.assert_allclose(w[order], [0.7, 0.3], atol=0.06)
+    means, _, lw = pooled.modes[s]
+    assert logsumexp(lw) == pytest.approx(0.0, abs=1e-12)
+    at_clusters = np.isin(np.arange(len(means)) % (len(means) // len(pooled.scales)),
+                          np.arange(len(means) // len(pooled.scales) - 2, len(means) // len(pooled.scales)))
+    assert np.exp(logsumexp(lw[at_clusters])) == pytest.approx(CLUSTER_SHARE, rel=1e-10)
+    assert pooled.tally[s].late_states().shape == (200, d)
+    one = copy.deepcopy(base)
+    one.learn_clusters = True
+    one.begin_adaptation()
+    for _ in range(120):
+        one.record(s, m[:1], np.zeros(1), A + 0.01 * rng.standard_normal(d))
+    one.end_adaptation()
+    assert len(one.clustered[s][2]) == 1
+    few = copy.deepcopy(base)
+    few.learn_clusters = True
+    few.begin_adaptation()
+    for _ in range(20):
+        few.record(s, m[:1], np.zeros(1), A)
+    few.end_adaptation()
+    assert s not in few.clustered

@@ -45,7 +45,8 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: ``pg_mode_scale`` (1.5; several factors: a copy of each mode per factor) and the mode ascents' starts per block of more than one frame
 #: ``pg_mode_starts`` (64; :class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal`);
 #: ``pg_adapt_weights``: the own modes' weights learnt during the warm-up from the block updates
-#: and the chain (the full conditional's mode masses), then frozen (on since session 28, with two
+#: and the chain (the full conditional's mode masses; since session 31 pooled over all the
+#: chains' warm-ups, :mod:`~bayes_talk.synthesis.nuts_chain`), then frozen (on since session 28, with two
 #: passes: held-out ``utt0001`` R-hat 1.008 → 1.005, tail ESS 442 → 583, ``utt0002`` 1.082 → 1.011;
 #: docs/uncertainty.md "Mode weights learnt in the warm-up"); ``pg_block_sweeps``: passes of the
 #: block and pair updates after each sweep (2: ``utt0001`` R-hat 1.014 → 1.008, minimum tail ESS
@@ -54,7 +55,11 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: that gathers enough of the full conditional's mass in the warm-up also proposed from its mean
 #: and covariance under that conditional (:mod:`~bayes_talk.synthesis.mode_adaptation`; on since
 #: session 29: held-out ``utt0002`` minimum bulk ESS 301 → 712, ``utt0004`` minimum tail ESS
-#: 116 → 1,124, R-hat ≤ 1.010 on both; docs/uncertainty.md "Modes moved to the full conditional").
+#: 116 → 1,124, R-hat ≤ 1.010 on both; docs/uncertainty.md "Modes moved to the full conditional");
+#: ``pg_adapt_clusters``: with ``pg_adapt_weights``, a Gaussian mixture (BIC, ≤ 3 components) fitted
+#: to each block's warm-up states, pooled over the chains, proposed too — modes of the full
+#: conditional that are none of the own factor's (off; docs/uncertainty.md "Clusters of the
+#: warm-up states").
 #: pg-nuts's own budget, in place of NUTS's warm-up and draws per chain (the other NUTS defaults
 #: apply): its sweeps and block updates move the chains between the modes, so NUTS's adaptation
 #: needs fewer iterations and the time goes to draws. Held-out ``utt0002`` (dev40), pairs of
@@ -65,7 +70,8 @@ PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.0
                     "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 16,
                     "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False,
                     "pg_pairs": True, "pg_mode_delta": 0.2, "pg_mode_scale": 1.5, "pg_mode_starts": 64,
-                    "pg_adapt_weights": True, "pg_block_sweeps": 2, "pg_adapt_moments": True}
+                    "pg_adapt_weights": True, "pg_block_sweeps": 2, "pg_adapt_moments": True,
+                    "pg_adapt_clusters": False}
 #: variational inference (Pyro SVI, full-rank Gaussian guide): optimisation steps, ELBO
 #: particles per step, Adam's learning rate (decayed tenfold over the steps)
 VI_DEFAULTS = {"steps": 1000, "particles": 4, "lr": 0.02}

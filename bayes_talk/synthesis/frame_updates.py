@@ -220,7 +220,8 @@ class BlockModeProposal(LearntModes):
     function of that frame): tries from the bumps themselves land in them. q_s is fixed while the
     kept draws are taken (its weights w_k may be learnt in the warm-up: :meth:`begin_adaptation`;
     with ``moments`` also a component per mode at its mean and covariance under the full
-    conditional, :mod:`~bayes_talk.synthesis.mode_adaptation`, used without ``neighbours``)
+    conditional, and with ``clusters`` a Gaussian mixture fitted to the warm-up's states,
+    :mod:`~bayes_talk.synthesis.mode_adaptation`, used without ``neighbours``)
     and evaluated exactly. Blocks without a maximum found fall back to q⁰ alone
     (listed in ``without_modes``, the diagnostics' ``pg_blocks_without_modes``). ``executor``
     (a :class:`~bayes_talk.executor.Executor`): the blocks' mode searches spread over its
@@ -229,16 +230,17 @@ class BlockModeProposal(LearntModes):
     def __init__(self, base, blocks, delta: float = PG_NUTS_DEFAULTS["pg_mode_delta"],
                  scale: float | tuple = PG_NUTS_DEFAULTS["pg_mode_scale"],
                  n_starts: int | None = PG_NUTS_DEFAULTS["pg_mode_starts"], neighbours: bool = False,
-                 moments: bool = PG_NUTS_DEFAULTS["pg_adapt_moments"], executor=None):
+                 moments: bool = PG_NUTS_DEFAULTS["pg_adapt_moments"],
+                 clusters: bool = PG_NUTS_DEFAULTS["pg_adapt_clusters"], executor=None):
         scales = np.atleast_1d(np.asarray(scale, dtype=np.float64))
         if (not 0 < delta <= 1 or scales.ndim != 1 or not scales.size or np.any(~(scales > 0))
                 or (n_starts is not None and n_starts < 1)):
             raise ValueError(f"BlockModeProposal needs 0 < delta <= 1, scales > 0 and n_starts >= 1, got {delta}, "
                              f"{scale}, {n_starts}")
         self.base, self.ff, self.delta, self.scales = base, base.ff, float(delta), scales
-        self.neighbours, self.learn_moments = bool(neighbours), bool(moments)
+        self.neighbours, self.learn_moments, self.learn_clusters = bool(neighbours), bool(moments), bool(clusters)
         self.modes, self.laplace, self.end, self.without_modes = {}, {}, {}, []
-        self.adapting, self.own_weights, self.tally, self.learnt = False, {}, {}, {}
+        self.adapting, self.own_weights, self.tally, self.learnt, self.clustered = False, {}, {}, {}, {}
         # ascend from all centres (one frame) or the n_starts of highest weight
         jobs = [(s, e, base.centres[s][np.argsort(-base.logw[s], kind="stable")[:None if e - s == 1 else n_starts]])
                 for s, e in blocks]

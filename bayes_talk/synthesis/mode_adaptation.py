@@ -37,6 +37,13 @@ MIN_MOMENT_MASS = 20.0
 #: moment estimate resting on a few heavy importance weights is never narrower than a tenth of
 #: the own mode's sd in any direction
 OWN_COVARIANCE_FLOOR = 0.01
+#: the most Gaussian components fitted to a block's warm-up states (:meth:`ModeTally.clusters`;
+#: the number chosen by BIC from 1 to this)
+MAX_CLUSTERS = 3
+#: the fewest warm-up states (pooled over the chains, second halves) a block needs for clusters
+MIN_CLUSTER_STATES = 50
+#: the share of a block's own-mode mixture given to its state clusters (:meth:`LearntModes._set_weights`)
+CLUSTER_SHARE = 0.25
 
 
 class ModeTally:
@@ -49,6 +56,8 @@ class ModeTally:
         self.first = np.zeros((K, d))
         self.second = np.zeros((K, d, d))
         self.n = 0
+        self.states: list[np.ndarray] = []   # the chain's state after each update, in order
+        self.trimmed = False                 # True: ``states`` are already the late halves (pooled)
 
     def add(self, Y: np.ndarray, w: np.ndarray, r: np.ndarray, x: np.ndarray, rx: np.ndarray) -> None:
         """One update: its tries Y (N, d) with normalised importance weights w (N,) and
@@ -59,6 +68,15 @@ class ModeTally:
         self.first += a.T @ Y + b[:, None] * x[None]
         self.second += np.einsum("nk,ni,nj->kij", a, Y, Y) + b[:, None, None] * np.outer(x, x)[None]
         self.n += 1
+        self.states.append(np.array(x, dtype=np.float64))
+
+    def late_states(self) -> np.ndarray:
+        """The states recorded in the second half of the warm-up (M, d) — of each chain when
+        pooled — away from the chains' overdispersed starts."""
+        if self.trimmed:
+            return np.array(self.states).reshape(len(self.states), -1)
+        late = self.states[len(self.states) // 2:]
+        return np.array(late).reshape(len(late), self.first.shape[1])
 
     @classmethod
     def pooled(cls, tallies: list[ModeTally]) -> ModeTally:
@@ -72,6 +90,8 @@ class ModeTally:
             out.first += t.first
             out.second += t.second
             out.n += t.n
+            out.states.extend(t.late_states())
+        out.trimmed = True
         return out
 
     def masses(self) -> np.ndarray:
@@ -92,6 +112,27 @@ class ModeTally:
         ok = np.array([np.all(np.isfinite(c)) and np.linalg.eigvalsh(c)[0] > 0 for c in C], dtype=bool)
         return idx[ok], mu[ok], C[ok]
 
+    def clusters(self, own_cov: np.ndarray, max_k: int = MAX_CLUSTERS, min_states: int = MIN_CLUSTER_STATES,
+                 floor: float = OWN_COVARIANCE_FLOOR, seed: int = 0):
+        """A Gaussian mixture fitted to :meth:`late_states` (scikit-learn's ``GaussianMixture``,
+        full covariances, 1 to ``max_k`` components chosen by BIC, seeded): its means (J, d),
+        covariances (J, d, d) (+ ``floor`` × ``own_cov`` (d, d)) and weights (J,); None with
+        fewer than ``min_states`` states. The modes the chains' warm-ups visited, including
+        those of the full conditional that are no mode of the block's own factor (held-out
+        `utt0002`'s utterance-start block: a second mode, ~16 % of the mass, that the smoothness
+        factor into the next block creates; docs/uncertainty.md "Clusters of the warm-up
+        states")."""
+        from sklearn.mixture import GaussianMixture
+
+        X = self.late_states()
+        if len(X) < min_states or not np.all(np.isfinite(X)):
+            return None
+        fits = [GaussianMixture(k, covariance_type="full", random_state=seed, reg_covar=1e-9).fit(X)
+                for k in range(1, min(max_k, len(np.unique(X, axis=0))) + 1)]
+        best = min(fits, key=lambda g: g.bic(X))
+        C = 0.5 * (best.covariances_ + np.swapaxes(best.covariances_, 1, 2)) + floor * own_cov[None]
+        return best.means_, C, best.weights_
+
 
 def component_logpdf(X: np.ndarray, m: np.ndarray, L: np.ndarray) -> np.ndarray:
     """ln N(x_i; m_k, L_k L_kᵀ) for rows X (N, d), means m (K, d), Cholesky factors L (K, d, d) → (N, K)."""
@@ -104,33 +145,36 @@ class LearntModes:
     (:class:`~bayes_talk.synthesis.frame_updates.BlockModeProposal` inherits it). It reads and
     sets the proposal's ``laplace`` (per block start: the own modes' means, precisions, log
     weights), ``modes`` (the components proposed: :meth:`_scaled` of them), ``own_weights``,
-    ``ff`` and ``learn_moments``, and keeps ``tally`` (a :class:`ModeTally` per block while
-    adapting), ``learnt`` (per block: the modes with learnt moments, their means and
-    covariances) and ``adapting``."""
+    ``ff``, ``learn_moments`` and ``learn_clusters``, and keeps ``tally`` (a :class:`ModeTally`
+    per block while adapting), ``learnt`` (per block: the modes with learnt moments, their means
+    and covariances), ``clustered`` (per block: the clusters of its warm-up states) and
+    ``adapting``."""
 
     def _set_weights(self, s: int, lw: np.ndarray, share: float = 0.5) -> None:
         """Mode weights ``lw`` for block s; with moments learnt for some of its modes
         (``self.learnt[s]``: indices, means, covariances) each of those modes' weight is split,
         1 − ``share`` to its own Laplace component and ``share`` to a component at its learnt
-        mean and covariance."""
+        mean and covariance; with clusters of its warm-up states (``self.clustered[s]``: means,
+        covariances, weights) those get :data:`CLUSTER_SHARE` of the whole and the modes the rest."""
         m, P, _ = self.laplace[s]
         self.laplace[s] = (m, P, lw)
-        S = np.linalg.inv(P)
-        if s not in self.learnt:
-            self.modes[s] = self._scaled(m, S, lw)
-            return
-        idx, mu, C = self.learnt[s]
-        lw_own = lw.copy()
-        lw_own[idx] += np.log1p(-share)
-        self.modes[s] = self._scaled(np.concatenate([m, mu]), np.concatenate([S, C]),
-                                     np.concatenate([lw_own, lw[idx] + np.log(share)]))
+        means, covs, lws = [m], [np.linalg.inv(P)], [lw.copy()]
+        if s in self.learnt:
+            idx, mu, C = self.learnt[s]
+            lws[0][idx] += np.log1p(-share)
+            means, covs, lws = means + [mu], covs + [C], lws + [lw[idx] + np.log(share)]
+        if s in self.clustered:
+            mu, C, w = self.clustered[s]
+            lws = [v + np.log1p(-CLUSTER_SHARE) for v in lws]
+            means, covs, lws = means + [mu], covs + [C], lws + [np.log(w) + np.log(CLUSTER_SHARE)]
+        self.modes[s] = self._scaled(np.concatenate(means), np.concatenate(covs), np.concatenate(lws))
 
     def begin_adaptation(self) -> None:
         """Start learning the modes' weights (and with ``moments`` their means and covariances;
         a sampler's warm-up): the own factor's modes and weights restored, the tallies of
         :meth:`record` cleared. Until :meth:`end_adaptation` the proposal changes with the
         chain's history, so draws taken meanwhile are warm-up only."""
-        self.learnt = {}
+        self.learnt, self.clustered = {}, {}
         for s, lw in self.own_weights.items():
             self._set_weights(s, lw)
         self.tally = {s: ModeTally(len(lw), self.ff.d) for s, lw in self.own_weights.items()}
@@ -165,7 +209,8 @@ class LearntModes:
         first block's chains sit at a mode of own weight ≈ 0. With ``moments``, every mode that
         gathered enough mass also gets a component at its mean and covariance under the full
         conditional (:meth:`~bayes_talk.synthesis.mode_adaptation.ModeTally.moments`), with a
-        ``share`` of its weight (:meth:`_set_weights`). ``tallies``: the ``tally`` dicts of
+        ``share`` of its weight (:meth:`_set_weights`); with ``clusters``, a Gaussian mixture
+        fitted to the warm-up's late states (:meth:`ModeTally.clusters`) joins them. ``tallies``: the ``tally`` dicts of
         several chains' warm-ups (:meth:`adaptation_state`), pooled block by block
         (:meth:`ModeTally.pooled`) in place of this proposal's own. From here the proposal is
         fixed again, so the updates leave the posterior invariant."""
@@ -177,6 +222,11 @@ class LearntModes:
                     idx, mu, C = tally.moments(np.linalg.inv(self.laplace[s][1]))
                     if len(idx):
                         self.learnt[s] = (idx, mu, C)
+                if self.learn_clusters:
+                    own = np.linalg.inv(self.laplace[s][1])
+                    found = tally.clusters(own[int(np.argmax(self.own_weights[s]))])
+                    if found is not None:
+                        self.clustered[s] = found
                 w = (1 - share) * tally.masses() + share * np.exp(self.own_weights[s])
                 self._set_weights(s, np.log(w / w.sum()), share)
         self.adapting = False
@@ -193,4 +243,4 @@ class LearntModes:
                 for s, lw in self.own_weights.items()}
 
 
-__all__ = ["MIN_MOMENT_MASS", "OWN_COVARIANCE_FLOOR", "LearntModes", "ModeTally", "component_logpdf"]
+__all__ = ["CLUSTER_SHARE", "MAX_CLUSTERS", "MIN_CLUSTER_STATES", "MIN_MOMENT_MASS", "OWN_COVARIANCE_FLOOR", "LearntModes", "ModeTally", "component_logpdf"]

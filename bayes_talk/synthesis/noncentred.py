@@ -296,7 +296,7 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     (:class:`~bayes_talk.synthesis.frame_updates.PairModeProposal`), with ``skw["pg_adapt_weights"]``
     (default False) the modes' weights learnt during the warm-up and then frozen,
     ``skw["pg_block_sweeps"]`` (default 1) passes of the block and pair updates after each sweep, and
-    ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]``, ``["pg_adapt_moments"]``
+    ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]``, ``["pg_adapt_moments"]``, ``["pg_adapt_clusters"]``
     its ``delta``, ``scale``, ``n_starts``, ``moments`` (its defaults when absent); the blocks without modes are in the draws'
     ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`); it and the blocks' mode
@@ -336,7 +336,8 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     pg_adapt_weights = bool(skw.pop("pg_adapt_weights", False))
     pg_block_sweeps = int(skw.pop("pg_block_sweeps", 1))
     mode_kw = {k: skw.pop(key) for k, key in (("delta", "pg_mode_delta"), ("scale", "pg_mode_scale"),
-                                               ("n_starts", "pg_mode_starts"), ("moments", "pg_adapt_moments"))
+                                               ("n_starts", "pg_mode_starts"), ("moments", "pg_adapt_moments"),
+                                               ("clusters", "pg_adapt_clusters"))
                if key in skw}
     from bayes_talk.executor import executor_for
 

@@ -161,7 +161,6 @@ def extra_records(records: list) -> dict:
     return out
 
 
-
 @dataclass
 class ChainState:
     """Where a chain stands between its warm-up and its kept draws: position ``x`` (n,), NUTS's

@@ -383,13 +383,15 @@ class ParticleGibbsMove:
         (a string key) the total-variation distance between the learnt and the own modes' weights
         (:meth:`~bayes_talk.synthesis.frame_updates.BlockModeProposal.weight_shift`), its
         maximum over the blocks, and per block start the number of its modes proposed from their
-        learnt means and covariances too (``pg_adapt_moments``; {} without)."""
+        learnt means and covariances too (``pg_adapt_moments``; {} without) and the number of
+        clusters fitted to its warm-up states (``pg_adapt_clusters``; {} without)."""
         if not self.adapt_weights:
             return None
         shift = self.q_blocks.weight_shift()
         return {"weight_shift": {str(s): v for s, v in shift.items()},
                 "weight_shift_max": max(shift.values(), default=0.0),
-                "modes_with_learnt_moments": {str(s): len(idx) for s, (idx, _, _) in self.q_blocks.learnt.items()}}
+                "modes_with_learnt_moments": {str(s): len(idx) for s, (idx, _, _) in self.q_blocks.learnt.items()},
+                "state_clusters": {str(s): len(w) for s, (_, _, w) in self.q_blocks.clustered.items()}}
 
     @classmethod
     def for_density(cls, dens: UtteranceDensity, plan, to_x, to_u, n_particles: int = 64, rho: float = 0.5,

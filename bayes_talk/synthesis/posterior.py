@@ -170,7 +170,7 @@ def sample_synthesis(
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
         ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64),
-        ``pg_adapt_weights`` (True), ``pg_block_sweeps`` (2), ``pg_adapt_moments`` (True); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
+        ``pg_adapt_weights`` (True), ``pg_block_sweeps`` (2), ``pg_adapt_moments`` (True), ``pg_adapt_clusters`` (False); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
@@ -288,6 +288,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                             pg_neighbours=bool(skw["pg_neighbours"]), pg_pairs=bool(skw["pg_pairs"]),
                             pg_adapt_weights=bool(skw["pg_adapt_weights"]), pg_block_sweeps=int(skw["pg_block_sweeps"]),
                             pg_adapt_moments=bool(skw["pg_adapt_moments"]),
+                            pg_adapt_clusters=bool(skw["pg_adapt_clusters"]),
                             pg_mode_delta=float(skw["pg_mode_delta"]),
                             pg_mode_scale=[float(c) for c in scales], pg_mode_starts=int(skw["pg_mode_starts"]))
             coords = skw.pop("coords", spec.options["coords"])
