@@ -722,6 +722,54 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
     np.testing.assert_allclose(pq.groups[(s1, e1)][-1], _pair_weights_by_hand(ff, s1, mid, a, wa, b, wb), rtol=1e-10)
 
 
+def test_state_clusters_learnt_in_warmup_keep_the_isolated_frames_conditional(toy20):
+    """``BlockModeProposal(clusters=True)`` on the isolated frame of the weights test above: after
+    200 adapting updates (started at the conditional's heavy mode k) a Gaussian mixture of the
+    late states joins the proposal (its components at each scale, ``CLUSTER_SHARE`` of the
+    weight); the proposal's ln q matches its draws (E_q[u/q] = 1 for u the cluster components
+    alone: fails if ln q misses them); and the chain's share of time at mode k over 2,000 further
+    updates matches the conditional's mass (5 s.e., as above) — the frozen proposal keeps the
+    conditional."""
+    from bayes_talk.synthesis.frame_updates import BlockModeProposal
+    from bayes_talk.synthesis.mode_adaptation import CLUSTER_SHARE, component_logpdf
+
+    T, ff, x_map, q = toy20
+    rng = np.random.default_rng(23)
+    s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
+    bm = BlockModeProposal(q, [(s, s + 1)], moments=False, clusters=True)
+    m, P, _ = bm.laplace[s]
+    L = np.linalg.cholesky(np.linalg.inv(P))
+    bm.begin_adaptation()
+    y = x.copy()
+    y[s] = m[k]
+    for _ in range(200):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+    bm.end_adaptation()
+    mu, _, w = bm.clustered[s]
+    means, Lc, lw = bm.modes[s]
+    n_own, J = len(m), len(w)
+    per_scale = n_own + J
+    assert means.shape == (len(bm.scales) * per_scale, ff.d)
+    is_cluster = np.arange(len(means)) % per_scale >= n_own
+    assert np.exp(logsumexp(lw[is_cluster])) == pytest.approx(CLUSTER_SHARE, rel=1e-10)
+    np.testing.assert_allclose(means[:per_scale][n_own:], mu, rtol=1e-12)
+    Y, lq = bm.sample_logq(s, np.repeat(x[s - 1][None], 40000, 0), 40000, rng)
+    lu = logsumexp(lw[is_cluster][None] + component_logpdf(Y, means[is_cluster], Lc[is_cluster]), axis=1) \
+        - np.log(CLUSTER_SHARE)
+    ratio = np.exp(lu - lq)
+    assert abs(ratio.mean() - 1.0) < 5 * ratio.std() / np.sqrt(len(ratio)) + 1e-3, ratio.mean()
+    at_k = []
+    for _ in range(2000):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+        at_k.append(int(np.argmax(component_logpdf(y[s][None], m, L)[0])) == k)
+    at_k = np.array(at_k)
+    M, ess = _conditional_mode_masses(ff, bm, s, x, 40000, rng)
+    assert ess > 200, ess
+    B = at_k.reshape(40, -1).mean(1)
+    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
+    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+
+
 def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_and_keep_the_conditional(toy20):
     """``BlockModeProposal(moments=True)`` on the isolated frame of the weights test above: after
     200 adapting updates every mode that gathered enough mass (at least the conditional's heavy
