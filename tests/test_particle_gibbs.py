@@ -682,10 +682,10 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
 
     y0 = x.copy()
     y0[s] = m[k]                                         # start where the conditional's mass is
-    own = BlockModeProposal(q, [(s, s + 1)], moments=False)
+    own = BlockModeProposal(q, [(s, s + 1)], moments=False, clusters=False)
     _, _, own_switches = run(own, y0.copy(), 1000)
     assert own.adapting is False and own.tally == {}
-    ad = BlockModeProposal(q, [(s, s + 1)], moments=False)          # the weights alone
+    ad = BlockModeProposal(q, [(s, s + 1)], moments=False, clusters=False)          # the weights alone
     ad.begin_adaptation()
     y, _, _ = run(ad, y0.copy(), 200)
     n = ad.tally[s].n
@@ -707,7 +707,7 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
     np.testing.assert_array_equal(ad.laplace[s][2], lw0)
     # pairs: refresh recomputes the pair weights from the adapted modes' weights
     blocks = dynamics_blocks(ff, 8)
-    bm = BlockModeProposal(q, blocks)
+    bm = BlockModeProposal(q, blocks, clusters=False)
     (s1, mid), (_, e1) = pair = next(p for p in adjacent_pairs(blocks) if p[0][0] in bm.modes and p[1][0] in bm.modes
                                              and len(bm.laplace[p[0][0]][0]) > 1)
     pq = PairModeProposal(bm, [pair])
@@ -785,7 +785,7 @@ def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_
     T, ff, x_map, q = toy20
     rng = np.random.default_rng(21)
     s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
-    bm = BlockModeProposal(q, [(s, s + 1)], moments=True)
+    bm = BlockModeProposal(q, [(s, s + 1)], moments=True, clusters=False)
     m, P, _ = bm.laplace[s]
     K, C = len(m), len(bm.scales)
     L = np.linalg.cholesky(np.linalg.inv(P))

@@ -170,7 +170,7 @@ def sample_synthesis(
         pg-nuts: the NUTS keywords and ``pg_every`` (1), ``pg_particles`` (64), ``pg_h``
         ((0.005, 0.02, 0.05)), ``pg_lookahead`` (True), ``pg_mode_centres`` (True), ``pg_backward`` (False), ``pg_frame_tries`` (16), ``pg_frame_modes`` (True), ``pg_block_len`` (8), ``pg_neighbours`` (False),
         ``pg_pairs`` (True), ``pg_mode_delta`` (0.2), ``pg_mode_scale`` (1.5), ``pg_mode_starts`` (64),
-        ``pg_adapt_weights`` (True), ``pg_block_sweeps`` (2), ``pg_adapt_moments`` (True), ``pg_adapt_clusters`` (False); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
+        ``pg_adapt_weights`` (True), ``pg_block_sweeps`` (2), ``pg_adapt_moments`` (True), ``pg_adapt_clusters`` (True); :data:`~bayes_talk.synthesis.defaults.PG_NUTS_DEFAULTS`).
     log_warnings: log every failed convergence check (also kept in ``.warnings``).
     audio_view: ``mfcc`` is already the audio view the state models explain
         (``model.audio_input(mfcc)``; audio simulated from the synthesis model, as in
