@@ -627,6 +627,38 @@ def _conditional_mode_masses(ff, bm, s, x, N, rng):
     return w @ np.exp(lr - logsumexp(lr, axis=1, keepdims=True)), 1.0 / np.sum(w * w)
 
 
+def _adapt_from_the_heavy_mode(ff, bm, s, x, k, rng):
+    """``bm``'s warm-up adaptation over 200 multiple-try updates of isolated frame s (neighbours
+    as in x), started at own mode k → (the state after them, the own modes' means, the
+    Cholesky factors of their Laplace covariances); the adaptation is left open."""
+    m, P, _ = bm.laplace[s]
+    bm.begin_adaptation()
+    y = x.copy()
+    y[s] = m[k]
+    for _ in range(200):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+    return y, m, np.linalg.cholesky(np.linalg.inv(P))
+
+
+def _assert_time_at_mode_matches_the_conditional(ff, bm, s, x, y, k, m, L, rng):
+    """2,000 multiple-try updates of isolated frame s with the frozen proposal ``bm`` from state
+    y (neighbours as in x): the chain's share of time at own mode k (nearest under the Laplace
+    approximations m, L L^T) within 5 s.e. (batch means and the estimate's own from its ESS) of
+    the conditional's mass there (:func:`_conditional_mode_masses`)."""
+    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+
+    at_k = []
+    for _ in range(2000):
+        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+        at_k.append(int(np.argmax(component_logpdf(y[s][None], m, L)[0])) == k)
+    at_k = np.array(at_k)
+    M, ess = _conditional_mode_masses(ff, bm, s, x, 40000, rng)
+    assert ess > 200, ess
+    B = at_k.reshape(40, -1).mean(1)
+    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
+    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+
+
 def _frame_at_a_light_mode(T, ff, x_map, q, rng):
     """(s, x, k): the first isolated frame s of the toy utterance and shift of its two neighbours
     in x (off the MAP) that put more than half of its full conditional's mass at an own mode k
@@ -737,13 +769,7 @@ def test_state_clusters_learnt_in_warmup_keep_the_isolated_frames_conditional(to
     rng = np.random.default_rng(23)
     s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
     bm = BlockModeProposal(q, [(s, s + 1)], moments=False, clusters=True)
-    m, P, _ = bm.laplace[s]
-    L = np.linalg.cholesky(np.linalg.inv(P))
-    bm.begin_adaptation()
-    y = x.copy()
-    y[s] = m[k]
-    for _ in range(200):
-        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
+    y, m, L = _adapt_from_the_heavy_mode(ff, bm, s, x, k, rng)
     bm.end_adaptation()
     mu, _, w = bm.clustered[s]
     means, Lc, lw = bm.modes[s]
@@ -758,16 +784,7 @@ def test_state_clusters_learnt_in_warmup_keep_the_isolated_frames_conditional(to
         - np.log(CLUSTER_SHARE)
     ratio = np.exp(lu - lq)
     assert abs(ratio.mean() - 1.0) < 5 * ratio.std() / np.sqrt(len(ratio)) + 1e-3, ratio.mean()
-    at_k = []
-    for _ in range(2000):
-        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
-        at_k.append(int(np.argmax(component_logpdf(y[s][None], m, L)[0])) == k)
-    at_k = np.array(at_k)
-    M, ess = _conditional_mode_masses(ff, bm, s, x, 40000, rng)
-    assert ess > 200, ess
-    B = at_k.reshape(40, -1).mean(1)
-    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
-    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+    _assert_time_at_mode_matches_the_conditional(ff, bm, s, x, y, k, m, L, rng)
 
 
 def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_and_keep_the_conditional(toy20):
@@ -786,14 +803,9 @@ def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_
     rng = np.random.default_rng(21)
     s, x, k = _frame_at_a_light_mode(T, ff, x_map, q, rng)
     bm = BlockModeProposal(q, [(s, s + 1)], moments=True, clusters=False)
-    m, P, _ = bm.laplace[s]
+    P = bm.laplace[s][1]
+    y, m, L = _adapt_from_the_heavy_mode(ff, bm, s, x, k, rng)
     K, C = len(m), len(bm.scales)
-    L = np.linalg.cholesky(np.linalg.inv(P))
-    bm.begin_adaptation()
-    y = x.copy()
-    y[s] = m[k]
-    for _ in range(200):
-        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
     idx, mu, cov = bm.tally[s].moments(np.linalg.inv(P))
     bm.end_adaptation()
     assert k in idx and list(bm.learnt[s][0]) == list(idx)
@@ -812,16 +824,7 @@ def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_
     u = logsumexp(component_logpdf(Y, means[K:K + J], Lc[K:K + J]), axis=1) - np.log(J)
     r = np.exp(u - lq)
     assert abs(r.mean() - 1) < 4 * r.std() / np.sqrt(N), (r.mean(), r.std())
-    at_k = []
-    for _ in range(2000):
-        y, _ = block_mtm(ff, bm, y, [(s, s + 1)], 16, rng)
-        at_k.append(int(np.argmax(component_logpdf(y[s][None], m, L)[0])) == k)
-    at_k = np.array(at_k)
-    M, ess = _conditional_mode_masses(ff, bm, s, x, 40000, rng)
-    assert ess > 200, ess
-    B = at_k.reshape(40, -1).mean(1)
-    se = np.hypot(max(B.std(ddof=1) / np.sqrt(len(B)), 1e-3), np.sqrt(M[k] * (1 - M[k]) / ess))
-    assert abs(at_k.mean() - M[k]) < 5 * se, (at_k.mean(), M[k], se)
+    _assert_time_at_mode_matches_the_conditional(ff, bm, s, x, y, k, m, L, rng)
     bm.begin_adaptation()
     assert bm.learnt == {} and len(bm.modes[s][0]) == C * K
 
