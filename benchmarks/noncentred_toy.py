@@ -119,7 +119,8 @@ def main() -> None:
                                      "map_log_density", "mode_jumps", "mode_jump_acceptance", "n_chains", "n_draws",
                                      "pg_h", "pg_mode_centres", "pg_particles", "coords", "pg_every", "pg_backward", "pg_frame_tries",
                                      "pg_frame_modes", "pg_block_len", "pg_neighbours", "pg_pairs", "pg_adapt_weights",
-                                     "pg_block_sweeps", "pg_adapt_moments")},
+                                     "pg_block_sweeps", "pg_adapt_moments", "pg_adapt_clusters",
+                                     "pg_adaptation")},
             # where the chains disagree: worst R-hat over each frame's coordinates, and ln p per chain
             "rhat_per_frame": d.get("rhat_per_frame"), "aam_rhat_per_frame": d.get("aam_rhat_per_frame"),
             # pg-nuts: how often the sweeps after the warm-up changed each frame (per chain)

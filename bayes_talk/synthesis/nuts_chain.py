@@ -167,7 +167,7 @@ class ChainState:
     ``step_size`` and diagonal ``inverse_mass`` (n,) (None before a warm-up: found at the start,
     identity), ``torch_rng`` (``pyro.util.get_rng_state()``, None: seeded afresh), ``rng`` (the
     numpy generator of the jumps and the move), ``adaptation`` (what the chain's copy of an
-    adaptive move learnt, its ``adaptation_state()``), ``jump_counts`` (attempted, accepted),
+    adaptive move learnt, its ``adaptation_state()``; dropped before the draws), ``jump_counts`` (attempted, accepted),
     ``n_gradients`` and ``seconds`` so far."""
 
     x: np.ndarray

@@ -36,7 +36,7 @@ import copy
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -157,6 +157,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             kernel_kw["extra_move"] = copy.deepcopy(extra_move)
             kernel_kw["extra_move"].begin_adaptation()
             kernel_kw["extra_move"].end_adaptation([st.adaptation for st in states])
+        states = [replace(st, adaptation=None) for st in states]   # not needed by the draws
         res = list(ex.map(draw_chain, [(log_prob, states[c], n_draws, warmup, seed, c, kernel_kw)
                                        for c in range(chains)]))
     out = [r["samples"] for r in res]
