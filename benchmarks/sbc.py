@@ -18,7 +18,9 @@ and the bias test at α/3 each: ``verdict``), and ``ranked_draws_le_ess`` says w
 ``--rank-draws`` ranked draws were at most the smallest bulk ESS of every simulation (MCMC
 draws are thinned evenly from the pooled chains; Talts et al. §4.1); ``sampler_options``
 records the sampler's library options at the commit run (``INFERENCE[...].options``; the
-controls: Laplace's), which ``benchmarks/sbc_pool.py`` requires to agree. Power of these tests:
+controls: Laplace's), which ``benchmarks/sbc_pool.py`` requires to agree, and ``run_options``
+what this run overrode of them (``--nuts-chains``, ``--nuts-warmup``, ``--nuts-draws`` for
+``nuts`` and ``pg-nuts``; the 200 draws of Laplace and its controls; nothing for emcee). Power of these tests:
 ``benchmarks/sbc_power.py``.
 
     PYTHONPATH=. python benchmarks/sbc.py --model MODEL_DIR --corpus CORPUS [--utterance NAME]
@@ -52,6 +54,15 @@ from bayes_talk.synthesis.nuts_chain import WARMUP_ADAPTATION
 #: the library method behind each sampler of --methods (the controls scale Laplace's draws)
 LIBRARY_METHOD = {"nuts": "nuts", "pg-nuts": "pg-nuts", "laplace": "laplace", "laplace-halved": "laplace",
                   "laplace-0.85sd": "laplace", "emcee": "emcee"}
+#: draws of Laplace and its controls (i.i.d. from the Gaussian), thinned to --rank-draws for the ranks
+LAPLACE_DRAWS = 200
+#: the options each library method's runs here override (``run_options`` in the JSON)
+RUN_OPTIONS = {
+    "nuts": lambda a: {"chains": a.nuts_chains, "warmup": a.nuts_warmup, "draws_per_chain": a.nuts_draws},
+    "pg-nuts": lambda a: {"chains": a.nuts_chains, "warmup": a.nuts_warmup, "draws_per_chain": a.nuts_draws},
+    "laplace": lambda a: {"n_draws": LAPLACE_DRAWS},
+    "emcee": lambda a: {},
+}
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
@@ -121,9 +132,9 @@ def main() -> None:
                                           warmup=args.nuts_warmup),
         "pg-nuts": lambda: sampler_posterior("pg-nuts", n_draws=args.nuts_chains * args.nuts_draws,
                                              chains=args.nuts_chains, warmup=args.nuts_warmup),
-        "laplace": lambda: sampler_posterior("laplace", n_draws=200),
-        "laplace-halved": lambda: scaled_laplace(0.5, n_draws=200),
-        "laplace-0.85sd": lambda: scaled_laplace(0.85 ** 2, n_draws=200),
+        "laplace": lambda: sampler_posterior("laplace", n_draws=LAPLACE_DRAWS),
+        "laplace-halved": lambda: scaled_laplace(0.5, n_draws=LAPLACE_DRAWS),
+        "laplace-0.85sd": lambda: scaled_laplace(0.85 ** 2, n_draws=LAPLACE_DRAWS),
         "emcee": lambda: sampler_posterior("emcee"),
     }
     for method in args.methods.split(","):
@@ -146,6 +157,8 @@ def main() -> None:
         # the sampler's own defaults at this commit (runs pooled by sbc_pool.py must agree on them)
         out["sampler_options"] = json.loads(json.dumps({**INFERENCE[LIBRARY_METHOD[method]].options,
                                                         "warmup_adaptation": WARMUP_ADAPTATION}))
+        # what this run used in place of those defaults (the budget --nuts-* set; Laplace's draws)
+        out["run_options"] = RUN_OPTIONS[LIBRARY_METHOD[method]](args)
         res["samplers"][method] = out
         print(json.dumps({k: v for k, v in out.items() if k not in ("p_values", "ranks")}, default=str), flush=True)
         save()

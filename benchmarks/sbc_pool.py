@@ -89,6 +89,8 @@ def pool(runs: list[tuple[str, dict]]) -> dict:
         if any("ranked_draws_le_ess" in p for p in parts):
             conv["ranked_draws_le_ess"] = all(bool(p.get("ranked_draws_le_ess")) for p in parts)
         out[m] = {**res, **conv, "sampler_options": parts[0].get("sampler_options")}
+        if parts[0].get("run_options") is not None:   # the budget (equal in every run: the settings agree)
+            out[m]["run_options"] = parts[0]["run_options"]
     return {"samplers": out, "not_pooled": missing}
 
 
