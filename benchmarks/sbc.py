@@ -56,13 +56,16 @@ LIBRARY_METHOD = {"nuts": "nuts", "pg-nuts": "pg-nuts", "laplace": "laplace", "l
                   "laplace-0.85sd": "laplace", "emcee": "emcee"}
 #: draws of Laplace and its controls (i.i.d. from the Gaussian), thinned to --rank-draws for the ranks
 LAPLACE_DRAWS = 200
+
+
+def _mcmc_budget(a) -> dict:
+    """The chains, warm-up and draws per chain of nuts and pg-nuts here (``--nuts-*``)."""
+    return {"chains": a.nuts_chains, "warmup": a.nuts_warmup, "draws_per_chain": a.nuts_draws}
+
+
 #: the options each library method's runs here override (``run_options`` in the JSON)
-RUN_OPTIONS = {
-    "nuts": lambda a: {"chains": a.nuts_chains, "warmup": a.nuts_warmup, "draws_per_chain": a.nuts_draws},
-    "pg-nuts": lambda a: {"chains": a.nuts_chains, "warmup": a.nuts_warmup, "draws_per_chain": a.nuts_draws},
-    "laplace": lambda a: {"n_draws": LAPLACE_DRAWS},
-    "emcee": lambda a: {},
-}
+RUN_OPTIONS = {"nuts": _mcmc_budget, "pg-nuts": _mcmc_budget, "laplace": lambda a: {"n_draws": LAPLACE_DRAWS},
+               "emcee": lambda a: {}}
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
 
