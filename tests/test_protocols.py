@@ -352,6 +352,7 @@ def test_cli_test_corpus_and_refusals(fake_corpora, capsys):
     # the test frames are projected through the training corpus's AAM, not their own
     assert loaded == [("good", None), ("test", tmp / "good" / "aam.npz")]
     assert res["test_features"] == "projected through the training corpus's AAM"
+    assert (res["corpus"], res["test_corpus"]) == (str(tmp / "good"), str(tmp / "test"))
     for bad, what in (("small-dz", "visual feature dimension"), ("odd-phones", "phone set")):
         capsys.readouterr()
         assert cli.main(base + ["--test-corpus", str(tmp / bad), "--json", str(tmp / "x.json")]) == 2
@@ -362,6 +363,19 @@ def test_cli_test_corpus_and_refusals(fake_corpora, capsys):
     assert cli.main(base[:-1] + ["hmm-mean,nope", "--json", str(out)]) == 2
     err = capsys.readouterr().err
     assert "nope" in err and "ssgpdm-vlmm-optimise" in err and not loaded
+
+
+def test_cli_records_the_corpora_as_given(fake_corpora, monkeypatch):
+    """Relative corpus paths stay relative in the result (no machine's directory in it), even
+    when the corpus directory is a symlink that resolves elsewhere."""
+    tmp, _ = fake_corpora
+    (tmp / "data").mkdir()
+    (tmp / "data" / "good").symlink_to(tmp / "good")
+    monkeypatch.chdir(tmp)
+    assert cli.main(["evaluate", "--protocol", "englebienne2008", "--corpus", "data/good", "--test-corpus",
+                     "test", "--methods", "hmm-mean", "--json", "rel.json"]) == 0
+    res = json.loads((tmp / "rel.json").read_text())
+    assert (res["corpus"], res["test_corpus"]) == ("data/good", "test")
 
 
 @pytest.mark.parametrize("where", ["missing-dir/out.json", "a-directory.json", "out.txt"])

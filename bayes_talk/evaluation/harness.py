@@ -419,11 +419,13 @@ def evaluate(
                 test_sequences=test_c.sequences if test_c is not None else None,
                 train_phone_set=phone_set(train_c),
                 test_phone_set=phone_set(test_c) if test_c is not None else None, executor=ex)
-    result["corpus"] = str(Path(corpus).resolve())
+    # the corpora as given (relative stays relative): a result file names no machine's
+    # directory unless the user gave one
+    result["corpus"] = str(Path(corpus))
     result["generator"] = corpus_generator(train_c.manifest)
     if test_c is not None:
         result["test_generator"] = corpus_generator(test_c.manifest)
-    result["test_corpus"] = str(Path(test_corpus).resolve()) if test_corpus is not None else None
+    result["test_corpus"] = str(Path(test_corpus)) if test_corpus is not None else None
     result["test_features"] = (None if test_c is None else "projected through the training corpus's AAM"
                                if train_c.aam_path is not None else "the test corpus's precomputed features")
     result["load_seconds"] = load_s
