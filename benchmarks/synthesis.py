@@ -75,7 +75,7 @@ def main() -> None:
         if tm.kind == "sgplvm":
             raise SystemExit(f"{args.model}: an sgplvm model; this benchmark times the switching SGPDM")
         model = tm.model
-        train_dir = Path(json.loads((args.model / "bayes_talk_model.json").read_text())["corpus"])
+        train_dir = tm.training_corpus()
         train_c = load_corpus(train_dir)
         train = list(train_c.sequences)[: args.n_train or None]
         test = list(load_corpus(args.test_corpus, aam=train_c.aam_path).sequences)[: args.n_test]

@@ -211,12 +211,13 @@ def test_propose_prototypes_refuses_non_empty_out(data, tmp_path):
         propose_prototypes(root, 2, out)
 
 
-def test_cli_propose_then_track_without_annotations(data, tmp_path, capsys):
+def test_cli_propose_then_track_without_annotations(data, tmp_path, capsys, monkeypatch):
     from bayes_talk.cli import main
 
     root = _user_corpus(tmp_path / "cli", data, None)
-    assert main(["corpus", "propose-prototypes", str(root), "--prototypes", "1"]) == 0
-    assert (root / "prototypes" / "prototypes.json").exists()
+    monkeypatch.chdir(tmp_path)   # a relative corpus path is recorded as given, no machine's directory
+    assert main(["corpus", "propose-prototypes", "cli", "--prototypes", "1"]) == 0
+    assert json.loads((root / "prototypes" / "prototypes.json").read_text())["corpus"] == "cli"
     assert main(["corpus", "track", str(root)]) == 2
     err = capsys.readouterr().err
     assert "no annotated frame in any video" in err and "NAME.annotations" in err

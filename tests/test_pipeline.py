@@ -283,6 +283,20 @@ def test_model_directory_of_another_version_is_refused(model_dir, tmp_path):
         load_trained(other)
 
 
+def test_the_loaded_model_names_its_training_corpus(model_dir, corpus_dir, tmp_path, monkeypatch):
+    """``TrainedModel.training_corpus``: the directory as ``train`` recorded it, relative to where
+    it ran; one not here is a FileNotFoundError naming the descriptor and the path."""
+    assert load_trained(model_dir).training_corpus() == Path(str(corpus_dir))
+    monkeypatch.chdir(tmp_path)          # recorded absolute here; a relative record resolves from the cwd
+    (tmp_path / "c").symlink_to(corpus_dir)
+    tm = load_trained(model_dir)
+    tm.corpus = "c"
+    assert tm.training_corpus() == Path("c")
+    tm.corpus = "moved/away"
+    with pytest.raises(FileNotFoundError, match=r"bayes_talk_model\.json: the training corpus 'moved/away' is not"):
+        tm.training_corpus()
+
+
 class _Recorder:
     """Stands in for a model: records what it was trained on (no training cost)."""
 
@@ -310,9 +324,13 @@ def test_train_holdout_excludes_the_named_utterances(corpus_dir, tmp_path, monke
     n = len(json.loads((corpus_dir / "manifest.json").read_text())["sequences"])
     lst = tmp_path / "held.txt"
     lst.write_text("utt0003\n# a comment\n\nutt0007\n")
-    out = pipeline.train(corpus_dir, "ssgpdm-vlmm", tmp_path / "m1", workers=1, holdout_list=lst)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "c").symlink_to(corpus_dir)
+    monkeypatch.chdir(tmp_path)   # the corpus is recorded as given: no machine's directory in the model
+    out = pipeline.train("data/c", "ssgpdm-vlmm", tmp_path / "m1", workers=1, holdout_list=lst)
     desc = json.loads((out / "bayes_talk_model.json").read_text())
     assert desc["held_out"] == ["utt0003", "utt0007"] and desc["n_train"] == n - 2
+    assert desc["corpus"] == "data/c"
     assert len(seen[-1]) == n - 2 and not {"utt0003", "utt0007"} & set(seen[-1])
     # --holdout N: the last N, from the command line
     assert main(["train", str(corpus_dir), "--out", str(tmp_path / "m2"), "--holdout", "3",

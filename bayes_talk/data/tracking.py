@@ -287,7 +287,7 @@ def propose_prototypes(root: str | Path, per_phone: int = AAM_FRAMES_PER_PHONE,
         v.frames = None
     path = out / "prototypes.json"
     write_json(path, {"format": "bayes_talk.prototypes", "per_phone": int(per_phone),
-                      "per_video": int(per_video), "seed": int(seed), "corpus": str(root.resolve()),
+                      "per_video": int(per_video), "seed": int(seed), "corpus": str(root),
                       "rule": "deena2010 §3.2: up to per_phone random frames of every phone "
                               "(25 Hz majority labels), random stream [seed, 2**31]",
                       "frames": listing})

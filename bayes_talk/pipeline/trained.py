@@ -34,7 +34,9 @@ class TrainedModel:
     """A loaded model directory: the model's ``kind`` (a registry family), the fitted
     estimator ``synth`` runs (a :class:`~bayes_talk.estimators.calibrated.BandCalibrated`
     when the model was trained with a band calibration), the corpus AAM (or None), the offset
-    added back to its mean-removed parameters, the frame rate and the audio front end."""
+    added back to its mean-removed parameters, the frame rate, the audio front end and the
+    training corpus directory as ``train`` was given it (relative to where it ran; None when
+    the descriptor has none)."""
 
     kind: str
     model: Estimator
@@ -42,6 +44,15 @@ class TrainedModel:
     offset: np.ndarray
     fps: float
     audio: AudioSettings | None = None
+    corpus: str | None = None
+
+    def training_corpus(self) -> Path:
+        """The directory the model was trained on, checked to exist (benchmarks that rebuild the
+        training set read it); a clear error when the descriptor names none or it is not here."""
+        if self.corpus is None or not Path(self.corpus).is_dir():
+            raise FileNotFoundError(f"{DESCRIPTOR}: the training corpus {self.corpus!r} is not a directory here "
+                                    "(it is recorded as given to `bayes-talk train`, relative to where that ran)")
+        return Path(self.corpus)
 
     @property
     def calibration(self) -> BandCalibration | None:
@@ -87,4 +98,4 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
         raise BundleError(f"{d / 'aam.npz'}: an AAM with {aam.n_params} parameters, but the model in {d} "
                           f"was trained on {len(desc['aam_offset'])}: the AAM does not belong to this model")
     return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)),
-                        AudioSettings.from_dict(desc.get("audio"), where=str(d)))
+                        AudioSettings.from_dict(desc.get("audio"), where=str(d)), desc.get("corpus"))

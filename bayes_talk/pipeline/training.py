@@ -145,7 +145,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
     bundle.write_descriptor(out, {
-        "kind": kind, "corpus": str(Path(corpus_dir).resolve()),
+        "kind": kind, "corpus": str(corpus_dir),   # as given: no machine's directory in a shared model
         "n_train": band_cal.info["n_fit"] if calibrated_model == "holdout" and band_cal is not None
         else len(corpus.sequences),
         "calibration": None if band_cal is None else {"model": calibrated_model, "holdout": calibrate_bands,

@@ -65,8 +65,9 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=400)
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
-    model = load_trained(a.model).uncalibrated
-    tc = load_corpus(Path(json.loads((a.model / "bayes_talk_model.json").read_text())["corpus"]))
+    tm = load_trained(a.model)
+    model = tm.uncalibrated
+    tc = load_corpus(tm.training_corpus())
     s = next(u for u in load_corpus(a.heldout, aam=tc.aam_path).sequences if u.name == a.utterance)
     t0 = time.perf_counter()
     r = sample_synthesis(model, s.mfcc, s.labels, method="nuts", n_draws=a.draws, warmup=a.warmup, seed=a.seed)
