@@ -382,4 +382,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from bayes_talk.executor import sigterm_as_interrupt
+
+    with sigterm_as_interrupt():   # `kill` stops the chains' worker processes too, not only this one
+        main()
