@@ -125,7 +125,7 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
         "bayes_talk.synthesis.samplers:run_laplace", draws=64, map_restarts=0, diagnostics=("khat",),
         advice="the Gaussian approximation is poor here (the posterior is multimodal); its calibrated bands "
                "are calibrated empirically (train --calibrate-bands), not by the approximation; "
-               "--posterior pg-nuts samples the posterior itself (about 25 min for 3 s of speech on 2 cores "
+               "--posterior pg-nuts samples the posterior itself (25–55 min for 3–4 s of speech on 2 cores "
                "with --workers 2)",
         options={"khat_draws": 200}),
     InferenceMethod(
