@@ -139,7 +139,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                     calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None,
                     sampler_options={"chains": args.chains, "warmup": args.warmup,
                                      "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
-                                     "pg_particles": args.pg_particles, "workers": args.workers})
+                                     "pg_particles": args.pg_particles, "workers": args.workers,
+                                     "stop_at_targets": False if args.all_draws else None})
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
@@ -481,6 +482,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-tree-depth", type=_positive_int, default=None, help=f"NUTS max tree depth (default {NUTS_DEFAULTS['max_tree_depth']})")
     s.add_argument("--pg-particles", type=_positive_int, default=None,
                    help=f"pg-nuts: particles of each particle Gibbs sweep (default {PG_NUTS_DEFAULTS['pg_particles']})")
+    s.add_argument("--all-draws", action="store_true",
+                   help=f"pg-nuts: keep drawing to --draws; by default the chains stop once R-hat <= 1.01 and bulk "
+                        f"and tail ESS >= 400 on the latents and AAM parameters, checked after "
+                        f"{PG_NUTS_BUDGET['min_draws_per_chain']} draws per chain and every "
+                        f"{PG_NUTS_BUDGET['check_every']} after")
     s.add_argument("--workers", type=_positive_int, default=None,
                    help="nuts/pg-nuts: processes running the chains in parallel (default 1); the draws depend "
                         "on --seed only, not on this")

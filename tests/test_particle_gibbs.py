@@ -372,7 +372,8 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
     got = {}
 
     def recorder(dens, mp, modes, z0, L, per_chain, warmup, chains, seed, skw, whiten=False):
-        got.update(per_chain=per_chain, warmup=warmup, chains=chains)
+        got.update(per_chain=per_chain, warmup=warmup, chains=chains,
+                   rule=[type(skw.get("enough")).__name__, skw.get("min_draws"), skw.get("check_every")])
         raise Stop
 
     monkeypatch.setattr(post, "nuts_noncentred", recorder)
@@ -381,10 +382,63 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
     with pytest.raises(Stop):
         sample_synthesis(model, u.mfcc[:T], u.labels[:T], method=method, map_restarts=0, log_warnings=False,
                          sampler_kw={"coords": "noncentred"})
+    rule = (["TargetCheck", budget["min_draws_per_chain"], budget["check_every"]] if budget.get("stop_at_targets")
+            else ["NoneType", None, None])   # pg-nuts stops at the R-hat/ESS targets, NUTS draws them all
     assert got == {"per_chain": budget["draws_per_chain"], "warmup": budget["warmup"],
-                   "chains": NUTS_DEFAULTS["chains"]}
+                   "chains": NUTS_DEFAULTS["chains"], "rule": rule}
+    assert method == "nuts" or rule[0] == "TargetCheck"
     assert DEFAULT_DRAWS[method] == NUTS_DEFAULTS["chains"] * budget["draws_per_chain"]
     assert f"{method} {NUTS_DEFAULTS['chains']} x {budget['draws_per_chain']}" in draws_help()
+
+
+def test_the_stopping_rule_passes_mixed_chains_and_fails_chains_apart(toy):
+    """:class:`TargetCheck` on latent draws around the toy MAP: four chains of independent draws
+    (800 in all) pass the R-hat ≤ 1.01 and ESS ≥ 400 checks on the latents and AAM parameters;
+    one chain shifted fails R-hat, too few draws fail ESS; each check is in ``history``."""
+    from bayes_talk.synthesis.joint import make_plan
+    from bayes_talk.synthesis.posterior import TargetCheck
+
+    model, u = toy
+    T = 6
+    plan = make_plan(model, u.mfcc[:T], u.labels[:T])
+    x_map = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="map", log_warnings=False).map_latents
+    rng = np.random.default_rng(0)
+    X = x_map.reshape(1, 1, -1) + 0.05 * rng.standard_normal((4, 200, x_map.size))
+    check = TargetCheck(plan)
+    assert check(X) is True
+    shifted = X.copy()
+    shifted[0] += 0.05
+    assert check(shifted) is False
+    assert check(X[:, :60]) is False
+    h = check.history
+    assert [c["draws_per_chain"] for c in h] == [200, 200, 60]
+    assert h[0]["failed"] == [] and h[0]["aam_ess_bulk_min"] >= 400 and h[0]["aam_rhat_max"] <= 1.01
+    assert any(f.startswith("R-hat") for f in h[1]["failed"]) and h[1]["rhat_max"] > 1.01
+    assert any("bulk ESS" in f for f in h[2]["failed"]) and h[2]["ess_bulk_min"] < 400
+
+
+def test_pg_nuts_stops_at_the_targets_or_draws_the_most(toy):
+    """pg-nuts with the stopping rule on (the default) checks after ``min_draws_per_chain`` and
+    every ``check_every`` draws (``stop_checks`` in the diagnostics) and keeps the draws up to
+    the first check that passed, or all ``n_draws`` if none did — a prefix of the draws of the
+    same run with ``stop_at_targets`` off."""
+    model, u = toy
+    T = 6
+    kw = {"n_draws": 2 * 40, "warmup": 10, "chains": 2, "seed": 2, "map_restarts": 0, "log_warnings": False}
+    opts = {"pg_particles": 8, "min_draws_per_chain": 10, "check_every": 10}
+    r = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts", sampler_kw=opts, **kw)
+    full = sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="pg-nuts",
+                            sampler_kw={**opts, "stop_at_targets": False}, **kw)
+    d, checks = r.diagnostics, r.diagnostics["stop_checks"]
+    assert "stop_checks" not in full.diagnostics and full.latent_draws.shape[1] == 40
+    n = r.latent_draws.shape[1]
+    assert [c["draws_per_chain"] for c in checks] == list(range(10, n + 1 if d["stopped_early"] else n, 10))
+    assert d["stopped_early"] == (checks[-1]["failed"] == []) and d["max_draws_per_chain"] == 40
+    assert all(c["failed"] for c in checks[:-1])
+    assert n == (checks[-1]["draws_per_chain"] if d["stopped_early"] else 40) and d["n_draws"] == n
+    np.testing.assert_array_equal(r.latent_draws, full.latent_draws[:, :n])
+    with pytest.raises(ValueError, match="non-centred"):
+        sample_synthesis(model, u.mfcc[:T], u.labels[:T], method="nuts", sampler_kw={"stop_at_targets": True}, **kw)
 
 
 def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_are_reported(toy, monkeypatch):
@@ -486,6 +540,15 @@ def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
     with pytest.raises(ValueError, match="--pg-particles applies to --posterior pg-nuts, not 'nuts'"):
         synth(tmp_path / "no-model", "x.wav", None, tmp_path / "out", posterior="nuts",
               sampler_options={"pg_particles": 32})
+    # --all-draws: pg-nuts keeps drawing to --draws (the stopping rule off); refused for other methods
+    b = build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--posterior", "pg-nuts",
+                                   "--all-draws"])
+    assert b.all_draws is True and build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o"]).all_draws is False
+    assert _sampler_args({"stop_at_targets": False}) == {"sampler_kw": {"stop_at_targets": False}}
+    assert _sampler_args({"stop_at_targets": None}) == {}
+    with pytest.raises(ValueError, match="--all-draws applies to --posterior pg-nuts, not 'laplace'"):
+        synth(tmp_path / "no-model", "x.wav", None, tmp_path / "out", posterior="laplace",
+              sampler_options={"stop_at_targets": False})
 
 
 def _draws_match_their_density(q, q_ref, t, x_prev, bound, rng, N=20000):

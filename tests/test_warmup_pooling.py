@@ -205,3 +205,58 @@ def test_clusters_of_the_pooled_late_warmup_states_become_proposal_components(bl
         few.record(s, m[:1], np.zeros(1), A)
     few.end_adaptation()
     assert s not in few.clustered
+
+
+class _Never:
+    """A stopping rule that never stops, keeping what it was shown."""
+
+    def __init__(self):
+        self.seen = []
+
+    def __call__(self, samples):
+        self.seen.append(samples.copy())
+        return False
+
+
+@pytest.mark.parametrize("warmup", [30, 0])
+def test_draws_in_batches_between_checks_equal_one_uninterrupted_run(warmup):
+    """A stopping rule that never fires: the chains draw in batches (20, then 15, 15, 10 per chain),
+    each continuing its ChainState, and the draws, records, jump counts and step sizes equal
+    those of one batch — with jumps and a move drawing from the numpy generator, with and
+    without a warm-up (the step size found at the start carried too); the rule saw the draws so
+    far at 20, 35 and 50 per chain, each a prefix of the final ones."""
+    kw = {"n_draws": 60, "warmup": warmup, "chains": 2, "seed": 3, "jumps": np.array([[0.5, 0.0, 0.0]]),
+          "jump_attempts": 1, "extra_move": _RandomWalk(), "extra_every": 2}
+    one = run_nuts(_banana, np.zeros(3), **kw)
+    rule = _Never()
+    batched = run_nuts(_banana, np.zeros(3), enough=rule, min_draws=20, check_every=15, **kw)
+    np.testing.assert_array_equal(batched.samples, one.samples)
+    for key in one.sample_stats:   # the acceptance statistic is unpicked from Pyro's running mean: round-off
+        check = np.testing.assert_array_equal if key != "acceptance_rate" else \
+            lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+        check(batched.sample_stats[key], one.sample_stats[key])
+    assert batched.stats["jumps_accepted"] == one.stats["jumps_accepted"]
+    assert batched.stats["step_size"] == one.stats["step_size"]
+    assert batched.stats["checks"] == [20, 35, 50] and batched.stats["stopped_early"] is False
+    assert [s.shape[1] for s in rule.seen] == [20, 35, 50]
+    for s in rule.seen:
+        np.testing.assert_array_equal(s, one.samples[:, :s.shape[1]])
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_stopping_rule_ends_the_draws_where_it_first_passes(workers):
+    """A rule that passes from 30 draws per chain on ends the draws at the second check (30 of at
+    most 80), the same draws whatever the worker count, a prefix of the full run's; the per-draw
+    statistics have the draws' length."""
+    def rule(samples):
+        return samples.shape[1] >= 30
+
+    kw = {"n_draws": 80, "warmup": 10, "chains": 2, "seed": 1}
+    d = run_nuts(_banana, np.zeros(3), enough=rule, min_draws=20, check_every=10, workers=workers, **kw)
+    assert d.samples.shape == (2, 30, 3)
+    assert d.stats["checks"] == [20, 30] and d.stats["stopped_early"] is True and d.stats["max_draws_per_chain"] == 80
+    assert all(v.shape[:2] == (2, 30) for v in d.sample_stats.values())
+    full = run_nuts(_banana, np.zeros(3), **kw)
+    np.testing.assert_array_equal(d.samples, full.samples[:, :30])
+    with pytest.raises(ValueError, match="min_draws >= 1 and check_every >= 1"):
+        run_nuts(_banana, np.zeros(3), enough=rule, check_every=0, **kw)

@@ -118,8 +118,9 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     held-out figures in docs/results.md; None: off). Recorded in ``segments.json``.
     """
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
-    if (sampler_options or {}).get("pg_particles") is not None and posterior != "pg-nuts":
-        raise ValueError(f"--pg-particles applies to --posterior pg-nuts, not {posterior!r}")
+    for key, flag in (("pg_particles", "--pg-particles"), ("stop_at_targets", "--all-draws")):
+        if (sampler_options or {}).get(key) is not None and posterior != "pg-nuts":
+            raise ValueError(f"{flag} applies to --posterior pg-nuts, not {posterior!r}")
     if (sampler_options or {}).get("workers") is not None and posterior not in ("nuts", "pg-nuts"):
         raise ValueError(f"--workers runs NUTS chains in parallel: it applies to --posterior nuts or pg-nuts, "
                          f"not {posterior!r}")
@@ -241,9 +242,10 @@ def _synthesis_options(choices: dict, posterior: str, algorithm: str, init: str 
 def _sampler_args(options: dict | None) -> dict:
     """``sample_synthesis`` keywords from synth's sampler options (``chains``, ``warmup``,
     ``target_accept``, ``max_tree_depth``, ``pg_particles``, ``workers``: processes running the
-    chains; None entries keep the library defaults)."""
+    chains, ``stop_at_targets``: pg-nuts's stopping rule; None entries keep the library defaults)."""
     opts = {k: v for k, v in (options or {}).items() if v is not None}
-    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles", "workers"}
+    unknown = set(opts) - {"chains", "warmup", "target_accept", "max_tree_depth", "pg_particles", "workers",
+                           "stop_at_targets"}
     if unknown:
         raise ValueError(f"unknown sampler options {sorted(unknown)}")
     kw = {k: opts.pop(k) for k in ("chains", "warmup") if k in opts}

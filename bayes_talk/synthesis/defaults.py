@@ -65,8 +65,14 @@ NUTS_DEFAULTS = {"chains": 4, "warmup": 500, "draws_per_chain": 250, "target_acc
 #: apply): its sweeps and block updates move the chains between the modes, so NUTS's adaptation
 #: needs fewer iterations and the time goes to draws. Held-out ``utt0002`` (dev40), pairs of
 #: blocks on: 500 + 250 → 200 + 500 per chain, rank R-hat 1.043 → 1.017, bulk ESS 75 → 293, wall
-#: 26 → 32 min (docs/uncertainty.md "A shorter warm-up, more draws")
-PG_NUTS_BUDGET = {"warmup": 200, "draws_per_chain": 500}
+#: 26 → 32 min (docs/uncertainty.md "A shorter warm-up, more draws"). ``draws_per_chain`` is the
+#: most a chain draws: with ``stop_at_targets`` the chains stop once the latents' and the AAM
+#: parameters' rank R-hat ≤ 1.01 and bulk and tail ESS ≥ 400
+#: (:class:`~bayes_talk.synthesis.posterior.TargetCheck`), asked after ``min_draws_per_chain``
+#: draws and every ``check_every`` after (session 36: test-set ``utt0002`` took 55 min at 500
+#: draws with ESS three times the target; docs/uncertainty.md "Stopping at the targets")
+PG_NUTS_BUDGET = {"warmup": 200, "draws_per_chain": 500, "stop_at_targets": True, "min_draws_per_chain": 250,
+                  "check_every": 50}
 PG_NUTS_DEFAULTS = {"pg_every": 1, "pg_particles": 64, "pg_h": (0.005, 0.02, 0.05), "pg_lookahead": True,
                     "pg_mode_centres": True, "pg_backward": False, "pg_frame_tries": 16,
                     "pg_frame_modes": True, "pg_block_len": 8, "pg_neighbours": False,

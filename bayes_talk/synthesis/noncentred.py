@@ -298,7 +298,10 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
     ``skw["pg_block_sweeps"]`` (default 1) passes of the block and pair updates after each sweep, and
     ``skw["pg_mode_delta"]``, ``["pg_mode_scale"]``, ``["pg_mode_starts"]``, ``["pg_adapt_moments"]``, ``["pg_adapt_clusters"]``
     its ``delta``, ``scale``, ``n_starts``, ``moments`` (its defaults when absent); the blocks without modes are in the draws'
-    ``stats["pg_blocks_without_modes"]``. ``run``: the NUTS
+    ``stats["pg_blocks_without_modes"]``. ``skw["enough"]``: a stopping rule on the latent draws
+    so far (chains, n, T·d) (:class:`~bayes_talk.synthesis.posterior.TargetCheck`), asked by
+    the runner on the draws mapped to x (with ``skw["min_draws"]``, ``skw["check_every"]``,
+    :func:`~bayes_talk.synthesis.samplers.run_nuts`). ``run``: the NUTS
     runner (default :func:`~bayes_talk.synthesis.samplers.run_nuts`); it and the blocks' mode
     searches share one executor (``skw["executor"]``, else one for ``skw["workers"]``).
     Returns (draws in ε, the :class:`NonCentred` map)."""
@@ -322,6 +325,9 @@ def nuts_noncentred(dens: UtteranceDensity, mp, modes: list, z0: np.ndarray, L: 
         target = WhitenedNonCentred(nc, e_map, L_e)
         starts = (starts - e_map) @ target.L_inv.T
         jumps = jumps @ target.L_inv.T
+    enough = skw.pop("enough", None)
+    if enough is not None:   # a stopping rule on the latents (posterior.TargetCheck), asked in NUTS's coordinates
+        skw["enough"] = lambda S: enough(target.to_x(S))
     pg_every = int(skw.pop("pg_every", 0))
     pg_particles = int(skw.pop("pg_particles", 64))
     pg_h = skw.pop("pg_h", 0.05)

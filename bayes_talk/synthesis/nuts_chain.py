@@ -246,12 +246,15 @@ def warmup_chain(task) -> ChainState:
 
 def draw_chain(task) -> dict:
     """Chain c's kept draws (an executor task): (log_prob, its :class:`ChainState`, n_draws,
-    warm-up length, seed, c, kernel keywords; ``extra_move`` fixed) → its draws, step size,
-    per-draw records, jump counts, gradients and seconds (warm-up included). Continues the
-    warm-up's generators (fresh ones, seeded as in :func:`warmup_chain`, without a warm-up)."""
+    iterations before these (the warm-up's length, plus the draws of earlier batches), seed, c,
+    kernel keywords; ``extra_move`` fixed) → its draws, step size, per-draw records, jump counts,
+    gradients and seconds so far (warm-up included), and ``state``: the :class:`ChainState` after
+    the last draw, from which a further call continues — batches of draws equal one call's draws
+    (tested). Continues the generators of ``state`` (fresh ones, seeded as in
+    :func:`warmup_chain`, without a warm-up)."""
     import pyro
 
-    log_prob, state, n_draws, warmup, seed, c, kw = task
+    log_prob, state, n_draws, done, seed, c, kw = task
     t0, counter = time.perf_counter(), [0]
     state = copy.copy(state)
     if state.rng is None:
@@ -261,14 +264,21 @@ def draw_chain(task) -> dict:
             pyro.set_rng_seed(seed + c)
         else:
             pyro.util.set_rng_state(state.torch_rng)
-        kernel = _kernel(log_prob, counter, state, kw, kw.get("extra_move"), adapt=False, t_offset=warmup)
+        kernel = _kernel(log_prob, counter, state, kw, kw.get("extra_move"), adapt=False, t_offset=done)
         log.info("NUTS chain %d: %d draws", c + 1, n_draws)
         samples, _ = run_kernel(kernel, state.x, 0, n_draws, f"NUTS chain {c + 1}")
+        state.torch_rng = pyro.util.get_rng_state()
+        if state.step_size is None:   # no warm-up: the step size found at the start, the identity mass
+            state.step_size = float(kernel.step_size)
+            state.inverse_mass = kernel.inverse_mass_matrix[("x",)].detach().numpy().copy()
     kernel.records.update(extra_records(kernel.records.pop("extra", [])))
+    state.x = samples[-1].copy() if n_draws else state.x
+    state.jump_counts = tuple(a + b for a, b in zip(state.jump_counts, kernel.jump_counts, strict=True))
+    state.n_gradients += counter[0]
+    state.seconds += time.perf_counter() - t0
     return {"samples": samples, "step_size": float(kernel.step_size), "records": kernel.records,
-            "jump_counts": [a + b for a, b in zip(state.jump_counts, kernel.jump_counts, strict=True)],
-            "warmup_seconds": state.seconds, "n_gradients": state.n_gradients + counter[0],
-            "seconds": state.seconds + time.perf_counter() - t0}
+            "jump_counts": list(state.jump_counts), "n_gradients": state.n_gradients, "seconds": state.seconds,
+            "state": state}
 
 
 __all__ = ["MOVE_STREAM", "WARMUP_ADAPTATION", "ChainState", "RecordingNUTS", "draw_chain", "extra_records", "run_kernel",

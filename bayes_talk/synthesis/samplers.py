@@ -87,7 +87,8 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              target_accept: float = NUTS_DEFAULTS["target_accept"],
              max_tree_depth: int = NUTS_DEFAULTS["max_tree_depth"], jumps: np.ndarray | None = None,
              jump_attempts: int = NUTS_DEFAULTS["jump_attempts"], workers: int = 1, executor=None,
-             extra_move=None, extra_every: int = 1) -> Draws:
+             extra_move=None, extra_every: int = 1, enough: Callable[[np.ndarray], bool] | None = None,
+             min_draws: int | None = None, check_every: int = 50) -> Draws:
     """Pyro NUTS on ``log_prob`` from ``x0``: (n,) for every chain, or (chains, n), one
     start per chain (overdispersed starts make R-hat meaningful). Diagonal mass matrix and
     step size adapted during ``warmup`` (Stan's windowed schedule, Pyro's adapter).
@@ -119,6 +120,15 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
     not changed; the frozen move's ``adaptation_summary()`` (if it has one, and not None) is
     ``stats["extra_move_adaptation"]``.
 
+    ``enough(samples) -> bool``: a stopping rule on the kept draws so far, (chains, n, dim) in
+    the coordinates of ``log_prob``, asked after ``min_draws`` draws per chain (default
+    ``n_draws`` // 2) and after every ``check_every`` more; True ends the draws there, so
+    ``n_draws`` is the most a chain draws. The chains draw in batches between the checks, each
+    continuing from where its last stopped (:func:`~bayes_talk.synthesis.nuts_chain.draw_chain`):
+    batches draw exactly what one uninterrupted run draws (tested), and the rule sees only the
+    draws, so where it stops depends on the seed alone. ``stats["checks"]`` lists the draws per
+    chain at each check and ``stats["stopped_early"]`` whether one ended the draws.
+
     ``Draws.sample_stats`` holds (chains, n_draws) arrays ``acceptance_rate``, ``n_steps``,
     ``tree_depth``, ``diverging``, ``energy``, ``lp``, ``jumps`` (mode jumps accepted),
     ``step_size`` (and the extra move's records); ``Draws.stats`` the per-chain totals
@@ -131,6 +141,10 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
         raise ValueError(f"max_tree_depth must be >= 1, got {max_tree_depth}")
     if jump_attempts < 0:
         raise ValueError(f"jump_attempts must be >= 0, got {jump_attempts}")
+    first = n_draws if enough is None else min(n_draws, n_draws // 2 if min_draws is None else int(min_draws))
+    if first < 1 or check_every < 1:
+        raise ValueError(f"a stopping rule needs min_draws >= 1 and check_every >= 1; got {min_draws} and "
+                         f"{check_every}")
     x0 = _as_tensor(x0)
     if jumps is not None:
         jumps = np.asarray(jumps, dtype=np.float64)
@@ -158,13 +172,25 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             kernel_kw["extra_move"].begin_adaptation()
             kernel_kw["extra_move"].end_adaptation([st.adaptation for st in states])
         states = [replace(st, adaptation=None) for st in states]   # not needed by the draws
-        res = list(ex.map(draw_chain, [(log_prob, states[c], n_draws, warmup, seed, c, kernel_kw)
-                                       for c in range(chains)]))
-    out = [r["samples"] for r in res]
+        warm_s = float(sum(st.seconds for st in states)) if warmup else 0.0
+        batches, done, checks, stopped = [], 0, [], False
+        while done < n_draws:   # one batch: every chain on to `first` draws (all of them without a rule)
+            res = list(ex.map(draw_chain, [(log_prob, states[c], first - done, warmup + done, seed, c, kernel_kw)
+                                           for c in range(chains)]))
+            batches.append(res)
+            states, done = [r["state"] for r in res], first
+            if enough is not None and done < n_draws:
+                checks.append(done)
+                if enough(np.concatenate([np.stack([r["samples"] for r in b]) for b in batches], axis=1)):
+                    stopped = True
+                    break
+            first = min(n_draws, done + int(check_every))
+    max_draws, n_draws = n_draws, done
+    out = [np.concatenate([b[c]["samples"] for b in batches]) for c in range(chains)]
+    res = batches[-1]
     steps = [r["step_size"] for r in res]
-    recs = [r["records"] for r in res]
+    recs = [_joined_records([b[c] for b in batches]) for c in range(chains)]
     jump_counts = [r["jump_counts"] for r in res]
-    warm_s = float(sum(r["warmup_seconds"] for r in res))
     n_grad = int(sum(r["n_gradients"] for r in res))
     ss = {k: np.array([r[k] for r in recs]) for k in recs[0]}
     ss["step_size"] = np.repeat(np.array(steps)[:, None], n_draws, axis=1)
@@ -176,10 +202,23 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
              "chain_seconds": [float(r["seconds"]) for r in res],
              "n_jumps": 0 if jumps is None else len(jumps), "jump_attempts": [int(a) for a, _ in jump_counts],
              "jumps_accepted": [int(b) for _, b in jump_counts]}
+    if enough is not None:
+        stats.update(checks=checks, stopped_early=stopped, max_draws_per_chain=int(max_draws))
     learnt = getattr(kernel_kw["extra_move"], "adaptation_summary", lambda: None)()
     if learnt is not None:   # what the chains' warm-ups taught the move
         stats["extra_move_adaptation"] = learnt
     return Draws("nuts", np.stack(out), stats, time.perf_counter() - t0, ss)
+
+
+def _joined_records(batches: list[dict]) -> dict:
+    """One chain's per-draw records over its batches of draws (``draw_chain`` results), each key
+    concatenated along the draws; an extra move's key missing from a batch (the move did not run
+    in it) is zero (False) there, as within a batch (:func:`~bayes_talk.synthesis.nuts_chain.extra_records`)."""
+    keys = list(dict.fromkeys(k for b in batches for k in b["records"]))
+    like = {k: np.asarray(next(b["records"][k] for b in batches if k in b["records"])) for k in keys}
+    return {k: np.concatenate([np.asarray(b["records"][k]) if k in b["records"]
+                               else np.zeros((len(b["samples"]), *like[k].shape[1:]), like[k].dtype)
+                               for b in batches]) for k in keys}
 
 
 # ---------------------------------------------------------------------------- emcee
