@@ -48,6 +48,7 @@ __all__ = [
     "ProcessExecutor",
     "Terminated",
     "executor_for",
+    "interruptible",
     "make_executor",
     "sigterm_as_interrupt",
     "single_thread",
@@ -141,6 +142,14 @@ def sigterm_as_interrupt():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def interruptible(main, *args, **kwargs):
+    """``main(*args, **kwargs)`` inside :func:`sigterm_as_interrupt`, its value returned: how a
+    script that runs tasks in worker processes (``benchmarks/*.py --workers``) runs its
+    ``main``, so that a ``kill`` stops its workers with it instead of leaving them running."""
+    with sigterm_as_interrupt():
+        return main(*args, **kwargs)
 
 
 class Executor:

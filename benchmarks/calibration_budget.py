@@ -160,4 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from bayes_talk.executor import interruptible
+
+    # `kill` stops the worker processes too, not only this one
+    interruptible(main)

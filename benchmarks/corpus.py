@@ -234,4 +234,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from bayes_talk.executor import interruptible
+
+    # `kill` stops the worker processes too, not only this one
+    interruptible(main)

@@ -173,4 +173,7 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from bayes_talk.executor import interruptible
+
+    # `kill` stops the worker processes too, not only this one
+    interruptible(main)

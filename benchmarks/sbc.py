@@ -170,7 +170,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import sigterm_as_interrupt
+    from bayes_talk.executor import interruptible
 
-    with sigterm_as_interrupt():   # `kill` stops the chains' worker processes too, not only this one
-        main()
+    # `kill` stops the worker processes too, not only this one
+    interruptible(main)

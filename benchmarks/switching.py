@@ -342,4 +342,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from bayes_talk.executor import interruptible
+
+    # `kill` stops the worker processes too, not only this one
+    raise SystemExit(interruptible(main))

@@ -262,4 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    from bayes_talk.executor import interruptible
+
+    # `kill` stops the worker processes too, not only this one
+    sys.exit(0 if interruptible(main) else 1)

@@ -170,3 +170,32 @@ def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
     assert "Traceback" not in err, err[-2000:]
     assert "model written" not in out
     assert _digest(model) == before
+
+
+def test_interruptible_runs_main_with_sigterm_as_interrupt_and_returns_its_value():
+    """``interruptible(main)``: main's value back; a SIGTERM during main raises ``Terminated``
+    (the executors then stop their workers); the previous handler afterwards either way."""
+    from bayes_talk.executor import Terminated, interruptible
+
+    before = signal.getsignal(signal.SIGTERM)
+    assert interruptible(lambda a, b=0: a + b, 2, b=3) == 5
+
+    def killed():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)   # the signal arrives first
+        return "not interrupted"
+
+    with pytest.raises(Terminated):
+        interruptible(killed)
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_every_benchmark_with_workers_runs_its_main_interruptible():
+    """Each script under benchmarks/ that takes ``--workers`` calls its main through
+    ``interruptible`` (a `kill` would otherwise leave its worker processes running)."""
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
+    scripts = [p for p in sorted(root.rglob("*.py")) if '"--workers"' in p.read_text()]
+    assert len(scripts) >= 9   # posterior, sbc, switching, scaling, corpus, …: the glob found them
+    missing = [str(p.relative_to(root)) for p in scripts
+               if "interruptible(main" not in p.read_text().rpartition('if __name__ == "__main__":')[2]]
+    assert missing == []
