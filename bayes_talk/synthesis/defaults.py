@@ -131,7 +131,7 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
         "bayes_talk.synthesis.samplers:run_laplace", draws=64, map_restarts=0, diagnostics=("khat",),
         advice="the Gaussian approximation is poor here (the posterior is multimodal); its calibrated bands "
                "are calibrated empirically (train --calibrate-bands), not by the approximation; "
-               "--posterior pg-nuts samples the posterior itself (25–55 min for 3–4 s of speech on 2 cores "
+               "--posterior pg-nuts samples the posterior itself (25–45 min for 3–4 s of speech on 2 cores "
                "with --workers 2)",
         options={"khat_draws": 200}),
     InferenceMethod(
@@ -149,10 +149,11 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
         "bayes_talk.synthesis.noncentred:nuts_noncentred",
         draws=NUTS_DEFAULTS["chains"] * PG_NUTS_BUDGET["draws_per_chain"], map_restarts=6,
         diagnostics=("rhat_ess", "divergences_bfmi", "frame_update_rate"),
-        advice="run more draws (synth --draws; the ESS grows with them once R-hat is within 1.01) or a longer "
+        advice="run more draws (synth --draws, the most drawn when the chains stop at the R-hat/ESS targets; the "
+               "ESS grows with them once R-hat is within 1.01) or a longer "
                "warm-up (--warmup) if R-hat is not; the frames with the lowest update rate "
-               "(pg_frame_update_rate in diagnostics.json) are the slowest to mix; on 3-s held-out utterances the "
-               "defaults reach R-hat <= 1.011 with tail ESS of 270-1,260 (docs/uncertainty.md)",
+               "(pg_frame_update_rate in diagnostics.json) are the slowest to mix; on 3-4-s held-out utterances the "
+               "defaults reach R-hat <= 1.01 with bulk and tail ESS >= 400 (docs/uncertainty.md)",
         options={**NUTS_DEFAULTS, **PG_NUTS_BUDGET, **PG_NUTS_DEFAULTS, "coords": "noncentred"}),
     InferenceMethod(
         "emcee", "emcee's ensemble (differential-evolution moves) in whitened coordinates",
