@@ -413,7 +413,7 @@ def test_the_stopping_rule_passes_mixed_chains_and_fails_chains_apart(toy):
     h = check.history
     assert [c["draws_per_chain"] for c in h] == [200, 200, 60]
     assert h[0]["failed"] == [] and h[0]["aam_ess_bulk_min"] >= 400 and h[0]["aam_rhat_max"] <= 1.01
-    assert f"R-hat {h[1]['rhat_max']:.4g} > 1.01" in h[1]["failed"] and h[1]["rhat_max"] > 1.01
+    assert f"R-hat {h[1]['rhat_max']:.4f} > 1.01" in h[1]["failed"] and h[1]["rhat_max"] > 1.01
     assert any("bulk ESS" in f for f in h[2]["failed"]) and h[2]["ess_bulk_min"] < 400
 
 

@@ -187,7 +187,7 @@ def convergence_problems(diag: dict) -> list[str]:
     for pre, name in (("", ""), ("aam_", "AAM-parameter ")):   # the latents, then what users consume
         r = diag.get(pre + "rhat_max")
         if r is not None and (not np.isfinite(r) or r > RHAT_MAX):
-            out.append(f"{name}R-hat {r:.4g} > {RHAT_MAX}")   # 4 digits: 1.014, not 1.01, against 1.01
+            out.append(f"{name}R-hat {r:.4f} > {RHAT_MAX}")   # 4 decimals: 1.0102, not 1.01, against 1.01
         for key, what in (("ess_bulk_min", "bulk"), ("ess_tail_min", "tail")):
             e = diag.get(pre + key)
             if e is not None and (not np.isfinite(e) or e < ESS_MIN):
