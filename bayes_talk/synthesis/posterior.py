@@ -296,8 +296,7 @@ def _sample(model, mfcc, labels, method, n_draws, seed, smoothness, warmup, chai
                 raise ValueError(f"sampler_kw['coords'] must be one of {NUTS_COORDS}, got {coords!r}")
             check = None
             every = int(skw.pop("check_every", spec.options.get("check_every", 50)))
-            first = int(skw.pop("min_draws_per_chain", spec.options.get("min_draws_per_chain",
-                                                                         -(-n_draws // chains) // 2)))
+            first = skw.pop("min_draws_per_chain", spec.options.get("min_draws_per_chain"))   # None: run_nuts's
             if bool(skw.pop("stop_at_targets", spec.options.get("stop_at_targets", False))):
                 if coords not in ("noncentred", "noncentred-whitened"):
                     raise ValueError("sampler_kw['stop_at_targets'] needs the non-centred coordinates (pg-nuts, or "

@@ -172,7 +172,7 @@ def run_nuts(log_prob: LogProb, x0, n_draws: int = NUTS_DEFAULTS["draws_per_chai
             kernel_kw["extra_move"].begin_adaptation()
             kernel_kw["extra_move"].end_adaptation([st.adaptation for st in states])
         states = [replace(st, adaptation=None) for st in states]   # not needed by the draws
-        warm_s = float(sum(st.seconds for st in states)) if warmup else 0.0
+        warm_s = float(sum(st.seconds for st in states))   # 0 without a warm-up
         batches, done, checks, stopped = [], 0, [], False
         while done < n_draws:   # one batch: every chain on to `first` draws (all of them without a rule)
             res = list(ex.map(draw_chain, [(log_prob, states[c], first - done, warmup + done, seed, c, kernel_kw)
