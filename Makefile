@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml constraints.txt
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m bayes_talk.cli demo --out demo_out
+	$(PY) -m bayes_talk.app.cli demo --out demo_out
 
 test: $(STAMP)
 	OMP_NUM_THREADS=$(TEST_THREADS) MKL_NUM_THREADS=$(TEST_THREADS) OPENBLAS_NUM_THREADS=$(TEST_THREADS) $(PY) -m pytest -q -n $(TEST_WORKERS) --dist $(TEST_DIST) --nbmake --nbmake-timeout=600 notebooks tests   # tests/ and every notebook executed

@@ -12,7 +12,7 @@ The layers and what each may import: docs/architecture.md.
 """
 from __future__ import annotations
 
-from bayes_talk.lazy import lazy_exports
+from bayes_talk.base.lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -20,7 +20,7 @@ __version__ = "0.1.0"
 _EXPORTS: dict[str, str] = {
     # data
     "Utterance": "bayes_talk.data.utterance",
-    "load_corpus": "bayes_talk.data.corpus",
+    "load_corpus": "bayes_talk.corpus",
     # features
     "AAM": "bayes_talk.features.aam",
     # models
@@ -28,19 +28,19 @@ _EXPORTS: dict[str, str] = {
     "VLMM": "bayes_talk.models.vlmm",
     "SwitchingModel": "bayes_talk.models.switching",
     # synthesis
-    "sample_synthesis": "bayes_talk.synthesis.posterior",
+    "sample_synthesis": "bayes_talk.posterior.sampling",
     # estimators
     "ESTIMATORS": "bayes_talk.estimators.registry",
     "make_estimator": "bayes_talk.estimators.registry",
     "SwitchingSGPDM": "bayes_talk.estimators.switching",
     "SGPLVM": "bayes_talk.estimators.sgplvm",
-    "VoicePuppetry": "bayes_talk.baselines",
-    "SLDS": "bayes_talk.baselines",
-    "DPDS": "bayes_talk.baselines",
-    "HMMMean": "bayes_talk.baselines",
-    "ContextRidge": "bayes_talk.baselines",
-    "ContextMLP": "bayes_talk.baselines",
-    "NotFittedError": "bayes_talk.errors",
+    "VoicePuppetry": "bayes_talk.estimators.baselines",
+    "SLDS": "bayes_talk.estimators.baselines",
+    "DPDS": "bayes_talk.estimators.baselines",
+    "HMMMean": "bayes_talk.estimators.baselines",
+    "ContextRidge": "bayes_talk.estimators.baselines",
+    "ContextMLP": "bayes_talk.estimators.baselines",
+    "NotFittedError": "bayes_talk.base.errors",
     # command-line workflow
     "train": "bayes_talk.pipeline",
     "synth": "bayes_talk.pipeline",

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from bayes_talk.data.corpus import load_npz
+from bayes_talk.corpus import load_npz
 from bayes_talk.features.aam_fit import AAMFitter
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -32,8 +32,8 @@ def main() -> None:
     from bayes_talk.alignment.commands import fit_alignment
     from bayes_talk.alignment.model import AlignmentModel
     from bayes_talk.alignment.scoring import score_segmentation, summarise_scores
-    from bayes_talk.data.corpus import load_corpus
-    from bayes_talk.files import write_json
+    from bayes_talk.corpus import load_corpus
+    from bayes_talk.base.files import write_json
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     g = ap.add_mutually_exclusive_group(required=True)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.corpus import build_corpus, load_corpus
+from bayes_talk.corpus import build_corpus, load_corpus
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 
 CONTEXT = 4
@@ -52,7 +52,7 @@ def _build(root: Path, n: int, seed: int, speech: str, workers: int) -> Path:
         man = json.loads(m.read_text())
         same = (man.get("n_utterances"), man.get("seed"), man.get("speech", "espeak")) == (n, seed, speech)
         if same and speech == "vtl":   # and the same generator (version and sizes)
-            from bayes_talk.data.corpus.build import _articulatory_manifest
+            from bayes_talk.corpus.build import _articulatory_manifest
 
             same = man.get("articulatory") == _articulatory_manifest()
         if same:
@@ -146,7 +146,7 @@ def main() -> None:
     args = ap.parse_args()
     import sklearn
 
-    from bayes_talk.files import write_json
+    from bayes_talk.base.files import write_json
 
     with tempfile.TemporaryDirectory() as td:
         work = Path(args.workdir) if args.workdir else Path(td)
@@ -187,7 +187,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

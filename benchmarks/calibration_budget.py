@@ -48,14 +48,14 @@ from train_speed import run_train
 
 from bayes_talk.evaluation.calibration import ratio_se, score_utterance, summarise_calibration
 from bayes_talk.evaluation.metrics import amse
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 _LOADED: dict = {}
 
 
 def _score_one(job: tuple[str, str, str, str]) -> dict:
     """The calibrated posterior of one test utterance and its scores (runs in a worker)."""
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
 
     model_dir, test, name, posterior = job
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     configs = parse_configs(args.configs)
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     names = [u.name for u in load_corpus(args.test)]
     corpus = str(Path(args.corpus).resolve())
@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

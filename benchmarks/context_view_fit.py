@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     from sklearn.model_selection import GroupKFold, cross_val_predict
     from threadpoolctl import threadpool_limits
 
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.features import mfcc as _mf
     from bayes_talk.features.context_view import ALPHAS, ridge_out_of_fold
     from bayes_talk.features.context_window import ContextFeatures

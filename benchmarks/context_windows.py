@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
-from bayes_talk.baselines import ContextMLP, ContextRidge, HMMMean
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.estimators.baselines import ContextMLP, ContextRidge, HMMMean
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation import metrics as M
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 ROWS = [
     ("context-ridge (CV windows)", ContextRidge, {}),

@@ -41,7 +41,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Self
 
-from bayes_talk.data.corpus import build_corpus, load_corpus
+from bayes_talk.corpus import build_corpus, load_corpus
 from bayes_talk.data.phones import PHONES
 
 
@@ -234,7 +234,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

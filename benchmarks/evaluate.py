@@ -43,7 +43,7 @@ def _ensure_corpus(build_dir: Path, n: int, seed: int) -> Path:
             return build_dir
         raise SystemExit(f"{build_dir} holds a different corpus (n={len(m.get('sequences', []))}, "
                          f"seed={m.get('seed')}); choose another --build-dir")
-    subprocess.run([sys.executable, "-m", "bayes_talk.cli", "corpus", "build", str(build_dir),
+    subprocess.run([sys.executable, "-m", "bayes_talk.app.cli", "corpus", "build", str(build_dir),
                     "--n-utterances", str(n), "--seed", str(seed)], check=True, cwd=ROOT)
     return build_dir
 
@@ -59,7 +59,7 @@ def main() -> None:
     args = ap.parse_args()
 
     corpus = Path(args.corpus) if args.corpus else _ensure_corpus(Path(args.build_dir), args.n, args.seed)
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     t0 = time.perf_counter()
     n_utt = len(load_corpus(corpus))          # warms the feature cache (not timed below)
@@ -67,7 +67,7 @@ def main() -> None:
     eval_dir = Path(args.eval_dir) if args.eval_dir else Path(tempfile.mkdtemp(prefix="bt_eval_"))
     eval_dir.mkdir(parents=True, exist_ok=True)
     out_json = eval_dir / "deena2010_quick.json"
-    cmd = [sys.executable, "-m", "bayes_talk.cli", "evaluate", "--protocol", "deena2010", "--quick",
+    cmd = [sys.executable, "-m", "bayes_talk.app.cli", "evaluate", "--protocol", "deena2010", "--quick",
            "--corpus", str(corpus), "--json", str(out_json)]
     load_start = [round(x, 2) for x in os.getloadavg()]
     t0 = time.perf_counter()

@@ -148,7 +148,7 @@ class Ours:
         return float(loss.detach())
 
     def raw_torch_eval(self) -> float:
-        from bayes_talk import settings
+        from bayes_talk.base import settings
 
         with settings.override(fused=False):
             return self.raw_eval()
@@ -474,7 +474,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.block < 1:
         p.error(f"--block must be >= 1, got {args.block}")
-    from bayes_talk import settings
+    from bayes_talk.base import settings
     from bayes_talk.gp import lapack
 
     if args.no_fused:

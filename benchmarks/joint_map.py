@@ -36,7 +36,7 @@ sys.path.insert(0, str(HERE.parent))
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import floored_precision, maximise_utterance
-from bayes_talk.synthesis.posterior import psis_diagnostics
+from bayes_talk.posterior.sampling import psis_diagnostics
 from bayes_talk.synthesis.sequential import synthesize
 
 
@@ -63,7 +63,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "results" / "joint_map.json")
     args = ap.parse_args()
 
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
 
     model = load_trained(args.model).uncalibrated

@@ -2,7 +2,7 @@
 
 A default ``synth`` warns when the Laplace posterior's PSIS k̂ lies above the largest k̂ of
 the held-out utterances its band calibration was fitted on
-(:meth:`bayes_talk.synthesis.band_calibration.BandCalibration.domain`). A warning means
+(:meth:`bayes_talk.calibration.bands.BandCalibration.domain`). A warning means
 something only if the calibrated bands of the utterances it flags are worse than those of
 the utterances it lets through. This script measures that on held-out utterances, through
 ``pipeline.synth`` exactly as ``bayes-talk synth`` runs it (no video):
@@ -38,8 +38,8 @@ from scipy.stats import spearmanr
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import load_corpus
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import synth
 
 

@@ -32,8 +32,8 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.synthesis.diagnostics import chain_diagnostics, frame_update_diagnostics
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.diagnostics import chain_diagnostics, frame_update_diagnostics
+from bayes_talk.posterior.sampling import sample_synthesis
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 KEYS = ("rhat_max", "ess_bulk_min", "ess_tail_min")
@@ -143,8 +143,8 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
     """Particle Gibbs (CSMC with ancestor sampling) chains from Laplace draws at the MAP
     (``--pg-particles``, ``--chains``, ``--warmup`` and ``--draws`` per chain as sweeps)."""
     from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-    from bayes_talk.synthesis.particle_gibbs import run_particle_gibbs
-    from bayes_talk.synthesis.posterior import visual_predictive
+    from bayes_talk.posterior.particle_gibbs import run_particle_gibbs
+    from bayes_talk.posterior.sampling import visual_predictive
 
     chains = args.chains or 4
     t0 = time.perf_counter()
@@ -173,7 +173,7 @@ def particle_gibbs(model, mfcc, labels, args) -> dict:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

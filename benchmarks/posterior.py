@@ -1,6 +1,6 @@
 """Calibration of the synthesis posterior (DESIGN.md §6): MAP vs Laplace vs NUTS vs emcee.
 
-Data: ``--corpus DIR`` loads a built corpus (``bayes_talk.data.corpus.load_corpus``) and
+Data: ``--corpus DIR`` loads a built corpus (``bayes_talk.corpus.load_corpus``) and
 holds out ``--n-test`` utterances (seeded permutation; ``--n-train`` are trained on);
 without it, toy data from tests/toydata.py (``make_utterances(24, seed=0)`` to train,
 ``make_utterances(n_test, seed=1, mean_len=30)`` held out). Model: ``SwitchingSGPDM``
@@ -75,8 +75,8 @@ from bayes_talk.evaluation.metrics import (
     crps_gaussian,
     nlpd_gaussian,
 )
-from bayes_talk.synthesis.diagnostics import RHAT_MAX
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.diagnostics import RHAT_MAX
+from bayes_talk.posterior.sampling import sample_synthesis
 from bayes_talk.synthesis.result import DEFAULT_LEVELS
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
@@ -84,7 +84,7 @@ SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state"
 
 def load_data(args):
     if args.corpus:
-        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.corpus import load_corpus
 
         seqs = list(load_corpus(args.corpus).sequences)
         perm = np.random.default_rng(args.seed).permutation(len(seqs))
@@ -131,7 +131,7 @@ def _efficiency_budget(args, method: str) -> dict:
 
 def efficiency(args) -> None:
     """NUTS vs emcee: wall time to bulk ESS 400 and ESS per second (see the module docstring)."""
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
 
     model = load_trained(args.model).uncalibrated
@@ -236,7 +236,7 @@ def _iid_efficiency(p, wall: float, load0: float, budget: dict) -> dict:
     """VI and Laplace give iid draws of an approximation q: their efficiency for p is that
     of importance sampling, the PSIS effective sample size of the k̂ draws, and it means
     something only where k̂ ≤ 0.7 (``reliable``)."""
-    from bayes_talk.synthesis.diagnostics import KHAT_MAX
+    from bayes_talk.posterior.diagnostics import KHAT_MAX
 
     d = p.diagnostics
     ess = d["psis_ess"]
@@ -382,7 +382,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

@@ -24,7 +24,9 @@ from pathlib import Path
 import numpy as np
 from skimage.transform import PiecewiseAffineTransform, warp
 
-from bayes_talk.data import face, render
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.features import warp as _warp
 from bayes_talk.features.aam import AAM

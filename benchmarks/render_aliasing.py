@@ -6,7 +6,7 @@ utterance's mean, no blinks, brows at rest) changes nothing a perfect AAM models
 combined (shape-free appearance) parameters should be constant, because Procrustes
 alignment removes the similarity transform and the texture is sampled in the mean-shape
 frame. Any variance they show is resampling artefact (aliasing). For each renderer
-(``--supersample`` factors of :func:`~bayes_talk.data.render.render_frames`, measured side
+(``--supersample`` factors of :func:`~bayes_talk.corpus.render.render_frames`, measured side
 by side in one run) this script
 
 1. draws faces for ``--n-train`` training utterances the way ``corpus build`` does
@@ -41,8 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data import face, render
-from bayes_talk.data.corpus.format import (
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
+from bayes_talk.corpus.format import (
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
     AAM_VARIANCE,
@@ -51,7 +53,7 @@ from bayes_talk.data.corpus.format import (
 )
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.features.aam import AAM
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 

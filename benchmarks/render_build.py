@@ -24,9 +24,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from bayes_talk.data import render
-from bayes_talk.data.corpus.build import build_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import render
+from bayes_talk.corpus.build import build_corpus
+from bayes_talk.base.files import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -4,7 +4,7 @@ The acceptance of issue 10 asks NUTS for rank R-hat ≤ 1.01 and bulk ESS ≥ 40
 coordinate* of a whole utterance (T·d = 450 latents for 3 s). This script draws iid
 N(0, 1) "chains" of the given shape — a sampler that mixes perfectly — and reports, over
 ``--seeds`` repetitions, the largest rank R-hat and the smallest bulk/tail ESS over the
-coordinates (``bayes_talk.synthesis.diagnostics.chain_diagnostics``, ArviZ), and how often
+coordinates (``bayes_talk.posterior.diagnostics.chain_diagnostics``, ArviZ), and how often
 the largest R-hat is within 1.01. That is the best any sampler of that many draws can do.
 
     PYTHONPATH=. python benchmarks/rhat_iid.py [--chains 4] [--dim 450] \
@@ -23,7 +23,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from bayes_talk.synthesis.diagnostics import ESS_MIN, RHAT_MAX, chain_diagnostics
+from bayes_talk.posterior.diagnostics import ESS_MIN, RHAT_MAX, chain_diagnostics
 
 
 def iid_reference(chains: int, draws: int, dim: int, seeds: int = 10) -> dict:

@@ -32,9 +32,9 @@ import soundfile as sf
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.audio import resample
+from bayes_talk.features.audio import resample
 from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import load_trained, read_utterance, train
 
 CONDITIONS = ("minus6dB", "plus6dB", "sr16000", "sr44100", "stereo_one_silent", "silent")

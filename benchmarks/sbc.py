@@ -47,9 +47,9 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace, synthesis_sbc
-from bayes_talk.executor import executor_for
-from bayes_talk.synthesis.defaults import INFERENCE
-from bayes_talk.synthesis.nuts_chain import WARMUP_ADAPTATION
+from bayes_talk.base.executor import executor_for
+from bayes_talk.posterior.methods import INFERENCE
+from bayes_talk.posterior.nuts_chain import WARMUP_ADAPTATION
 
 #: the library method behind each sampler of --methods (the controls scale Laplace's draws)
 LIBRARY_METHOD = {"nuts": "nuts", "pg-nuts": "pg-nuts", "laplace": "laplace", "laplace-halved": "laplace",
@@ -71,7 +71,7 @@ SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state"
 
 def load(args):
     if args.model:
-        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.corpus import load_corpus
         from bayes_talk.pipeline import load_trained
 
         model = load_trained(args.model).uncalibrated
@@ -170,7 +170,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bayes_talk.evaluation.sbc import SBCResult, uniformity_test
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 #: settings that may differ between pooled runs
 PER_RUN = ("sims", "seed", "workers", "nuts_sims", "emcee_sims", "methods")

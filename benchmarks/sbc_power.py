@@ -36,7 +36,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.evaluation.sbc import ALPHA, run_sbc
 from bayes_talk.evaluation.sbc_power import combined_verdict, dispersion_test, thin_to_ess
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 S2 = 0.5
 

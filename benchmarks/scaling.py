@@ -1,4 +1,4 @@
-"""Benchmark: the executors (bayes_talk.executor) and the peak memory of the full protocols (issue 14).
+"""Benchmark: the executors (bayes_talk.base.executor) and the peak memory of the full protocols (issue 14).
 
 Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with sections:
 
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CORPUS = "data/v2/train250"
@@ -66,9 +66,9 @@ def _same_model(a, b) -> bool:
 
 # ------------------------------------------------------------------------------- executors
 def executors_section(args: argparse.Namespace) -> dict:
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.executor import DaskExecutor, LocalExecutor, ProcessExecutor
+    from bayes_talk.base.executor import DaskExecutor, LocalExecutor, ProcessExecutor
 
     settings = ({"max_iter": 30, "max_frames_per_state": 100, "fallback_frames": 200} if args.quick else {})
     train = load_corpus(args.corpus).sequences[: args.n_train]
@@ -112,10 +112,10 @@ def _rss_child(args: argparse.Namespace) -> None:
     repeats/folds) and print its peak RSS as JSON."""
     import dataclasses
 
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.evaluation.harness import run_protocol
     from bayes_talk.evaluation.protocols import get_protocol
-    from bayes_talk.executor import make_executor
+    from bayes_talk.base.executor import make_executor
 
     t0 = time.perf_counter()
     proto = get_protocol(args.rss_child, quick=args.quick)
@@ -276,7 +276,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     interruptible(main)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 SIZES = (1000, 2000, 4000, 8000, 15000)
 
@@ -50,7 +50,7 @@ def synthetic_views(n_frames: int, seed: int = 0) -> tuple[dict[str, np.ndarray]
 
 def corpus_views(corpus: str | os.PathLike, n_frames: int) -> tuple[dict[str, np.ndarray], list[int]]:
     """The first ``n_frames`` frames of a corpus, whole utterances in corpus order."""
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     seqs = list(load_corpus(corpus))
     audio, visual, lens, n = [], [], [], 0

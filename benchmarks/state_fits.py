@@ -43,7 +43,7 @@ class _Capture:
 
 def state_jobs(corpus_dir: str, kind: str) -> list[tuple]:
     """The (audio, visual, lengths, config) job of every state model of ``kind``."""
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.features import mfcc as _mf
     from bayes_talk.pipeline import new_model
 
@@ -56,7 +56,7 @@ def state_jobs(corpus_dir: str, kind: str) -> list[tuple]:
 
 
 def _fit(job, direct: bool):
-    from bayes_talk import settings
+    from bayes_talk.base import settings
     from bayes_talk.gp.threads import torch_threads
     from bayes_talk.models import sgpdm_objective
     from bayes_talk.models.sgpdm import SGPDM

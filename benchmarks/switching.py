@@ -233,7 +233,7 @@ def main(argv=None) -> int:
                     help="cProfile one state fit: auto = when the training target is missed")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
-    from bayes_talk.data.corpus import build_corpus, load_corpus
+    from bayes_talk.corpus import build_corpus, load_corpus
     from bayes_talk.evaluation.protocols import PROTOCOLS
     from bayes_talk.evaluation.splits import make_splits
     from bayes_talk.synthesis.sequential import ALGORITHMS, SMOOTHNESS
@@ -342,7 +342,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     raise SystemExit(interruptible(main))

@@ -38,8 +38,8 @@ import soundfile as sf
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import load_corpus
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import synth
 
 #: level of the added white noise, dB relative to full scale (RMS)
@@ -61,7 +61,7 @@ def _perturbed(wav: Path, y: np.ndarray, sr: int, perturbation: str, rng: np.ran
         noise = rng.standard_normal(y.shape) * 10 ** (NOISE_DBFS / 20)
         sf.write(str(out), (y + noise).astype(np.float32), sr, subtype="FLOAT")
     else:
-        from bayes_talk.audio import resample
+        from bayes_talk.features.audio import resample
         sf.write(str(out), resample(y, sr, RESAMPLE_HZ), RESAMPLE_HZ, subtype="FLOAT")
     return out
 

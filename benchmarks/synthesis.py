@@ -6,7 +6,7 @@ interleaved per utterance (so every system sees the same machine load):
 
 * ``algorithm1``: deena2010's Algorithm 1 (``model.synthesize``), the paper's MAP path;
 * ``joint_map``: the whole-utterance MAP (``sample_synthesis(method="map")``: Algorithm 1's
-  path, then the joint optimisation of :mod:`bayes_talk.synthesis.posterior`);
+  path, then the joint optimisation of :mod:`bayes_talk.posterior.sampling`);
 * ``posterior``: the default posterior summary (``method="laplace"``, 64 draws: the MAP,
   the Hessian and the visual mixture) — what ``bayes-talk synth`` runs;
 * ``voice_puppetry``: ``VoicePuppetry.predict`` (Viterbi + banded solve).
@@ -45,11 +45,11 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from bayes_talk.baselines import REGISTRY
+from bayes_talk.estimators.baselines import REGISTRY
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 SMALL = {"latent_dim": 3, "max_iter": 40, "min_count": 4, "max_frames_per_state": 120, "fallback_frames": 150}
 
@@ -66,7 +66,7 @@ def main() -> None:
     args = ap.parse_args()
     model = None
     if args.model:
-        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.corpus import load_corpus
         from bayes_talk.pipeline import load_trained
 
         if args.test_corpus is None:
@@ -82,7 +82,7 @@ def main() -> None:
         cfg, vp_kw = {}, {}
         source = f"model {args.model} (trained on {train_dir}); test {args.test_corpus}"
     elif args.corpus:
-        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.corpus import load_corpus
 
         seqs = list(load_corpus(args.corpus).sequences)
         perm = np.random.default_rng(args.seed).permutation(len(seqs))

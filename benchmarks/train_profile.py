@@ -103,10 +103,10 @@ def _wrap(owner, attr: str, timer: PhaseTimer, name: str, after=None) -> None:
 def instrument(timer: PhaseTimer, per_state: list[dict]) -> None:
     """Wrap the library functions of the table in the module docstring."""
     import bayes_talk.alignment.commands as align_mod
-    import bayes_talk.bundle as bundle_mod
-    import bayes_talk.data.corpus as corpus_mod
-    import bayes_talk.synthesis.band_calibration as bc_mod
-    import bayes_talk.synthesis.posterior as post_mod
+    import bayes_talk.base.bundle as bundle_mod
+    import bayes_talk.corpus as corpus_mod
+    import bayes_talk.calibration.bands as bc_mod
+    import bayes_talk.posterior.sampling as post_mod
     from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.models.sgpdm import SGPDM
     from bayes_talk.models.switching import SwitchingModel
@@ -262,7 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     sys.exit(0 if interruptible(main) else 1)

@@ -1,7 +1,7 @@
 """``bayes-talk train`` wall time: this code beside the previous code, and their models compared
 (issue 29 item 3).
 
-Each run is the command line itself, ``python -m bayes_talk.cli train CORPUS --out DIR``
+Each run is the command line itself, ``python -m bayes_talk.app.cli train CORPUS --out DIR``
 with its defaults (the default family, ``--workers 2``, the band calibration, the
 aligner), started as a fresh process on a built corpus whose features are cached:
 
@@ -54,7 +54,7 @@ def export_tree(commit: str, dest: Path) -> Path:
 def run_train(src: Path, corpus: str, out: Path, extra: list[str], env_extra: dict[str, str]) -> dict:
     """One ``bayes-talk train`` from the tree ``src``: wall time and load around it."""
     env = dict(os.environ, PYTHONPATH=str(src), **env_extra)
-    cmd = [sys.executable, "-m", "bayes_talk.cli", "-q", "train", corpus, "--out", str(out), *extra]
+    cmd = [sys.executable, "-m", "bayes_talk.app.cli", "-q", "train", corpus, "--out", str(out), *extra]
     load0 = os.getloadavg()
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from bayes_talk.executor import interruptible
+    from bayes_talk.base.executor import interruptible
 
     # `kill` stops the worker processes too, not only this one
     sys.exit(0 if interruptible(main) else 1)

@@ -53,7 +53,7 @@ def shared_built_corpus(built_once) -> Path:
     (issue 29). Treat it as read-only: a test that changes a corpus works on a copy
     (``shutil.copytree``); the feature cache that loading writes into it is the only change,
     and it is the same for every reader (written atomically)."""
-    from bayes_talk.cli import main
+    from bayes_talk.app.cli import main
 
     def build(out: Path) -> None:
         assert main(["-q", "corpus", "build", str(out), "--n-utterances", str(SHARED_CORPUS_UTTERANCES),

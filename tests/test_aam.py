@@ -8,7 +8,9 @@ import pytest
 from scipy.ndimage import binary_erosion
 from skimage.transform import PiecewiseAffineTransform, warp
 
-from bayes_talk.data import face, render
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.features.aam import AAM, remove_sequence_mean

@@ -1,5 +1,5 @@
 """AAM search (bayes_talk.features.aam_fit) and sparse-annotation tracking
-(bayes_talk.data.tracking) on rendered synthetic faces (no speech synthesis needed)."""
+(bayes_talk.corpus.tracking) on rendered synthetic faces (no speech synthesis needed)."""
 from __future__ import annotations
 
 import json
@@ -8,12 +8,14 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from bayes_talk.data import face, render
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
+from bayes_talk.corpus import load_corpus
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import write_lab
 from bayes_talk.data.speech import write_wav
-from bayes_talk.data.tracking import (
+from bayes_talk.corpus.tracking import (
     NoAnnotatedFrameError,
     propose_prototypes,
     read_annotations,
@@ -212,7 +214,7 @@ def test_propose_prototypes_refuses_non_empty_out(data, tmp_path):
 
 
 def test_cli_propose_then_track_without_annotations(data, tmp_path, capsys, monkeypatch):
-    from bayes_talk.cli import main
+    from bayes_talk.app.cli import main
 
     root = _user_corpus(tmp_path / "cli", data, None)
     monkeypatch.chdir(tmp_path)   # a relative corpus path is recorded as given, no machine's directory

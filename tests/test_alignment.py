@@ -18,7 +18,7 @@ from bayes_talk.alignment import (
 from bayes_talk.alignment.scoring import edit_alignment, score_segmentation, summarise_scores
 from bayes_talk.alignment.transcript import check_transcript
 from bayes_talk.alignment.viterbi import viterbi_chain, viterbi_phone_loop
-from bayes_talk.cli import main
+from bayes_talk.app.cli import main
 from bayes_talk.data.labels import read_labels
 
 N_TRAIN = 10
@@ -111,7 +111,7 @@ def test_words_outside_the_latin_script_are_a_named_error():
 # ------------------------------------------------------------------ trained on a small corpus
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     out = tmp_path_factory.mktemp("align") / "corpus"
     assert main(["corpus", "build", str(out), "--n-utterances", str(N_TRAIN + 2), "--seed", "5"]) == 0
@@ -239,7 +239,7 @@ def test_aligner_fitted_in_a_worker_process_is_the_one_fitted_here(small, tmp_pa
     import json
 
     from bayes_talk.alignment.commands import fit_alignment
-    from bayes_talk.executor import make_executor
+    from bayes_talk.base.executor import make_executor
 
     c, _, _ = small
     seqs = c.sequences[:4]

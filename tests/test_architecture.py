@@ -35,30 +35,32 @@ PACKAGE = Path(__file__).resolve().parent.parent / "bayes_talk"
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # low-level utilities: no knowledge of faces, speech or models; the package root is a
     # façade whose exports are imported lazily (bayes_talk/__init__.py) so it sits here
-    ("base", ("bayes_talk", "bayes_talk.files", "bayes_talk.bundle", "bayes_talk.errors", "bayes_talk.progress",
-              "bayes_talk.gp", "bayes_talk.video", "bayes_talk.executor", "bayes_talk.memory",
-              "bayes_talk.arviz_compat", "bayes_talk.settings", "bayes_talk.lazy")),
+    ("base", ("bayes_talk", "bayes_talk.base", "bayes_talk.gp")),
     # raw data: phone set, utterance container, label files, speech synthesis, face
     # geometry and coarticulation
     ("data", ("bayes_talk.data",)),
     # features of one utterance: audio front end, MFCC, Procrustes/PCA/warp/AAM
-    ("features", ("bayes_talk.features", "bayes_talk.audio")),
+    ("features", ("bayes_talk.features",)),
     # a stored corpus: renders synthetic faces (needs the warp), extracts and saves the
     # features of every utterance, loads them back (needs the AAM); tracking real video
-    ("corpus", ("bayes_talk.data.corpus", "bayes_talk.data.render", "bayes_talk.data.tracking")),
+    ("corpus", ("bayes_talk.corpus",)),
     # phone labels from audio: forced alignment and recognition, trained on a corpus
     ("alignment", ("bayes_talk.alignment",)),
     # generative models and their MAP fit (never inference for new audio)
     ("models", ("bayes_talk.models",)),
-    # inference given a fitted model: initialisers, objectives, algorithms 1-2, posterior
+    # the papers' synthesis given a fitted model: initialisers, objectives, Algorithms 1-2,
+    # the whole-utterance density and its joint MAP, the result type
     ("synthesis", ("bayes_talk.synthesis",)),
+    # posterior methods behind one interface: the method table, the samplers, diagnostics
+    ("posterior", ("bayes_talk.posterior",)),
+    # the predictive's calibration: fitted on held-out training utterances, applied to results
+    ("calibration", ("bayes_talk.calibration",)),
     # fit / predict / predict_dist / save / load: our systems and the published baselines
-    ("estimators", ("bayes_talk.estimators", "bayes_talk.baselines")),
+    ("estimators", ("bayes_talk.estimators",)),
     # protocols, metrics, reports
     ("evaluation", ("bayes_talk.evaluation",)),
     # what a user runs: train / synth directories, the command line, the demo
-    ("application", ("bayes_talk.pipeline", "bayes_talk.cli", "bayes_talk.demo", "bayes_talk.__main__",
-                     "bayes_talk.uncertainty_outputs")),
+    ("application", ("bayes_talk.pipeline", "bayes_talk.app")),
 ]
 
 #: arrows tolerated for now, backward or closing a cycle: (importer, imported) -> reason.
@@ -217,8 +219,8 @@ def test_checker_sees_cycles_and_backward_arrows(tmp_path):
     """The checker itself: a planted cycle and a planted backward arrow are reported; an
     import under ``if TYPE_CHECKING:`` is an arrow like any other."""
     src = tmp_path / "x.py"
-    src.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from bayes_talk.files import a\n")
-    assert imports_of("bayes_talk.x", src, {"bayes_talk.files", "bayes_talk.x"}) == {"bayes_talk.files"}
+    src.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from bayes_talk.base.files import a\n")
+    assert imports_of("bayes_talk.x", src, {"bayes_talk.base.files", "bayes_talk.x"}) == {"bayes_talk.base.files"}
     assert find_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert find_cycles({"a": {"b"}, "b": set()}) == []
     planted = {"bayes_talk.models.x": {"bayes_talk.synthesis.y"}, "bayes_talk.synthesis.y": set()}
@@ -284,19 +286,19 @@ def test_checker_sees_private_imports(tmp_path):
     module path, by a member of an imported class) are reported, public and dunder names and
     a module's own names are not."""
     src = tmp_path / "x.py"
-    src.write_text("from bayes_talk.files import _a, b, __version__, Thing\n"
-                   "from bayes_talk import files as f\n"
+    src.write_text("from bayes_talk.base.files import _a, b, __version__, Thing\n"
+                   "from bayes_talk.base import files as f\n"
                    "import bayes_talk.gp.linalg as la\n"
                    "import bayes_talk.gp.lapack\n"
                    "f._c; f.d; la._e; bayes_talk.gp.lapack._g; Thing._h; Thing.i; b.__doc__\n")
-    mods = {"bayes_talk", "bayes_talk.files", "bayes_talk.gp", "bayes_talk.gp.linalg", "bayes_talk.gp.lapack",
+    mods = {"bayes_talk", "bayes_talk.base", "bayes_talk.base.files", "bayes_talk.gp", "bayes_talk.gp.linalg", "bayes_talk.gp.lapack",
             "bayes_talk.x"}
     assert sorted(private_imports("bayes_talk.x", src, mods)) == sorted([
-        "bayes_talk.x: from bayes_talk.files import _a",
-        "bayes_talk.x: bayes_talk.files._c (line 5)",
+        "bayes_talk.x: from bayes_talk.base.files import _a",
+        "bayes_talk.x: bayes_talk.base.files._c (line 5)",
         "bayes_talk.x: bayes_talk.gp.linalg._e (line 5)",
         "bayes_talk.x: bayes_talk.gp.lapack._g (line 5)",
-        "bayes_talk.x: bayes_talk.files.Thing._h (line 5)",
+        "bayes_talk.x: bayes_talk.base.files.Thing._h (line 5)",
     ])
 
 
@@ -351,3 +353,45 @@ def test_architecture_doc_names_every_module():
     files = {str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py") if p.name != "__init__.py"}
     assert not files - named, f"modules missing from docs/architecture.md's index: {sorted(files - named)}"
     assert not named - files, f"docs/architecture.md's index names modules that do not exist: {sorted(named - files)}"
+
+
+#: the largest share of the package's lines one first-level package may hold: a package
+#: above it holds several ideas and is cut by idea
+MAX_PACKAGE_SHARE = 0.15
+
+
+def package_lines() -> dict[str, int]:
+    """Lines of every first-level entry of ``bayes_talk/`` (a package, or a loose module)."""
+    out: dict[str, int] = {}
+    for p in PACKAGE.rglob("*.py"):
+        top = p.relative_to(PACKAGE).parts[0]
+        out[top] = out.get(top, 0) + len(p.read_text(encoding="utf-8").splitlines())
+    return out
+
+
+def test_no_first_level_package_holds_more_than_its_share():
+    lines = package_lines()
+    total = sum(lines.values())
+    big = {k: f"{v / total:.1%}" for k, v in lines.items() if v > MAX_PACKAGE_SHARE * total}
+    assert not big, f"first-level packages above {MAX_PACKAGE_SHARE:.0%} of bayes_talk's lines: {big}"
+
+
+def test_only_the_facade_sits_at_the_top():
+    """Every module lives in a package that names its layer; the package root holds only
+    the lazy façade (``__init__.py``) and ``__main__.py``."""
+    loose = sorted(p.name for p in PACKAGE.glob("*.py") if p.name not in ("__init__.py", "__main__.py"))
+    assert not loose, f"loose modules at the top of bayes_talk/ (put them in the package of their layer): {loose}"
+
+
+def test_first_level_packages_import_only_their_own_or_earlier_layers(graph):
+    """The folders are the layers: every first-level package lies in one layer (so no
+    import between two folders can run back up; :func:`test_no_backward_arrows` checks
+    the arrows)."""
+    spread = {}
+    for name in graph:
+        parts = name.split(".")
+        if len(parts) < 2:
+            continue
+        spread.setdefault(parts[1], set()).add(LAYERS[layer_of(name)][0])
+    mixed = {k: sorted(v) for k, v in spread.items() if len(v) > 1}
+    assert not mixed, f"first-level packages spread over several layers: {mixed}"

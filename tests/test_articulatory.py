@@ -148,7 +148,7 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory, cache) -> Path:
-    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.corpus import build_corpus
 
     return build_corpus(tmp_path_factory.mktemp("vtl") / "c", n_utterances=3, seed=0,
                         sentences=SENTENCES, speech="vtl", n_workers=1)
@@ -156,7 +156,7 @@ def corpus(tmp_path_factory, cache) -> Path:
 
 @needs_vtl
 def test_rebuild_is_byte_identical_uncached_and_with_workers(corpus, tmp_path, monkeypatch):
-    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.corpus import build_corpus
 
     # a fresh cache: everything is synthesised again, in 2 worker processes
     monkeypatch.setenv("BAYES_TALK_CACHE", str(tmp_path / "fresh-cache"))
@@ -218,7 +218,7 @@ def test_lips_close_on_bilabials_and_round_on_uw(corpus):
 
 @needs_vtl
 def test_face_lips_follow_the_tract(corpus):
-    from bayes_talk.data.corpus import load_npz
+    from bayes_talk.corpus import load_npz
     from bayes_talk.data.face import inner_lip_aperture
 
     closed, open_ = [], []
@@ -311,7 +311,7 @@ def test_oracle_draws_use_the_corpus_generator(corpus):
 
 @needs_vtl
 def test_loaded_vtl_corpus_names_its_generator(corpus):
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.evaluation.ceiling import corpus_generator
 
     c = load_corpus(corpus, n_workers=1)

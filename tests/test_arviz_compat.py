@@ -1,4 +1,4 @@
-"""bayes_talk.arviz_compat: the same answers from ArviZ 0.2x (Python 3.11) and 1.x (>= 3.12).
+"""bayes_talk.base.arviz_compat: the same answers from ArviZ 0.2x (Python 3.11) and 1.x (>= 3.12).
 
 Each check compares with a value computed here from its definition, so the test runs
 unchanged under either version (CI runs it on 3.11; `.ci/smoke.sh 3.13` on 3.13).
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayes_talk import arviz_compat as azc
+from bayes_talk.base import arviz_compat as azc
 
 
 def _ar1(rng, rho: float, chains: int, draws: int, n: int) -> np.ndarray:

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from bayes_talk.audio import cmvn, downmix, resample
-from bayes_talk.bundle import BundleError
-from bayes_talk.cli import main
+from bayes_talk.features.audio import cmvn, downmix, resample
+from bayes_talk.base.bundle import BundleError
+from bayes_talk.app.cli import main
 from bayes_talk.data.labels import read_labels
 from bayes_talk.features.mfcc import FMAX_HZ
 from bayes_talk.pipeline import load_trained, read_utterance
@@ -72,7 +72,7 @@ def test_other_sample_rates_are_resampled_to_the_models_and_logged(corpus_dir, m
     for rate in (16000, 44100):
         p = tmp_path / f"r{rate}.wav"
         sf.write(p, resample(y, sr, rate), rate, subtype="FLOAT")
-        with caplog.at_level(logging.WARNING, logger="bayes_talk.audio"):
+        with caplog.at_level(logging.WARNING, logger="bayes_talk.features.audio"):
             caplog.clear()
             assert _feature_ratio(wav, lab, p, silent) < 0.1
         assert any(f"{rate} Hz audio resampled to {sr} Hz" in r.getMessage() for r in caplog.records)
@@ -212,7 +212,7 @@ def test_arrays_from_another_model_are_refused_naming_the_file(model_dir, tmp_pa
 
 
 def test_aam_from_another_model_is_refused_naming_the_file(model_dir, corpus_dir, tmp_path):
-    from bayes_talk.data.corpus import load_npz
+    from bayes_talk.corpus import load_npz
     from bayes_talk.features.aam import AAM
 
     frames = load_npz(min((corpus_dir / "utterances").glob("*.frames.npz")))["frames"][:30]
@@ -233,7 +233,7 @@ def test_aam_from_another_model_is_refused_naming_the_file(model_dir, corpus_dir
 
 
 def test_train_force_interrupted_while_saving_refuses_to_load(model_dir, corpus_dir, tmp_path, monkeypatch):
-    import bayes_talk.bundle
+    import bayes_talk.base.bundle
     from bayes_talk.pipeline import training
 
     out = tmp_path / "m"
@@ -244,7 +244,7 @@ def test_train_force_interrupted_while_saving_refuses_to_load(model_dir, corpus_
     def interrupted(directory):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(bayes_talk.bundle, "write_bundle_manifest", interrupted)
+    monkeypatch.setattr(bayes_talk.base.bundle, "write_bundle_manifest", interrupted)
     before = _tree(tmp_path, skip=out)
     corpus_before = _tree(corpus_dir)
     assert main(["train", str(corpus_dir), "--model", "ssgpdm-phone", "--out", str(out), "--force",
@@ -283,8 +283,8 @@ def test_synth_force_replaces_the_whole_output_set(model_dir, corpus_dir, tmp_pa
 # --- row 9: a posterior that did not converge ------------------------------------------------
 
 def test_unconverged_posterior_is_logged_and_marked(model_dir, corpus_dir, tmp_path, monkeypatch, caplog):
-    import bayes_talk.synthesis.posterior as post
-    from bayes_talk.synthesis.diagnostics import convergence_problems
+    import bayes_talk.posterior.sampling as post
+    from bayes_talk.posterior.diagnostics import convergence_problems
 
     assert convergence_problems({"rhat_max": 1.01, "ess_bulk_min": 400.0, "ess_tail_min": 500.0,
                                  "divergences": 0}) == []
@@ -356,7 +356,7 @@ class _nothing:
 # --- row 12: NaN in a landmarks file or in the feature cache ---------------------------------
 
 def test_nan_landmarks_name_the_file(corpus_dir, tmp_path):
-    from bayes_talk.data.corpus import load_corpus, load_npz, save_npz
+    from bayes_talk.corpus import load_corpus, load_npz, save_npz
 
     c = tmp_path / "c"
     shutil.copytree(corpus_dir, c)
@@ -369,7 +369,7 @@ def test_nan_landmarks_name_the_file(corpus_dir, tmp_path):
 
 
 def test_nan_in_the_feature_cache_is_recomputed_with_a_warning(corpus_dir, tmp_path, caplog):
-    from bayes_talk.data.corpus import load_corpus, load_npz, save_npz
+    from bayes_talk.corpus import load_corpus, load_npz, save_npz
 
     c = tmp_path / "c"
     shutil.copytree(corpus_dir, c)
@@ -389,8 +389,8 @@ def test_nan_in_the_feature_cache_is_recomputed_with_a_warning(corpus_dir, tmp_p
 def test_an_unwritable_corpus_directory_loads_uncached_with_a_warning(corpus_dir, tmp_path, caplog,
                                                                      monkeypatch):
     """A read-only (or full) corpus directory must not lose the features just computed."""
-    import bayes_talk.data.corpus.load as load_mod
-    from bayes_talk.data.corpus import load_corpus
+    import bayes_talk.corpus.load as load_mod
+    from bayes_talk.corpus import load_corpus
 
     c = tmp_path / "c"
     shutil.copytree(corpus_dir, c)
@@ -419,7 +419,7 @@ def test_outputs_are_documented_and_the_recipe_gives_the_landmarks(model_dir, co
     text = capsys.readouterr().out
     assert "MEAN-REMOVED" in text and "aam_offset" in text and "tm.offset" in text
     flat = " ".join(text.split())
-    from bayes_talk.synthesis.defaults import NUTS_DEFAULTS, PG_NUTS_BUDGET
+    from bayes_talk.posterior.methods import NUTS_DEFAULTS, PG_NUTS_BUDGET
 
     nuts = f"nuts {NUTS_DEFAULTS['chains']} x {NUTS_DEFAULTS['draws_per_chain']}"
     pg = f"pg-nuts {NUTS_DEFAULTS['chains']} x {PG_NUTS_BUDGET['draws_per_chain']}"
@@ -441,7 +441,7 @@ def test_outputs_are_documented_and_the_recipe_gives_the_landmarks(model_dir, co
 # --- messages: -v/-q anywhere, defaults in --help, Ctrl-C, small corpora ---------------------
 
 def test_verbosity_anywhere_defaults_in_help_and_ctrl_c(tmp_path, capsys, monkeypatch):
-    from bayes_talk import cli
+    from bayes_talk.app import cli
 
     for argv in (["-v", "demo", "--help"], ["demo", "-v", "--help"], ["demo", "--help", "-q"]):
         with pytest.raises(SystemExit) as e:
@@ -477,12 +477,12 @@ def test_small_corpus_protocol_is_scaled_with_a_note():
 
 
 def test_progress_is_silent_off_a_terminal_and_logged_with_verbose(caplog):
-    from bayes_talk.progress import ProgressMapper, bar, enabled
+    from bayes_talk.base.progress import ProgressMapper, bar, enabled
 
     assert not enabled()                                   # pytest's stderr is not a terminal
-    with caplog.at_level(logging.WARNING, logger="bayes_talk.progress"):
+    with caplog.at_level(logging.WARNING, logger="bayes_talk.base.progress"):
         assert list(bar(range(5), 5, "x")) == list(range(5))
     assert not caplog.records
-    with caplog.at_level(logging.INFO, logger="bayes_talk.progress"):
+    with caplog.at_level(logging.INFO, logger="bayes_talk.base.progress"):
         assert list(ProgressMapper(None, "training states", "state").map(abs, [-1, -2, 3])) == [1, 2, 3]
     assert [r.getMessage() for r in caplog.records][-1] == "training states: 3/3 state"

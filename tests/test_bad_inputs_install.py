@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bayes_talk.cli import main
+from bayes_talk.app.cli import main
 
 
 def _unwritable_dir(tmp_path: Path) -> Path:
@@ -65,7 +65,7 @@ def test_synth_out_an_unwritable_directory_is_refused_by_name_before_any_work(tm
 
 
 def test_check_output_dir_creates_nothing_and_accepts_new_and_existing_directories(tmp_path):
-    from bayes_talk.bundle import check_output_dir
+    from bayes_talk.base.bundle import check_output_dir
 
     assert check_output_dir(tmp_path / "a" / "b") == tmp_path / "a" / "b"
     assert not (tmp_path / "a").exists()
@@ -78,7 +78,7 @@ def test_check_output_dir_creates_nothing_and_accepts_new_and_existing_directori
 
 
 def test_evaluate_on_too_few_utterances_names_min_utterances(tmp_path, monkeypatch):
-    import bayes_talk.data.corpus as corpus_mod
+    import bayes_talk.corpus as corpus_mod
     from bayes_talk.evaluation import harness
 
     fake = SimpleNamespace(sequences=[object()] * 30, aam_path=None, manifest={})
@@ -121,7 +121,7 @@ def test_clipped_audio_warns_with_the_fraction(speech_wav, tmp_path):
     import numpy as np
     import soundfile as sf
 
-    from bayes_talk.audio import load_audio
+    from bayes_talk.features.audio import load_audio
 
     y, sr = sf.read(str(speech_wav))
     y = y / np.abs(y).max()
@@ -143,7 +143,7 @@ def test_silence_and_white_noise_hold_no_speech_and_speech_does(speech_wav, tmp_
     import numpy as np
     import soundfile as sf
 
-    from bayes_talk.audio import speech_problem
+    from bayes_talk.features.audio import speech_problem
 
     y, sr = sf.read(str(speech_wav))
     rng = np.random.default_rng(0)
@@ -200,7 +200,7 @@ def test_mp3_with_a_gapless_header_is_aligned_and_one_without_warns(speech_wav, 
     import imageio_ffmpeg
     import soundfile as sf
 
-    from bayes_talk.audio import load_audio
+    from bayes_talk.features.audio import load_audio
 
     ff = imageio_ffmpeg.get_ffmpeg_exe()
     y, sr = sf.read(str(speech_wav))

@@ -11,8 +11,8 @@ import pytest
 import scipy.integrate
 import scipy.stats
 
-from bayes_talk.synthesis.band_calibration import CALIBRATION_FILE, LEVEL_KNOTS, BandCalibration
-from bayes_talk.synthesis.recalibrated_result import RecalibratedResult
+from bayes_talk.calibration.bands import CALIBRATION_FILE, LEVEL_KNOTS, BandCalibration
+from bayes_talk.calibration.recalibrated import RecalibratedResult
 from bayes_talk.synthesis.result import SynthesisResult
 
 TAIL_SCALE = np.array([1.0, 0.6, 1.5])
@@ -250,7 +250,7 @@ def test_calibrated_warning_records_khat_but_gates_only_on_the_other_checks(fitt
     BandCalibration.domain), and records the check in its diagnostics."""
     from dataclasses import replace
 
-    from bayes_talk.synthesis.diagnostics import sampler_warning
+    from bayes_talk.posterior.diagnostics import sampler_warning
 
     cal, res, _ = fitted
     cal = replace(cal, info={**cal.info, "held_out_diagnostics": {"khat": [1.2, 2.9, None, 2.1]}})
@@ -291,7 +291,7 @@ class _PickledPool:
     def _run(fn, x):
         import pickle
 
-        from bayes_talk.executor import run_task
+        from bayes_talk.base.executor import run_task
 
         return pickle.loads(pickle.dumps(run_task(*pickle.loads(pickle.dumps((fn, x))))))
 
@@ -327,7 +327,7 @@ def test_held_out_syntheses_through_a_parallel_executor_give_the_same_calibratio
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.band_calibration import balanced_chunks, fit_band_calibration
+    from bayes_talk.calibration.bands import balanced_chunks, fit_band_calibration
 
     train = make_utterances(10, seed=3, mean_len=30)
     small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90}
@@ -366,7 +366,7 @@ def test_the_refit_scheme_on_workers_gives_the_sequential_model_and_calibration(
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.band_calibration import calibrated_fit
+    from bayes_talk.calibration.bands import calibrated_fit
 
     train = make_utterances(10, seed=4, mean_len=30)
     small = {"states": "phone", "latent_dim": 3, "max_iter": 15, "max_frames_per_state": 80, "fallback_frames": 90,
@@ -402,7 +402,7 @@ def test_balanced_chunks_partition_the_items_by_longest_processing_time_first():
     """balanced_chunks: every index once, in n non-empty chunks, each sorted, chunks largest
     total first; totals within the largest item of each other (the LPT bound); a worked
     example; the same chunks every time; n outside 1..len is a named error."""
-    from bayes_talk.synthesis.band_calibration import balanced_chunks
+    from bayes_talk.calibration.bands import balanced_chunks
 
     assert balanced_chunks([5, 4, 3, 3, 3], 2) == [[1, 2, 4], [0, 3]]     # loads 10 and 8
     rng = np.random.default_rng(0)
@@ -445,7 +445,7 @@ def test_calibrated_fit_ships_the_holdout_model_or_refits_on_every_utterance():
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.band_calibration import calibrated_fit
+    from bayes_talk.calibration.bands import calibrated_fit
 
     train = make_utterances(10, seed=3, mean_len=30)
     small = SMALL_PHONE
@@ -474,7 +474,7 @@ def test_crossfit_calibration_holds_out_every_utterance_once():
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.band_calibration import calibrated_fit, crossfit_folds
+    from bayes_talk.calibration.bands import calibrated_fit, crossfit_folds
 
     folds = crossfit_folds(11, holdout=0.3, seed=1)
     assert len(folds) == 3 and sorted(i for f in folds for i in f) == list(range(11))
@@ -513,7 +513,7 @@ def test_pool_weights_go_to_the_constant_band_only_where_the_spread_is_noise():
     """Stage 3: the held-out log score gives the posterior the weight on the parameter whose
     variance tracks its error and the constant band the weight on the other; on fresh data
     the pool's NLPD is at least as good as stage 2's and as the Gaussian's on each."""
-    from bayes_talk.synthesis.band_calibration import _constant_band
+    from bayes_talk.calibration.bands import _constant_band
 
     res, truths = _mixed_spread(80, seed=5)
     cal = BandCalibration.fit(res, truths, method="laplace")
@@ -534,7 +534,7 @@ def test_pool_weights_go_to_the_constant_band_only_where_the_spread_is_noise():
 def test_pooled_result_answers_agree(fitted):
     """(4): the CDF is the weighted CDFs, the quantile inverts it, the density is the CDF's
     derivative, draws follow it, w = 0 is the base and the mean is the base's."""
-    from bayes_talk.synthesis.pooled_result import PooledResult
+    from bayes_talk.calibration.pooled import PooledResult
 
     cal, res, _ = fitted
     base = cal.apply(res[0])
@@ -587,7 +587,7 @@ def test_held_out_record_keeps_each_utterances_map_log_density_per_frame(fitted)
     (the reference a domain check on how well the model explains new audio needs)."""
     from dataclasses import replace
 
-    from bayes_talk.synthesis.band_calibration import _synthesis_record
+    from bayes_talk.calibration.bands import _synthesis_record
 
     _, res, _ = fitted
     rs = [replace(res[0], diagnostics={"map_converged": True, "khat": 2.0, "map_log_density": -6.0 * res[0].n_frames}),

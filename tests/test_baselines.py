@@ -1,4 +1,4 @@
-"""Baselines (bayes_talk.baselines) on small synthetic Utterance objects."""
+"""Baselines (bayes_talk.estimators.baselines) on small synthetic Utterance objects."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,19 +6,19 @@ import pytest
 import scipy.optimize
 import scipy.stats
 
-from bayes_talk.baselines import DPDS, REGISTRY, SLDS, HMMMean, VoicePuppetry
-from bayes_talk.baselines.dpds import (
+from bayes_talk.estimators.baselines import DPDS, REGISTRY, SLDS, HMMMean, VoicePuppetry
+from bayes_talk.estimators.baselines.dpds import (
     dpds_forward,
     dpds_grad_A,
     dpds_loglik,
     dpds_profile,
     dpds_solve_mu_nu,
 )
-from bayes_talk.baselines.lds import make_batch, mean_trajectory
-from bayes_talk.baselines.slds import kalman_smoother
-from bayes_talk.baselines.voice_puppetry import delta_features, delta_matrix, trajectory_solve
+from bayes_talk.estimators.baselines.lds import make_batch, mean_trajectory
+from bayes_talk.estimators.baselines.slds import kalman_smoother
+from bayes_talk.estimators.baselines.voice_puppetry import delta_features, delta_matrix, trajectory_solve
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.errors import NotFittedError
+from bayes_talk.base.errors import NotFittedError
 from bayes_talk.features.phone_encoding import LabelEncoder
 
 PH = ["aa", "m", "sil", "iy"]  # sorted by LabelEncoder to aa, iy, m, sil

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.bundle import write_bundle_manifest
+from bayes_talk.base.bundle import write_bundle_manifest
 from bayes_talk.estimators.base import ESTIMATOR_FILE
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import ZeroModel
 from bayes_talk.estimators.registry import load_estimator
-from bayes_talk.synthesis.band_calibration import BandCalibration
+from bayes_talk.calibration.bands import BandCalibration
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_save_and_load_round_trip_and_every_calibration_version_loads(utts, tmp_
 
 def test_fit_is_the_estimator_fit_then_the_calibration_of_its_posterior():
     from bayes_talk.estimators.registry import make_estimator
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+    from bayes_talk.calibration.bands import fit_band_calibration
 
     small = {"latent_dim": 2, "max_iter": 10, "min_count": 4, "max_frames_per_state": 60, "fallback_frames": 80}
     train = make_utterances(8, seed=4)

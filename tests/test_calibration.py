@@ -17,7 +17,7 @@ from bayes_talk.evaluation.calibration import (
     score_utterance,
     summarise_calibration,
 )
-from bayes_talk.synthesis.band_calibration import (
+from bayes_talk.calibration.bands import (
     CALIBRATION_FILE,
     BandCalibration,
     min_scales,

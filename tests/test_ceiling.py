@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayes_talk.data import face, render
-from bayes_talk.data.corpus import FORMAT_VERSION, renderer_settings
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
+from bayes_talk.corpus import FORMAT_VERSION, renderer_settings
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONES

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from bayes_talk.data.checks import LABEL_TOLERANCE_S, check_audio_vs_labels
-from bayes_talk.data.corpus.layouts import check_item_audio
+from bayes_talk.corpus.layouts import check_item_audio
 from bayes_talk.data.phones import replace_unseen, substitute_unseen
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from bayes_talk import __version__
-from bayes_talk.cli import build_parser, main
+from bayes_talk.app.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -74,7 +74,7 @@ def test_the_log_handler_writes_to_the_current_stderr_never_a_closed_one(capsys)
     import io
     import logging
 
-    from bayes_talk import cli
+    from bayes_talk.app import cli
 
     first = io.StringIO()
     try:
@@ -93,7 +93,7 @@ def test_the_log_handler_writes_to_the_current_stderr_never_a_closed_one(capsys)
 def test_hmmlearn_convergence_chatter_is_kept_out_of_the_output_unless_verbose(tmp_path, capsys, monkeypatch):
     import logging
 
-    from bayes_talk import cli
+    from bayes_talk.app import cli
 
     def chatty(args):
         logging.getLogger("hmmlearn.base").warning("Model is not converging.  Current: -1 is not greater than -0.9")

@@ -24,8 +24,8 @@ import hashlib, json
 import numpy as np
 from bayes_talk.gp.fused import rbf_matrix_normal_grad
 from bayes_talk.gp.predictive_fused import PackedGPs, Runs
-from bayes_talk.synthesis.noncentred import _packed_vjp
-from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothness_weights
+from bayes_talk.posterior.noncentred import _packed_vjp
+from bayes_talk.posterior.proposal_tables import kernel_mixture_logpdf, smoothness_weights
 from bayes_talk.synthesis.segment_objective import _segment_compiled
 
 rng = np.random.default_rng(0)

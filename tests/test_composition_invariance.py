@@ -8,9 +8,9 @@ The test density is a 3-frame chain with a bimodal per-frame factor,
 
 whose modes are 16 nats apart at the barrier (NUTS alone never crosses it). The exact marginals
 P(x_t > 0), E x_t and E x_t² come from a forward-backward pass on a fine grid. The sampler is
-the project's :func:`~bayes_talk.synthesis.samplers.run_nuts` with its mode-jumping Metropolis
+the project's :func:`~bayes_talk.posterior.samplers.run_nuts` with its mode-jumping Metropolis
 moves and, as ``extra_move``, the library's particle Gibbs move
-(:class:`~bayes_talk.synthesis.particle_gibbs.ParticleGibbsMove`, the object ``pg-nuts`` runs):
+(:class:`~bayes_talk.posterior.particle_gibbs.ParticleGibbsMove`, the object ``pg-nuts`` runs):
 one conditional-SMC sweep with ancestor sampling per iteration, then multiple-try Metropolis
 updates of the blocks {0} and {1, 2} given their neighbours (the second frame of a block drawn
 from the coupling, as the synthesis blocks' later frames are drawn from the dynamics). Every
@@ -29,8 +29,8 @@ import pytest
 import torch
 from scipy.special import logsumexp
 
-from bayes_talk.synthesis.particle_gibbs import ParticleGibbsMove
-from bayes_talk.synthesis.samplers import run_nuts
+from bayes_talk.posterior.particle_gibbs import ParticleGibbsMove
+from bayes_talk.posterior.samplers import run_nuts
 
 T, M, S, C = 3, 2.0, 0.35, 2.5          # frames, mode location ±M, mode sd, coupling sd
 W = np.array([0.75, 0.35, 0.6])         # weight of the + mode per frame

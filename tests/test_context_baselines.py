@@ -1,4 +1,4 @@
-"""Context-window regressions (bayes_talk.baselines.context, context_mlp) on synthetic data."""
+"""Context-window regressions (bayes_talk.estimators.baselines.context, context_mlp) on synthetic data."""
 from __future__ import annotations
 
 import json
@@ -10,13 +10,13 @@ from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 from toydata import make_utterances
 
-import bayes_talk.baselines.context as C
-from bayes_talk.baselines import REGISTRY
-from bayes_talk.baselines.context import ContextRidge, grouped_ridge_cv
-from bayes_talk.baselines.context_mlp import ContextMLP
-from bayes_talk.bundle import write_bundle_manifest
+import bayes_talk.estimators.baselines.context as C
+from bayes_talk.estimators.baselines import REGISTRY
+from bayes_talk.estimators.baselines.context import ContextRidge, grouped_ridge_cv
+from bayes_talk.estimators.baselines.context_mlp import ContextMLP
+from bayes_talk.base.bundle import write_bundle_manifest
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.errors import NotFittedError
+from bayes_talk.base.errors import NotFittedError
 from bayes_talk.estimators.base import ESTIMATOR_FILE, FORMAT_VERSION
 from bayes_talk.estimators.registry import load_estimator
 from bayes_talk.evaluation import systems as S

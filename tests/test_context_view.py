@@ -75,8 +75,8 @@ def test_context_mean_makes_the_view_the_visual_mean_function(data, tmp_path):
     out-of-fold), every synthesis path adds c_t back to each component, the result names
     c_t as its mean function, the band calibration's mean stage shrinks towards c_t, and
     the setting survives save/load."""
-    from bayes_talk.synthesis.band_calibration import _shrunk, mean_shrinkage
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    from bayes_talk.calibration.bands import _shrunk, mean_shrinkage
+    from bayes_talk.posterior.sampling import sample_synthesis
 
     train, test = data
     with pytest.raises(ValueError, match="context_view > 0"):

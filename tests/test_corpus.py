@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from bayes_talk.data.corpus import build_corpus, load_corpus, load_npz, load_sentences
+from bayes_talk.corpus import build_corpus, load_corpus, load_npz, load_sentences
 from bayes_talk.data.labels import read_lab, write_textgrid
 from bayes_talk.data.phones import BILABIALS
 
@@ -206,9 +206,9 @@ def test_sentence_rules(tmp_path):
 
 def test_worker_features_equal_in_process_features(big, big_corpus):
     """big_corpus was featurised in worker processes; recompute two sequences here."""
-    from bayes_talk.audio import cmvn
-    from bayes_talk.data.corpus.workers import features_task
-    from bayes_talk.executor import single_thread as _single_thread_blas
+    from bayes_talk.features.audio import cmvn
+    from bayes_talk.corpus.workers import features_task
+    from bayes_talk.base.executor import single_thread as _single_thread_blas
 
     m = json.loads((big / "manifest.json").read_text())
     for k in (0, 39):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bayes_talk import demo
+from bayes_talk.app import demo
 
 
 def test_demo_prefers_the_articulatory_generator(monkeypatch):

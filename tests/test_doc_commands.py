@@ -4,8 +4,8 @@ item 4), so the docs cannot drift from the code.
 How each fenced block is covered:
 
 * ``bash``/``sh`` blocks: every command line is parsed. ``bayes-talk ...`` (also
-  ``.venv/bin/bayes-talk`` and ``python -m bayes_talk.cli``) goes through the real argument
-  parser (:func:`bayes_talk.cli.build_parser`), so an unknown sub-command, flag or choice
+  ``.venv/bin/bayes-talk`` and ``python -m bayes_talk.app.cli``) goes through the real argument
+  parser (:func:`bayes_talk.app.cli.build_parser`), so an unknown sub-command, flag or choice
   fails, and ``evaluate --methods`` names go through :func:`resolve_methods`. A script of the
   repository (``benchmarks/...``, ``notebooks/...``) must exist, and its ``--flags`` must be
   among the script's ``add_argument`` options; ``make`` targets must be in the Makefile;
@@ -171,7 +171,7 @@ def cli_args(argv: tuple[str, ...]) -> list[str] | None:
     prog = argv[0]
     if prog in ("bayes-talk", ".venv/bin/bayes-talk") or prog.endswith("/bayes-talk"):
         return list(argv[1:])
-    if _is_python(prog) and argv[1:3] == ("-m", "bayes_talk.cli"):
+    if _is_python(prog) and argv[1:3] == ("-m", "bayes_talk.app.cli"):
         return list(argv[3:])
     return None
 
@@ -179,7 +179,7 @@ def cli_args(argv: tuple[str, ...]) -> list[str] | None:
 def cli_problems(args: list[str], removed_methods: frozenset[str] = frozenset()) -> list[str]:
     """Why the real ``bayes-talk`` parser refuses ``args`` ([] when it accepts them);
     ``removed_methods`` may appear in ``evaluate --methods`` (a record of an old run)."""
-    from bayes_talk.cli import build_parser
+    from bayes_talk.app.cli import build_parser
     from bayes_talk.evaluation.systems import resolve_methods
 
     if args == ["--version"]:
@@ -290,7 +290,7 @@ def test_the_checks_catch_a_wrong_flag_subcommand_method_and_script():
     fake = Block("README.md", 1, "bash", """\
 bayes-talk train CORPUS --out M --no-such-flag
 .venv/bin/bayes-talk sinth M --audio X.wav --out O
-python -m bayes_talk.cli evaluate --protocol deena2010 --corpus C --methods zero,nope --json r.json
+python -m bayes_talk.app.cli evaluate --protocol deena2010 --corpus C --methods zero,nope --json r.json
 M=zero,oracle
 bayes-talk evaluate --protocol deena2010 --corpus C --methods $M,hmm-mean --json r.json
 PYTHONPATH=. nice -n 5 python benchmarks/posterior.py --efficiency --no-such-option 3
@@ -359,7 +359,7 @@ def _subparsers(parser):
 def inline_problems(span: str) -> list[str]:
     """The sub-command path and the ``--flags`` of a span must exist (a span may leave out
     required arguments, so it is not parsed whole)."""
-    from bayes_talk.cli import build_parser
+    from bayes_talk.app.cli import build_parser
 
     tokens = shlex.split(span.replace("…", "").replace("...", ""))[1:]
     parser = build_parser()
@@ -399,7 +399,7 @@ def test_inline_check_catches_a_wrong_flag_and_subcommand():
 
 def test_help_epilog_commands_parse():
     """The commands the CLI's own help prints (a first run) are valid too."""
-    from bayes_talk.cli import EPILOG
+    from bayes_talk.app.cli import EPILOG
 
     lines = [ln.split("#")[0].strip() for ln in EPILOG.splitlines() if ln.strip().startswith("bayes-talk ")]
     assert len(lines) >= 4
@@ -434,13 +434,13 @@ USES_TOY = "toy"
 USES_SPLIT = "split"
 
 PYTHON_BLOCKS: dict[tuple[str, str], PyBlock] = {
-    ("README.md", "from bayes_talk.data.corpus import load_corpus"): PyBlock(
+    ("README.md", "from bayes_talk.corpus import load_corpus"): PyBlock(
         mapped="tests/test_readme_script.py::test_readme_python_section_runs_as_a_plain_script_on_a_fresh_corpus",
         reason="run verbatim as a plain script on a fresh 16-utterance corpus (the library-call issue)"),
     ("docs/architecture.md", "from sklearn.base import clone"): PyBlock(),
-    ("docs/baselines.md", "from bayes_talk.baselines import REGISTRY          # name -> class"): PyBlock(
+    ("docs/baselines.md", "from bayes_talk.estimators.baselines import REGISTRY          # name -> class"): PyBlock(
         setup=USES_SPLIT, subs=(('REGISTRY["dpds"]()', 'REGISTRY["dpds"](max_iter=10)'),)),
-    ("docs/baselines.md", "from bayes_talk.baselines import ContextRidge, ContextMLP"): PyBlock(
+    ("docs/baselines.md", "from bayes_talk.estimators.baselines import ContextRidge, ContextMLP"): PyBlock(
         setup=USES_SPLIT, subs=(("ContextRidge().fit(train)", "ContextRidge(n_splits=2).fit(train)"),
                                 ("ContextMLP(seed=0)", "ContextMLP(seed=0, max_epochs=3)"))),
     ("docs/data.md", "import json, shutil, tempfile"): PyBlock(
@@ -448,14 +448,14 @@ PYTHON_BLOCKS: dict[tuple[str, str], PyBlock] = {
     ("docs/data.md", "import json, tempfile"): PyBlock(
         subs=(("Path(tempfile.mkdtemp())", 'Path(tempfile.mkdtemp(dir="."))'), ("n_utterances=3", "n_utterances=2"))),
     ("docs/outputs.md", "import numpy as np"): PyBlock(),       # MODEL_DIR, OUT_DIR: the fixture's
-    ("docs/scaling.md", "from bayes_talk.data.corpus import build_corpus"): PyBlock(
+    ("docs/scaling.md", "from bayes_talk.corpus import build_corpus"): PyBlock(
         mapped="tests/test_executor.py::test_corpus_build_and_features_on_dask_equal_local",
         reason="a dask LocalCluster costs seconds to start; that test builds a corpus on one (executor=, "
                "a DaskExecutor; the name 'dask' goes through make_executor)"),
-    ("docs/scaling.md", "from bayes_talk.executor import DaskExecutor"): PyBlock(
+    ("docs/scaling.md", "from bayes_talk.base.executor import DaskExecutor"): PyBlock(
         mapped="tests/test_executor.py::test_dask_per_state_training_equals_local_bit_for_bit",
         reason="training through a DaskExecutor with two workers (the same model as locally)"),
-    ("docs/uncertainty.md", "from bayes_talk.synthesis.posterior import sample_synthesis"): PyBlock(
+    ("docs/uncertainty.md", "from bayes_talk.posterior.sampling import sample_synthesis"): PyBlock(
         setup=USES_TOY,
         subs=(('method="laplace" | "nuts" | "emcee" | "map"', 'method="laplace"'), ("n_draws=64", "n_draws=16"),
               ("post.sample(2000)", "post.sample(200)"))),
@@ -566,9 +566,9 @@ def test_python_block_compiles_and_its_api_exists(block):
 
 
 def test_api_check_catches_a_renamed_function_and_keyword():
-    assert api_problems("from bayes_talk.data.corpus import load_corpus\nload_corpus('C', n_workers=1)\n") == []
-    assert api_problems("from bayes_talk.data.corpus import load_corpora\n") == ["bayes_talk.data.corpus has no load_corpora"]
-    assert api_problems("from bayes_talk.data.corpus import load_corpus\nload_corpus('C', n_jobs=2)\n") == [
+    assert api_problems("from bayes_talk.corpus import load_corpus\nload_corpus('C', n_workers=1)\n") == []
+    assert api_problems("from bayes_talk.corpus import load_corpora\n") == ["bayes_talk.corpus has no load_corpora"]
+    assert api_problems("from bayes_talk.corpus import load_corpus\nload_corpus('C', n_jobs=2)\n") == [
         "load_corpus() takes no keyword 'n_jobs'"]
 
 
@@ -583,7 +583,7 @@ def docs_work(tmp_path_factory):
     """A working directory holding CORPUS (8 utterances, 64 px), MODEL (a small deena2010
     switching model of it, no aligner, no calibration) and OUT (a Laplace synthesis of the
     corpus's last utterance, no video): what the docs' placeholders stand for."""
-    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.corpus import build_corpus
     from bayes_talk.pipeline import synth, train
 
     work = tmp_path_factory.mktemp("docs")
@@ -604,7 +604,7 @@ def toy_names():
     from toydata import make_utterances
 
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    from bayes_talk.posterior.sampling import sample_synthesis
 
     train = make_utterances(24, seed=0)
     u = make_utterances(3, seed=1, mean_len=20)[0]
@@ -633,7 +633,7 @@ def test_python_block_runs(block, docs_work, request, monkeypatch, tmp_path):
     if spec.setup == USES_TOY:
         ns.update(request.getfixturevalue("toy_names"))
     elif spec.setup == USES_SPLIT:
-        from bayes_talk.data.corpus import load_corpus
+        from bayes_talk.corpus import load_corpus
 
         seqs = load_corpus("CORPUS").sequences
         ns.update(train=seqs[:-3], test=seqs[-3:])
@@ -674,7 +674,7 @@ def test_run_table_matches_documented_commands():
 @pytest.mark.slow
 @pytest.mark.parametrize("key", list(RUN_COMMANDS), ids=lambda k: k[1][:60])
 def test_documented_command_runs_on_a_tiny_corpus(key, docs_work, monkeypatch, capsys):
-    from bayes_talk.cli import main
+    from bayes_talk.app.cli import main
 
     line = key[1]
     for old, new in RUN_COMMANDS[key]:

@@ -14,7 +14,7 @@ import pytest
 from sklearn.base import clone
 from toydata import make_utterances
 
-from bayes_talk.errors import NotFittedError
+from bayes_talk.base.errors import NotFittedError
 from bayes_talk.estimators.base import ARRAYS_FILE, ESTIMATOR_FILE, FORMAT_VERSION, Estimator
 from bayes_talk.estimators.registry import ESTIMATORS, load_estimator, make_estimator
 from bayes_talk.synthesis.result import SynthesisResult
@@ -137,7 +137,7 @@ def test_the_band_calibrated_wrapper_round_trips_with_the_estimator_it_wraps(fit
     """The wrapper (issue 26, item 3) saves and loads like any estimator: its descriptor holds
     the calibration, the sub-directory ``estimator`` the wrapped one; nothing names a class."""
     from bayes_talk.estimators.calibrated import BandCalibrated
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration
+    from bayes_talk.calibration.bands import fit_band_calibration
 
     model = fitted["ssgpdm-vlmm"]
     train, test = data[0], data[1][0]
@@ -238,7 +238,7 @@ def test_the_layouts_of_earlier_versions_are_read(name, fitted, data, tmp_path):
     """Before issue 26 the switching SGPDM saved ``model.json`` + ``arrays.npz`` into a
     directory, deena2009's SGPLVM and the sparse SGPDM ``<base>.json`` + ``<base>.npz``
     (with their settings under ``estimator``): ``load_estimator`` reads them, predictions equal."""
-    from bayes_talk.files import write_model_files
+    from bayes_talk.base.files import write_model_files
 
     model, test = fitted[name], data[1][0]
     meta, arrays = model._get_state()

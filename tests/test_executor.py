@@ -1,4 +1,4 @@
-"""The executor interface (bayes_talk.executor): a dask LocalCluster on the loopback
+"""The executor interface (bayes_talk.base.executor): a dask LocalCluster on the loopback
 interface with two worker processes gives bit-for-bit the results of the local run --
 per-state training, protocol splits, corpus build and featurisation -- and a worker
 killed in the middle of training loses nothing (its tasks are recomputed)."""
@@ -14,7 +14,7 @@ import pytest
 from toydata import make_utterances
 
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.executor import DaskExecutor, LocalExecutor, make_executor
+from bayes_talk.base.executor import DaskExecutor, LocalExecutor, make_executor
 
 #: the caller's environment before this module's LocalCluster (a dask nanny writes its
 #: pre-spawn variables into its own process's os.environ)
@@ -128,7 +128,7 @@ def test_protocol_splits_on_dask_equal_the_local_run(dask_ex):
 
 
 def test_corpus_build_and_features_on_dask_equal_local(dask_ex, tmp_path):
-    from bayes_talk.data.corpus import build_corpus, load_corpus
+    from bayes_talk.corpus import build_corpus, load_corpus
 
     a = build_corpus(tmp_path / "local", n_utterances=2, seed=4, image_size=64, executor="local")
     b = build_corpus(tmp_path / "dask", n_utterances=2, seed=4, image_size=64, executor=dask_ex)
@@ -166,7 +166,7 @@ def test_make_executor_refuses_bad_choices():
 
 
 def test_cli_rejects_an_unknown_executor(capsys):
-    from bayes_talk import cli
+    from bayes_talk.app import cli
 
     with pytest.raises(SystemExit):
         cli.main(["train", "corpus", "--out", "m", "--executor", "threads"])

@@ -1,4 +1,4 @@
-"""Landmark face (bayes_talk.data.face) and renderer (bayes_talk.data.render)."""
+"""Landmark face (bayes_talk.data.face) and renderer (bayes_talk.corpus.render)."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,9 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import Delaunay
 from skimage.transform import PiecewiseAffineTransform, warp
 
-from bayes_talk.data import face, render
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
 from bayes_talk.data.face import random_phone_intervals
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.features.warp import warp_piecewise_affine

@@ -337,7 +337,7 @@ def test_fused_path_falls_back_to_jitter_when_kernel_is_singular(caplog):
 
 def _both_paths(fn):
     """fn() with the fused path on, then with the torch path (settings switch ``fused`` off)."""
-    from bayes_talk import settings
+    from bayes_talk.base import settings
 
     with settings.override(fused=True):
         a = fn()
@@ -356,7 +356,7 @@ def test_fused_default_equals_torch_path_on_the_two_view_sgpdm_log_joint():
     1.1e-13 to 7.4e-13 relative at the points of 2, 3 and 5 iterations, on one thread or two;
     the 1e-13 below held there only at the point that two-thread rounding happened to
     reach. At β_x = 1e4 they differ by at most 3.6e-15 (gradients 8.4e-14) at those points."""
-    from bayes_talk import settings
+    from bayes_talk.base import settings
 
     audio, video = _toy(40)
     m = SGPDM(latent_dim=3, max_iter=3, learn_dynamics=True, dyn_beta=1e4)
@@ -382,7 +382,7 @@ def test_fused_threads_providers_and_repeated_backward_agree():
     passes bit for bit; the whole term agrees across thread counts and with scipy's
     LAPACK to round-off; a second backward through the same graph (retain_graph) gives
     the same gradients."""
-    from bayes_talk import settings
+    from bayes_talk.base import settings
     from bayes_talk.gp import fused, lapack
     from bayes_talk.gp.threads import torch_threads
 
@@ -456,7 +456,7 @@ def test_direct_log_joint_equals_the_pyro_trace_bit_for_bit(kw, monkeypatch):
 def test_fit_through_the_direct_log_joint_equals_the_pyro_fit(monkeypatch):
     """The whole L-BFGS fit gives the same hyperparameters and latents by both paths."""
     import bayes_talk.models.sgpdm as sgpdm_mod
-    from bayes_talk import settings
+    from bayes_talk.base import settings
     from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     audio, video = _toy(40)

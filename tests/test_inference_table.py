@@ -1,12 +1,12 @@
 """One table of inference methods (issue 26, item 2): the CLI, the pipeline, the library and
-docs/uncertainty.md all read :data:`bayes_talk.synthesis.defaults.INFERENCE`."""
+docs/uncertainty.md all read :data:`bayes_talk.posterior.methods.INFERENCE`."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, INFERENCE, check_method, markdown_table
+from bayes_talk.posterior.methods import DEFAULT_DRAWS, INFERENCE, check_method, markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -17,7 +17,7 @@ def test_every_runner_resolves_to_a_callable():
 
 
 def test_cli_choices_are_the_table():
-    from bayes_talk.cli import build_parser
+    from bayes_talk.app.cli import build_parser
 
     sub = next(a for a in build_parser()._subparsers._group_actions)
     synth = sub.choices["synth"]
@@ -26,11 +26,9 @@ def test_cli_choices_are_the_table():
 
 
 def test_library_reads_the_table():
-    from bayes_talk.synthesis.joint_map import MAP_RESTARTS
-    from bayes_talk.synthesis.posterior import POSTERIOR_METHODS
+    from bayes_talk.posterior.sampling import POSTERIOR_METHODS
 
     assert POSTERIOR_METHODS == tuple(INFERENCE)
-    assert MAP_RESTARTS == {n: m.map_restarts for n, m in INFERENCE.items()}
     assert DEFAULT_DRAWS == {n: m.draws for n, m in INFERENCE.items()}
 
 

@@ -65,7 +65,7 @@ def _interrupt(proc: subprocess.Popen) -> None:
 def test_ctrl_c_stops_a_pool_whose_workers_run_tasks_that_would_take_an_hour(tmp_path):
     script = tmp_path / "pool.py"
     script.write_text(AS_IN_A_TERMINAL + "import time\n"
-                      "from bayes_talk.executor import ProcessExecutor\n"
+                      "from bayes_talk.base.executor import ProcessExecutor\n"
                       "if __name__ == '__main__':\n"
                       "    try:\n"
                       "        with ProcessExecutor(2) as ex:\n"
@@ -97,7 +97,7 @@ def test_sigterm_stops_a_pool_and_its_workers_instead_of_orphaning_them(tmp_path
     workers, busy with an hour-long task, keep running without a parent."""
     script = tmp_path / "pool.py"
     script.write_text("import sys, time\n"
-                      "from bayes_talk.executor import ProcessExecutor, Terminated, sigterm_as_interrupt\n"
+                      "from bayes_talk.base.executor import ProcessExecutor, Terminated, sigterm_as_interrupt\n"
                       "if __name__ == '__main__':\n"
                       "    try:\n"
                       "        with sigterm_as_interrupt(), ProcessExecutor(2) as ex:\n"
@@ -129,7 +129,7 @@ def test_sigterm_stops_a_pool_and_its_workers_instead_of_orphaning_them(tmp_path
 
 
 def test_sigterm_handler_is_restored_after_the_block():
-    from bayes_talk.executor import sigterm_as_interrupt
+    from bayes_talk.base.executor import sigterm_as_interrupt
 
     before = signal.getsignal(signal.SIGTERM)
     with sigterm_as_interrupt():
@@ -144,7 +144,7 @@ def _digest(directory: Path) -> dict[str, str]:
 
 @pytest.mark.slow
 def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
-    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.corpus import build_corpus
     from bayes_talk.pipeline import train
 
     corpus = build_corpus(tmp_path / "corpus", n_utterances=8, seed=0, image_size=64)
@@ -152,7 +152,7 @@ def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
     train(corpus, "ssgpdm-vlmm", model, alignment=False, latent_dim=2, max_iter=15, min_count=4,
           max_frames_per_state=60, fallback_frames=80)                     # the old model (and the feature cache)
     before = _digest(model)
-    cli = AS_IN_A_TERMINAL + "import sys; from bayes_talk.cli import main; sys.exit(main(sys.argv[1:]))"
+    cli = AS_IN_A_TERMINAL + "import sys; from bayes_talk.app.cli import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", cli, "train", str(corpus), "--out", str(model),
                              "--force", "--workers", "2", "--no-calibrate-bands", "--no-alignment"],
                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -175,7 +175,7 @@ def test_ctrl_c_during_train_exits_130_and_keeps_the_old_model(tmp_path):
 def test_interruptible_runs_main_with_sigterm_as_interrupt_and_returns_its_value():
     """``interruptible(main)``: main's value back; a SIGTERM during main raises ``Terminated``
     (the executors then stop their workers); the previous handler afterwards either way."""
-    from bayes_talk.executor import Terminated, interruptible
+    from bayes_talk.base.executor import Terminated, interruptible
 
     before = signal.getsignal(signal.SIGTERM)
     assert interruptible(lambda a, b=0: a + b, 2, b=3) == 5

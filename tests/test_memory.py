@@ -22,7 +22,7 @@ from bayes_talk.synthesis.segment_objective import numpy_gp
 _FRAGMENT = textwrap.dedent("""
     import sys
     import numpy as np
-    from bayes_talk.memory import release_large_blocks
+    from bayes_talk.base.memory import release_large_blocks
 
     def rss_mb():
         with open("/proc/self/statm") as f:

@@ -1,10 +1,10 @@
-"""The warm-up tallies of the own-mode proposals (bayes_talk.synthesis.mode_adaptation)."""
+"""The warm-up tallies of the own-mode proposals (bayes_talk.posterior.mode_adaptation)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bayes_talk.synthesis.mode_adaptation import OWN_COVARIANCE_FLOOR, ModeTally, component_logpdf
+from bayes_talk.posterior.mode_adaptation import OWN_COVARIANCE_FLOOR, ModeTally, component_logpdf
 
 
 def test_mode_tally_sums_both_estimates_of_each_modes_mass_mean_and_covariance():

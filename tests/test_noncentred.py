@@ -7,9 +7,9 @@ import pytest
 from toydata import make_utterances
 
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.noncentred import NonCentred, WhitenedNonCentred, eps_hessian
-from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.samplers import laplace_scale
+from bayes_talk.posterior.noncentred import NonCentred, WhitenedNonCentred, eps_hessian
+from bayes_talk.posterior.sampling import sample_synthesis
+from bayes_talk.posterior.samplers import laplace_scale
 
 
 @pytest.fixture(scope="module")

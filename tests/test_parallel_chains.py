@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 
 @pytest.fixture(scope="module")
@@ -18,7 +18,7 @@ def toy(toy_vlmm):
 def pool():
     """Two worker processes kept for the module: starting a pool of fresh interpreters
     (torch and pyro imported in each) costs more than the short chains below."""
-    from bayes_talk.executor import ProcessExecutor
+    from bayes_talk.base.executor import ProcessExecutor
 
     with ProcessExecutor(2) as ex:
         yield ex
@@ -52,9 +52,9 @@ def test_pg_nuts_mode_searches_and_chains_do_not_depend_on_the_workers(toy, pool
     """pg-nuts: the blocks' own-mode searches and the chains share one executor. On the pool's
     two workers (the blocks dealt round-robin into two tasks) or here, ``own_modes`` finds the
     same modes, in the blocks' order, to the last bit, and the chains give the same draws."""
-    from bayes_talk.synthesis.frame_updates import dynamics_blocks, own_modes
+    from bayes_talk.posterior.frame_updates import dynamics_blocks, own_modes
     from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-    from bayes_talk.synthesis.particle_gibbs import FrameFactors, MixtureProposal
+    from bayes_talk.posterior.particle_gibbs import FrameFactors, MixtureProposal
 
     model, u = toy
     T = 10

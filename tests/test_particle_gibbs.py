@@ -10,16 +10,16 @@ import pytest
 from scipy.special import logsumexp
 from toydata import make_utterances
 
-from bayes_talk.synthesis.defaults import NUTS_DEFAULTS, PG_NUTS_BUDGET, PG_NUTS_DEFAULTS
-from bayes_talk.synthesis.frame_updates import block_factor, block_mtm, dynamics_blocks
+from bayes_talk.posterior.methods import NUTS_DEFAULTS, PG_NUTS_BUDGET, PG_NUTS_DEFAULTS
+from bayes_talk.posterior.frame_updates import block_factor, block_mtm, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.particle_gibbs import (
+from bayes_talk.posterior.particle_gibbs import (
     FrameFactors,
     MixtureProposal,
     csmc_as,
     run_particle_gibbs,
 )
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +159,7 @@ def test_block_sweeps_repeat_the_block_updates_and_keep_a_known_posterior(monkey
     """``block_sweeps`` = R: after each CSMC sweep the move runs R passes of the multiple-try
     block updates (counted), and the composition keeps the AR(1) chain's exact posterior means
     and variances (5 Monte-Carlo s.e., 15 %); R < 1 is refused."""
-    import bayes_talk.synthesis.particle_gibbs as pg
+    import bayes_talk.posterior.particle_gibbs as pg
 
     y = np.array([0.5, 1.5, -0.3, 2.0, 1.0])
     m = _AR1(y)
@@ -299,7 +299,7 @@ def test_particle_gibbs_composed_with_nuts_keeps_the_chain_state_consistent(toy,
     coordinates (the move maps through their ``to_x``/``to_u``). NUTS trees are capped at depth 3 (≤ 7
     leapfrog steps; unadapted step sizes after a 12-iteration warm-up grew deep ones): the
     consistency of the cached potential after a sweep does not need long trajectories."""
-    from bayes_talk.synthesis.noncentred import NonCentred
+    from bayes_talk.posterior.noncentred import NonCentred
 
     model, u = toy
     T = 10
@@ -363,8 +363,8 @@ def test_pg_nuts_runs_its_own_warmup_and_draws_by_default(toy, monkeypatch, meth
     """Without ``warmup`` and ``n_draws``, pg-nuts runs ``PG_NUTS_BUDGET`` (200 warm-up + 500
     draws per chain) and NUTS in the same coordinates its own defaults (500 + 250): what the
     runner receives, and the default draws the CLI states."""
-    import bayes_talk.synthesis.posterior as post
-    from bayes_talk.synthesis.defaults import DEFAULT_DRAWS, draws_help
+    import bayes_talk.posterior.sampling as post
+    from bayes_talk.posterior.methods import DEFAULT_DRAWS, draws_help
 
     class Stop(Exception):
         pass
@@ -396,7 +396,7 @@ def test_the_stopping_rule_passes_mixed_chains_and_fails_chains_apart(toy):
     (800 in all) pass the R-hat ≤ 1.01 and ESS ≥ 400 checks on the latents and AAM parameters;
     one chain shifted fails R-hat, too few draws fail ESS; each check is in ``history``."""
     from bayes_talk.synthesis.joint import make_plan
-    from bayes_talk.synthesis.posterior import TargetCheck
+    from bayes_talk.posterior.sampling import TargetCheck
 
     model, u = toy
     T = 6
@@ -447,8 +447,8 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
     diagnostics), out-of-range values are refused naming the key, and a
     block whose mode search finds nothing (here the first block's, removed) is listed in
     ``pg_blocks_without_modes`` while the others are not."""
-    import bayes_talk.synthesis.frame_updates as fu
-    import bayes_talk.synthesis.particle_gibbs as pg
+    import bayes_talk.posterior.frame_updates as fu
+    import bayes_talk.posterior.particle_gibbs as pg
 
     model, u = toy
     T = 10
@@ -480,7 +480,7 @@ def test_pg_nuts_own_mode_settings_reach_the_proposal_and_blocks_without_modes_a
                          sampler_kw={"pg_particles": 8, "pg_mode_delta": 0.5, "pg_mode_scale": 2.0,
                                      "pg_mode_starts": 8, "pg_block_sweeps": 2, "pg_adapt_moments": True,
                                      "pg_adapt_clusters": True, "max_tree_depth": 3}, **kw)
-    from bayes_talk.executor import Executor
+    from bayes_talk.base.executor import Executor
 
     assert len(seen) == 1 and isinstance(seen[0].pop("executor"), Executor)   # the chains' executor
     assert seen == [{"neighbours": False, "delta": 0.5, "scale": 2.0, "n_starts": 8, "moments": True,
@@ -529,7 +529,7 @@ def test_pg_nuts_reports_the_mode_weights_the_chains_warmups_taught(toy):
 
 
 def test_synth_cli_offers_pg_nuts_and_its_particles(tmp_path):
-    from bayes_talk.cli import build_parser
+    from bayes_talk.app.cli import build_parser
     from bayes_talk.pipeline import synth
     from bayes_talk.pipeline.talking_face import _sampler_args
 
@@ -623,7 +623,7 @@ def test_block_modes_are_local_maxima_and_their_proposal_samples_the_density_it_
     q⁰ the sweep's proposal (the defensive component), E_q[q⁰/q] = 1 with q⁰/q ≤ 1/δ = 5 (fails
     if ln q misses the modes' mixture or the draws come from another one) — and a (1 − δ)
     share of the draws lies within 3 sd of a mode."""
-    from bayes_talk.synthesis.frame_updates import BlockModeProposal, factor_modes
+    from bayes_talk.posterior.frame_updates import BlockModeProposal, factor_modes
 
     T, ff, x_map, q = toy20
     if block == "isolated":
@@ -680,7 +680,7 @@ def _conditional_mode_masses(ff, bm, s, x, N, rng):
     given the neighbours in x: draws from ``bm``'s proposal weighted by exp(f_s + f_{s+1}) / q,
     each assigned by its responsibilities under the modes' Laplace approximations (equal
     weights), written out here apart from ``BlockModeProposal.record``. Returns (masses, ESS)."""
-    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+    from bayes_talk.posterior.mode_adaptation import component_logpdf
 
     m, P, _ = bm.laplace[s]
     Y, lq = bm.sample_logq(s, np.repeat(x[s - 1][None], N, 0), N, rng)
@@ -708,7 +708,7 @@ def _assert_time_at_mode_matches_the_conditional(ff, bm, s, x, y, k, m, L, rng):
     y (neighbours as in x): the chain's share of time at own mode k (nearest under the Laplace
     approximations m, L L^T) within 5 s.e. (batch means and the estimate's own from its ESS) of
     the conditional's mass there (:func:`_conditional_mode_masses`)."""
-    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+    from bayes_talk.posterior.mode_adaptation import component_logpdf
 
     at_k = []
     for _ in range(2000):
@@ -726,7 +726,7 @@ def _frame_at_a_light_mode(T, ff, x_map, q, rng):
     """(s, x, k): the first isolated frame s of the toy utterance and shift of its two neighbours
     in x (off the MAP) that put more than half of its full conditional's mass at an own mode k
     of own weight < 1 % (the held-out `utt0002` case)."""
-    from bayes_talk.synthesis.frame_updates import BlockModeProposal
+    from bayes_talk.posterior.frame_updates import BlockModeProposal
 
     probe = BlockModeProposal(q, dynamics_blocks(ff, 1))
     for (s, e), shift in itertools.product(dynamics_blocks(ff, 1), (0.05, 0.1, -0.1)):
@@ -752,7 +752,7 @@ def test_mode_weights_learnt_in_warmup_let_an_isolated_frame_switch_modes_and_ke
     the conditional's mass (an importance estimate through the adapted proposal, which now
     covers that mode: 5 s.e., batch means and the estimate's own from its ESS). ``begin_adaptation`` restores the own weights;
     nothing is tallied outside adaptation; the pairs' weights follow (``refresh``)."""
-    from bayes_talk.synthesis.frame_updates import (
+    from bayes_talk.posterior.frame_updates import (
         BlockModeProposal,
         PairModeProposal,
         adjacent_pairs,
@@ -825,8 +825,8 @@ def test_state_clusters_learnt_in_warmup_keep_the_isolated_frames_conditional(to
     alone: fails if ln q misses them); and the chain's share of time at mode k over 2,000 further
     updates matches the conditional's mass (5 s.e., as above) — the frozen proposal keeps the
     conditional."""
-    from bayes_talk.synthesis.frame_updates import BlockModeProposal
-    from bayes_talk.synthesis.mode_adaptation import CLUSTER_SHARE, component_logpdf
+    from bayes_talk.posterior.frame_updates import BlockModeProposal
+    from bayes_talk.posterior.mode_adaptation import CLUSTER_SHARE, component_logpdf
 
     T, ff, x_map, q = toy20
     rng = np.random.default_rng(23)
@@ -859,8 +859,8 @@ def test_mode_moments_learnt_in_warmup_add_components_that_sample_their_density_
     equal weights: fails if ln q misses them or the draws come from another mixture); the chain
     then keeps the conditional (time at mode k against its mass, as above); a new warm-up drops
     the learnt components."""
-    from bayes_talk.synthesis.frame_updates import BlockModeProposal
-    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+    from bayes_talk.posterior.frame_updates import BlockModeProposal
+    from bayes_talk.posterior.mode_adaptation import component_logpdf
 
     T, ff, x_map, q = toy20
     rng = np.random.default_rng(21)
@@ -908,7 +908,7 @@ def _pair_weights_by_hand(ff, s, mid, a, wa, b, wb):
 def _pair_draws_match_their_density(pq, s, e, a, La, b, Lb, rng, N=20000, **neighbours):
     """A pair proposal's draws and ln q agree: E_q[q_u/q] = 1 (4 s.e.) and q_u/q ≤ 1/δ for q_u
     the mixture of the components (a, La) × (b, Lb) with uniform pair weights."""
-    from bayes_talk.synthesis.mode_adaptation import component_logpdf
+    from bayes_talk.posterior.mode_adaptation import component_logpdf
 
     Y, lq = pq.sample_starts(s, e, N, rng, **neighbours)
     lu = (logsumexp(component_logpdf(Y[:, 0], a, La), axis=1) + logsumexp(component_logpdf(Y[:, 1], b, Lb), axis=1)
@@ -923,7 +923,7 @@ def test_pair_proposal_matches_modes_through_the_link_and_samples_the_density_it
     uniform, the link recomputed pair by pair; its draws and ln q agree (E_q[q_u/q] = 1 for q_u
     the uniform-pair mixture, q_u/q ≤ 1/δ; fails if ln q misses the pairing or the draws come
     from another mixture); the reference replaces the last draw."""
-    from bayes_talk.synthesis.frame_updates import (
+    from bayes_talk.posterior.frame_updates import (
         BlockModeProposal,
         PairModeProposal,
         adjacent_pairs,
@@ -957,7 +957,7 @@ def test_pair_proposal_with_neighbours_conditions_each_block_on_its_outer_neighb
     draws and ln q agree with that mixture (E_q[q_u/q] = 1 for q_u its uniform-pair version;
     fails if the draws or ln q use the unconditioned modes); without ``neighbours`` the
     neighbours change nothing."""
-    from bayes_talk.synthesis.frame_updates import (
+    from bayes_talk.posterior.frame_updates import (
         BlockModeProposal,
         PairModeProposal,
         adjacent_pairs,
@@ -1025,7 +1025,7 @@ def test_neighbour_adjusted_modes_are_the_conditioned_laplace_approximation(toy2
     A sign error in the residual or the end factor's Jacobian fails the first check."""
     from scipy.optimize import minimize
 
-    from bayes_talk.synthesis.frame_updates import BlockModeProposal
+    from bayes_talk.posterior.frame_updates import BlockModeProposal
 
     T, ff, x_map, q = toy20
     cap = 1 if block == "isolated" else T

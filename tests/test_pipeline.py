@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayes_talk.bundle import ESTIMATOR_DIR, write_bundle_manifest
-from bayes_talk.cli import main
+from bayes_talk.base.bundle import ESTIMATOR_DIR, write_bundle_manifest
+from bayes_talk.app.cli import main
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.pipeline import load_trained
 
@@ -61,7 +61,7 @@ def test_synth_with_vi_writes_its_diagnostics_and_says_when_it_is_unreliable(mod
     import functools
     import logging
 
-    import bayes_talk.synthesis.posterior as post
+    import bayes_talk.posterior.sampling as post
 
     monkeypatch.setattr(post, "run_vi", functools.partial(post.run_vi, steps=60, particles=2))  # fast
     wav, lab = _first_utterance(corpus_dir)
@@ -137,8 +137,8 @@ def _calibrate(m: Path, cal) -> None:
 
 def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_path, monkeypatch):
     from bayes_talk.pipeline import synth, train
-    from bayes_talk.synthesis import posterior
-    from bayes_talk.synthesis.band_calibration import BandCalibration
+    from bayes_talk.posterior import sampling as posterior
+    from bayes_talk.calibration.bands import BandCalibration
     from bayes_talk.synthesis.result import SynthesisResult
 
     m = tmp_path / "model"
@@ -191,7 +191,7 @@ def test_synth_applies_the_saved_band_calibration(model_dir, corpus_dir, tmp_pat
 def test_synth_writes_posterior_netcdf_bands_plot_and_uncertainty_video(model_dir, corpus_dir, tmp_path, capsys):
     import arviz as az
 
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     wav, lab = _first_utterance(corpus_dir)
     seq = next(s for s in load_corpus(corpus_dir).sequences if s.name == wav.stem)
@@ -251,8 +251,8 @@ def test_a_model_directory_of_the_layout_before_issue_26_loads(model_dir, tmp_pa
     """Trained before issue 26: the switching model's ``model.json`` + ``arrays.npz`` at the
     top of the directory and ``band_calibration.json`` beside them; ``load_trained`` reads it
     as the band-calibrated wrapper, with the same arrays."""
-    from bayes_talk.files import write_model_files
-    from bayes_talk.synthesis.band_calibration import BandCalibration
+    from bayes_talk.base.files import write_model_files
+    from bayes_talk.calibration.bands import BandCalibration
 
     old = tmp_path / "m"
     shutil.copytree(model_dir, old)
@@ -371,7 +371,7 @@ def test_synth_without_labels_aligns_the_text_or_uses_the_recogniser(model_dir, 
 
 def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch):
     import bayes_talk.pipeline as pl
-    from bayes_talk import cli
+    from bayes_talk.app import cli
 
     calls = []
     models = []

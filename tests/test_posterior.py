@@ -10,7 +10,7 @@ import torch
 from toydata import make_utterances
 
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.diagnostics import (
+from bayes_talk.posterior.diagnostics import (
     DIAGNOSTIC_KEYS,
     KHAT_MAX,
     chain_diagnostics,
@@ -34,11 +34,11 @@ from bayes_talk.synthesis.joint_map import (
     maximise_utterance,
     restart_map,
 )
-from bayes_talk.synthesis.mode_search import mode_jumps
-from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.samplers import run_emcee, run_laplace, run_nuts
+from bayes_talk.posterior.mode_search import mode_jumps
+from bayes_talk.posterior.sampling import sample_synthesis
+from bayes_talk.posterior.samplers import run_emcee, run_laplace, run_nuts
 from bayes_talk.synthesis.segment_objective import numpy_gp
-from bayes_talk.synthesis.variational import run_vi
+from bayes_talk.posterior.variational import run_vi
 
 # a correlated 2-D Gaussian with known moments
 MU = np.array([1.0, -2.0])
@@ -333,7 +333,7 @@ def test_compiled_predictive_equals_the_numpy_reference(toys, monkeypatch):
     mean VJP) equals the NumPy/LAPACK reference to 1e-9 relative for every state model's
     audio, visual and dynamics GP (β_x = 10⁶), with and without the extra variance, for 1
     and 40 rows, near and far from the training inputs."""
-    from bayes_talk import settings
+    from bayes_talk.base import settings
 
     model, _ = toys
     rng = np.random.default_rng(1)
@@ -639,7 +639,7 @@ def test_emcee_walkers_go_through_the_batched_density(toy):
     """emcee's walkers are evaluated in one batched, value-only call of the numpy twin, equal to one call
     per walker (the loop it replaces), with -inf kept for non-finite values."""
     from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-    from bayes_talk.synthesis.samplers import batch_log_prob
+    from bayes_talk.posterior.samplers import batch_log_prob
     from bayes_talk.synthesis.whitening import Whitened
 
     model, test = toy
@@ -732,7 +732,7 @@ def test_bands_are_exact_mixture_quantiles_and_cover_held_out_toy_data_near_nomi
 
 
 def test_synth_cli_sampler_options_reach_sample_synthesis(tmp_path):
-    from bayes_talk.cli import build_parser
+    from bayes_talk.app.cli import build_parser
     from bayes_talk.pipeline import synth
     from bayes_talk.pipeline.talking_face import _sampler_args
 

@@ -9,8 +9,8 @@ from scipy.special import logsumexp
 from toydata import make_utterances
 
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.particle_gibbs import FrameFactors, MixtureProposal
-from bayes_talk.synthesis.proposal_tables import kernel_mixture_logpdf, smoothness_weights
+from bayes_talk.posterior.particle_gibbs import FrameFactors, MixtureProposal
+from bayes_talk.posterior.proposal_tables import kernel_mixture_logpdf, smoothness_weights
 
 
 def test_smoothness_weights_are_the_normalised_gaussian_table():

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from toydata import PHONES, make_utterances
 
-from bayes_talk import cli
-from bayes_talk.baselines import REGISTRY
-from bayes_talk.data.corpus import Corpus
+from bayes_talk.app import cli
+from bayes_talk.estimators.baselines import REGISTRY
+from bayes_talk.corpus import Corpus
 from bayes_talk.evaluation import harness as H
 from bayes_talk.evaluation import metrics as M
 from bayes_talk.evaluation import protocols as P
@@ -265,7 +265,7 @@ def test_harness_gp_families_train_once_and_report_calibration(gp_run):
 
 
 def test_posterior_method_is_the_posterior_mixture(utts):
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    from bayes_talk.posterior.sampling import sample_synthesis
 
     cfg = dataclasses.replace(TINY_GP, posterior_draws=16)
     model = S.fit_family("ssgpdm-phone", utts[:6], cfg)
@@ -309,7 +309,7 @@ def fake_corpora(monkeypatch, tmp_path):
         return Corpus(path=Path(path), kind="built", sequences=seqs, manifest=manifest,
                       aam_path=Path(path) / "aam.npz")
 
-    monkeypatch.setattr("bayes_talk.data.corpus.load_corpus", fake_load)
+    monkeypatch.setattr("bayes_talk.corpus.load_corpus", fake_load)
     tiny_eng = dataclasses.replace(P.PROTOCOLS["englebienne2008"], n_folds=3, system=TINY_GP)
     monkeypatch.setitem(P.PROTOCOLS, "englebienne2008", tiny_eng)
     return tmp_path, loaded

@@ -28,7 +28,7 @@ def readme_python_section() -> str:
 
 @pytest.mark.slow
 def test_readme_python_section_runs_as_a_plain_script_on_a_fresh_corpus(tmp_path):
-    from bayes_talk.data.corpus import build_corpus
+    from bayes_talk.corpus import build_corpus
 
     build_corpus(tmp_path / "CORPUS", n_utterances=16, seed=0, image_size=64)
     assert not (tmp_path / "CORPUS" / "features.npz").exists()
@@ -48,7 +48,7 @@ def test_readme_python_section_runs_as_a_plain_script_on_a_fresh_corpus(tmp_path
 def test_workers_asked_for_without_the_main_guard_get_an_error_that_names_the_guard(tmp_path):
     script = tmp_path / "noguard.py"
     script.write_text("import operator\n"
-                      "from bayes_talk.executor import ProcessExecutor\n"
+                      "from bayes_talk.base.executor import ProcessExecutor\n"
                       "with ProcessExecutor(2) as ex:\n"
                       "    print(ex.map(operator.neg, [1, 2, 3]))\n", encoding="utf-8")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
@@ -62,7 +62,7 @@ def test_workers_asked_for_without_the_main_guard_get_an_error_that_names_the_gu
     assert 'if __name__ == "__main__":' in after
     guarded = tmp_path / "guard.py"
     guarded.write_text("import operator\n"
-                       "from bayes_talk.executor import ProcessExecutor\n"
+                       "from bayes_talk.base.executor import ProcessExecutor\n"
                        "if __name__ == '__main__':\n"
                        "    with ProcessExecutor(2) as ex:\n"
                        "        print(ex.map(operator.neg, [1, 2, 3]))\n", encoding="utf-8")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.bundle import ESTIMATOR_DIR
+from bayes_talk.base.bundle import ESTIMATOR_DIR
 from bayes_talk.estimators import registry
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.evaluation import harness as H
@@ -113,7 +113,7 @@ def test_a_registered_dummy_estimator_runs_through_evaluate(registered):
 
 def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_built_corpus, tmp_path):
     from bayes_talk import pipeline
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
 
     assert registered not in pipeline.MODEL_KINDS and registered in pipeline.model_kinds()
     out = pipeline.train(shared_built_corpus, registered, tmp_path / "model", alignment=False, extra_var=0.25)

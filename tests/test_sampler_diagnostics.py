@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.synthesis.diagnostics import (
+from bayes_talk.posterior.diagnostics import (
     convergence_problems,
     frame_diagnostics,
     frame_update_diagnostics,
     frame_update_rate,
 )
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 
 def test_frame_diagnostics_find_the_frame_where_chains_disagree():
@@ -80,7 +80,7 @@ def test_an_extra_moves_records_are_kept_per_draw_and_blank_where_it_did_not_run
     statistic, zero where the move did not run (every second iteration here)."""
     import torch
 
-    from bayes_talk.synthesis.samplers import run_nuts
+    from bayes_talk.posterior.samplers import run_nuts
 
     def move(x, rng):
         return x, {"ran": True, "value": np.full(2, 7.0)}
@@ -100,10 +100,10 @@ def test_pg_nuts_reports_how_often_its_sweeps_changed_each_frame(toy, monkeypatc
     rate and its summary are in the diagnostics, and the record is in posterior.nc. A frame the
     sweep may never change (pinned to its reference value) has rate 0 in every chain (the
     multiple-try block updates after the sweep are off here: they would move it)."""
-    import bayes_talk.synthesis.particle_gibbs as pg
-    from bayes_talk.arviz_compat import from_netcdf
-    from bayes_talk.synthesis.noncentred import NonCentred
-    from bayes_talk.uncertainty_outputs import write_posterior_netcdf
+    import bayes_talk.posterior.particle_gibbs as pg
+    from bayes_talk.base.arviz_compat import from_netcdf
+    from bayes_talk.posterior.noncentred import NonCentred
+    from bayes_talk.pipeline.uncertainty_outputs import write_posterior_netcdf
 
     model, mfcc, labels = toy
     T, pinned, warmup, chains, per_chain = 6, 2, 3, 2, 4

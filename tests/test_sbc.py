@@ -22,8 +22,8 @@ from bayes_talk.evaluation.sbc import (
 )
 from bayes_talk.evaluation.sbc_power import combined_verdict
 from bayes_talk.synthesis.joint import make_plan
-from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.predictive_checks import (
+from bayes_talk.posterior.sampling import sample_synthesis
+from bayes_talk.posterior.predictive_checks import (
     posterior_predictive,
     predictive_check,
     prior_predictive,
@@ -141,7 +141,7 @@ class _PickledPool:
     def map(self, fn, items, desc=None, unit="task"):
         import pickle
 
-        from bayes_talk.executor import run_task
+        from bayes_talk.base.executor import run_task
 
         items = [pickle.dumps((fn, x)) for x in items]
         self.tasks.append(len(items))

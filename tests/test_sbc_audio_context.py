@@ -11,8 +11,8 @@ from toydata import make_utterances
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.sbc import sampler_posterior, scaled_laplace
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.posterior import sample_synthesis
-from bayes_talk.synthesis.predictive_checks import (
+from bayes_talk.posterior.sampling import sample_synthesis
+from bayes_talk.posterior.predictive_checks import (
     posterior_predictive,
     predictive_check,
     prior_predictive,

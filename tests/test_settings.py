@@ -1,10 +1,10 @@
-"""The environment switches of :mod:`bayes_talk.settings`: read at call time, overridable
+"""The environment switches of :mod:`bayes_talk.base.settings`: read at call time, overridable
 for a block, malformed values named (issue 26, item 6)."""
 from __future__ import annotations
 
 import pytest
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 
 
 def test_read_at_call_time_not_import_time(monkeypatch):
@@ -67,4 +67,4 @@ def test_every_bayes_talk_variable_read_by_the_package_is_a_switch():
     pkg = Path(settings.__file__).parent
     offenders = [str(p.relative_to(pkg.parent)) for p in sorted(pkg.rglob("*.py"))
                  if p.name != "settings.py" and read.search(p.read_text(encoding="utf-8"))]
-    assert not offenders, f"modules reading BAYES_TALK_* variables outside bayes_talk/settings.py: {offenders}"
+    assert not offenders, f"modules reading BAYES_TALK_* variables outside bayes_talk/base/settings.py: {offenders}"

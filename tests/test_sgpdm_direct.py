@@ -9,7 +9,7 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.gp.lbfgs import LBFGS
 from bayes_talk.models.sgpdm import SGPDM

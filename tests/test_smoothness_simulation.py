@@ -11,8 +11,8 @@ from toydata import make_utterances
 
 from bayes_talk.evaluation.sbc import scaled_laplace, synthesis_sbc
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan, synthesis_model
-from bayes_talk.synthesis.particle_gibbs import FrameFactors
-from bayes_talk.synthesis.predictive_checks import prior_predictive
+from bayes_talk.posterior.particle_gibbs import FrameFactors
+from bayes_talk.posterior.predictive_checks import prior_predictive
 from bayes_talk.synthesis.segment_objective import numpy_gp
 
 

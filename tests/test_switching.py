@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from toydata import make_utterances
 
-from bayes_talk.bundle import write_bundle_manifest
+from bayes_talk.base.bundle import write_bundle_manifest
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import FALLBACK
 from bayes_talk.synthesis.sequential import lowpass
@@ -228,7 +228,7 @@ def test_audio_context_window_is_fitted_used_and_saved(data, tmp_path):
     transform travels with the model, and a later frame's audio changes an earlier frame's
     synthesis (which per-frame MFCCs cannot do)."""
     from bayes_talk.features.audio_context import AudioContext, splice
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    from bayes_talk.posterior.sampling import sample_synthesis
 
     train, test = data
     # 8 utterances (~300 frames) are plenty to fit the 5·D-column window's PCA and some states
@@ -265,7 +265,7 @@ def test_direct_log_joint_trains_the_same_switching_model_as_the_pyro_trace(data
     the hyperparameters and latents of the Pyro-trace path (``sgpdm_program.trace_log_joint``,
     kept as the reference)."""
     import bayes_talk.models.sgpdm as sgpdm_mod
-    from bayes_talk import settings
+    from bayes_talk.base import settings
     from bayes_talk.models.sgpdm_program import sgpdm_log_joint, trace_log_joint
 
     train = data[0][:5]

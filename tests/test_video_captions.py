@@ -7,7 +7,7 @@ import inspect
 import numpy as np
 import pytest
 
-from bayes_talk.video import caption_strip, side_by_side
+from bayes_talk.base.video import caption_strip, side_by_side
 
 
 def _videos():
@@ -37,7 +37,7 @@ def test_different_captions_draw_different_pixels_and_a_wrong_count_is_refused()
 
 
 def test_the_demo_captions_its_video_with_the_truth_on_the_left():
-    from bayes_talk import demo
+    from bayes_talk.app import demo
 
     assert "truth" in demo.DEMO_VIDEO_LABELS[0] and "synthesis" in demo.DEMO_VIDEO_LABELS[1]
     assert "side_by_side(gt_frames, syn_frames, labels=DEMO_VIDEO_LABELS)" in inspect.getsource(demo.run_demo)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from bayes_talk.errors import NotFittedError
+from bayes_talk.base.errors import NotFittedError
 from bayes_talk.models.vlmm import START, VLMM, Segment
 
 ALPHA = ("a", "b", "c")

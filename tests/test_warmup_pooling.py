@@ -1,5 +1,5 @@
 """A NUTS chain split at the end of its warm-up, and the warm-ups' adaptation pooled over the
-chains before any kept draw (issue 24; :mod:`bayes_talk.synthesis.nuts_chain`)."""
+chains before any kept draw (issue 24; :mod:`bayes_talk.posterior.nuts_chain`)."""
 from __future__ import annotations
 
 import copy
@@ -9,10 +9,10 @@ import pytest
 import torch
 from toydata import make_utterances
 
-from bayes_talk.synthesis.frame_updates import BlockModeProposal, dynamics_blocks
+from bayes_talk.posterior.frame_updates import BlockModeProposal, dynamics_blocks
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.mode_adaptation import ModeTally
-from bayes_talk.synthesis.nuts_chain import (
+from bayes_talk.posterior.mode_adaptation import ModeTally
+from bayes_talk.posterior.nuts_chain import (
     MOVE_STREAM,
     ChainState,
     _kernel,
@@ -20,8 +20,8 @@ from bayes_talk.synthesis.nuts_chain import (
     run_kernel,
     warmup_chain,
 )
-from bayes_talk.synthesis.particle_gibbs import FrameFactors, MixtureProposal
-from bayes_talk.synthesis.samplers import run_nuts
+from bayes_talk.posterior.particle_gibbs import FrameFactors, MixtureProposal
+from bayes_talk.posterior.samplers import run_nuts
 
 
 def _banana(x: torch.Tensor) -> torch.Tensor:
@@ -160,7 +160,7 @@ def test_clusters_of_the_pooled_late_warmup_states_become_proposal_components(bl
     and too few states none."""
     from scipy.special import logsumexp
 
-    from bayes_talk.synthesis.mode_adaptation import CLUSTER_SHARE
+    from bayes_talk.posterior.mode_adaptation import CLUSTER_SHARE
 
     base, s = block_proposal
     m = base.laplace[s][0]

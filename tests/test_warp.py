@@ -11,7 +11,9 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial import Delaunay
 from skimage.transform import downscale_local_mean
 
-from bayes_talk.data import face, render
+from bayes_talk.data import face
+
+from bayes_talk.corpus import render
 from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine, warp_triangles
 
 

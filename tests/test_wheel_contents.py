@@ -121,4 +121,4 @@ def test_built_wheel_holds_every_package_file_in_git(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     assert sorted(n for n in names if n.startswith("bayes_talk/")) == sorted(listed.stdout.split())
     entry = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
-    assert "bayes-talk = bayes_talk.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "bayes-talk = bayes_talk.app.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()

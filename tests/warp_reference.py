@@ -7,7 +7,7 @@ barycentric coordinates in one NumPy pass over a batch of frames; covered pixels
 the source by the same barycentric weights and are sampled bilinearly; the (frame, pixel)
 pairs are written in (frame, triangle, row, column) order, so a pixel on a shared edge
 keeps the later triangle's value. :func:`render_frames` is the renderer's loop of the
-same session on top of it (bayes_talk.data.render.render_frames, before).
+same session on top of it (bayes_talk.corpus.render.render_frames, before).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from scipy.ndimage import gaussian_filter
 from skimage.transform import downscale_local_mean
 
 from bayes_talk.data import face as _face
-from bayes_talk.data import render as _render
+from bayes_talk.corpus import render as _render
 
 _BATCH = 32          # frames rasterised together (amortises NumPy call overhead)
 _EDGE_TOL = 1e-7     # barycentric tolerance: pixel centres on edges belong to both
@@ -185,7 +185,7 @@ def warp_triangles(images, src_points, dst_points, triangles, output_shape, fill
 
 def render_frames(landmarks, image_size=128, supersample=_render.RENDER_SUPERSAMPLE,
                   psf_px=_render.CAMERA_PSF_PX):
-    """bayes_talk.data.render.render_frames as it was on this rasteriser (no checks)."""
+    """bayes_talk.corpus.render.render_frames as it was on this rasteriser (no checks)."""
     lm = np.asarray(landmarks, dtype=np.float64)
     n = int(image_size)
     s = int(supersample)

@@ -29,8 +29,8 @@ def fit_alignment(sequences, seed: int = 0) -> AlignmentModel:
 
 def align_train(corpus_dir: str | os.PathLike, model_dir: str | os.PathLike, force: bool = False) -> Path:
     """Fit the alignment models on a corpus and save them into an existing model directory."""
-    from bayes_talk.bundle import DESCRIPTOR
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.base.bundle import DESCRIPTOR
+    from bayes_talk.corpus import load_corpus
 
     d = Path(model_dir)
     if not (d / DESCRIPTOR).exists():

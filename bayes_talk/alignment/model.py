@@ -35,7 +35,7 @@ from bayes_talk.alignment.scoring import score_segmentation, summarise_scores
 from bayes_talk.alignment.segments import segments_to_intervals
 from bayes_talk.alignment.viterbi import viterbi_phone_loop
 from bayes_talk.data.phones import PHONES
-from bayes_talk.files import check_format
+from bayes_talk.base.files import check_format
 
 __all__ = ["ALIGN_METHODS", "AlignmentModel", "AlignmentResult", "load_alignment_model"]
 
@@ -201,7 +201,7 @@ class AlignmentModel:
     # ------------------------------------------------------------------ persistence
     def save(self, model_dir: str | Path) -> Path:
         """Write ``alignment.json`` + ``alignment.npz`` into ``model_dir`` (atomically)."""
-        from bayes_talk.files import write_json, write_npz
+        from bayes_talk.base.files import write_json, write_npz
 
         d = Path(model_dir)
         write_npz(d / NPZ_NAME, {**self.hmms.arrays(), "log_bigram": self.log_bigram,
@@ -216,7 +216,7 @@ class AlignmentModel:
     @classmethod
     def load(cls, model_dir: str | Path) -> AlignmentModel:
         """Read what :meth:`save` wrote; errors name the file."""
-        from bayes_talk.data.corpus import load_npz
+        from bayes_talk.corpus import load_npz
 
         d = Path(model_dir)
         jp = d / JSON_NAME

@@ -81,7 +81,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.data.phones import PHONES, SILENCE
 
 __all__ = [
@@ -389,7 +389,7 @@ def synthesize_articulatory(intervals: list[tuple[float, float, str]], n_samples
     """
     import librosa
 
-    from bayes_talk.files import write_npz
+    from bayes_talk.base.files import write_npz
 
     vtl = require_vtl()
     sizes = dict(VARIATION if sizes is None else sizes)

@@ -1,5 +1,5 @@
 """Checks of one utterance's inputs at the boundary, shared by the corpus loader
-(:mod:`bayes_talk.data.corpus`) and synthesis from a WAV (:func:`bayes_talk.pipeline.read_utterance`).
+(:mod:`bayes_talk.corpus`) and synthesis from a WAV (:func:`bayes_talk.pipeline.read_utterance`).
 
 Audio versus labels: the phone labels must end where the audio ends, within
 :data:`LABEL_TOLERANCE_S` = 0.08 s, two video frames at 25 fps. Label tools round

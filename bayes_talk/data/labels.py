@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from bayes_talk.data.phones import SILENCE, check_phone
-from bayes_talk.files import write_text
+from bayes_talk.base.files import write_text
 
 __all__ = [
     "Interval",

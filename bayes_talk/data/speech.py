@@ -329,7 +329,7 @@ def write_wav(path: str | Path, samples: np.ndarray, sample_rate: int) -> None:
     """Write 16-bit PCM WAV atomically (temp file + ``os.replace``); no metadata chunks."""
     import soundfile as sf
 
-    from bayes_talk.files import atomic_write
+    from bayes_talk.base.files import atomic_write
 
     path = Path(path)
     samples = np.asarray(samples)

@@ -13,13 +13,13 @@ with scikit-learn conventions:
   :class:`~bayes_talk.synthesis.result.SynthesisResult` (``.mean``, ``.var``, bands);
   NotImplementedError for a point predictor (no variance: Voice Puppetry, SLDS, DPDS);
 * ``save(directory)`` / ``load(directory)``: a model bundle, JSON + NPZ, never pickle;
-* anything but ``fit``/``load`` before fitting raises :class:`~bayes_talk.errors.NotFittedError`.
+* anything but ``fit``/``load`` before fitting raises :class:`~bayes_talk.base.errors.NotFittedError`.
 
 One layout for every estimator (issue 26): :meth:`Estimator.save` writes a directory with
 ``estimator.json`` (the descriptor: format and version, the method name, the estimator's
 module and class, its constructor parameters, the fitted metadata), ``arrays.npz`` (the
 fitted arrays) and ``bundle_manifest.json`` (SHA-256 of every file, written last;
-:mod:`bayes_talk.bundle`). A constructor parameter that is itself an estimator (a
+:mod:`bayes_talk.base.bundle`). A constructor parameter that is itself an estimator (a
 wrapper's, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`) is saved the same
 way in the sub-directory named after the parameter. :meth:`Estimator.load` reads the
 descriptor and builds the class it names, with no class to pass in (``Estimator.load(d)``;
@@ -36,10 +36,10 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from sklearn.base import BaseEstimator
 
-from bayes_talk.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, write_bundle_manifest
+from bayes_talk.base.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, write_bundle_manifest
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.errors import NotFittedError, not_fitted
-from bayes_talk.files import check_format, read_model_files, write_json, write_npz
+from bayes_talk.base.errors import NotFittedError, not_fitted
+from bayes_talk.base.files import check_format, read_model_files, write_json, write_npz
 from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["ARRAYS_FILE", "ESTIMATOR_FILE", "FORMAT_NAME", "FORMAT_VERSION", "READ_VERSIONS", "Estimator", "NotFittedError",
@@ -144,7 +144,7 @@ class Estimator(BaseEstimator):
     def load(cls, directory: str | os.PathLike) -> Self:
         """Read a bundle written by :meth:`save`, as the class its descriptor names (which
         must be ``cls`` or a subclass: ``Estimator.load`` reads any). FileNotFoundError for a
-        missing file; :class:`~bayes_talk.bundle.BundleError` (a ValueError) naming the file
+        missing file; :class:`~bayes_talk.base.bundle.BundleError` (a ValueError) naming the file
         when one was swapped from another model, truncated or changed; ValueError for
         another class's bundle, a wrong format or version, or an incomplete descriptor."""
         d = Path(directory)

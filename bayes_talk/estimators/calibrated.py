@@ -2,10 +2,10 @@
 as scikit-learn's ``CalibratedClassifierCV`` wraps a classifier.
 
 :class:`BandCalibrated` holds a fitted estimator with a whole-utterance posterior (a
-switching SGPDM) and the :class:`~bayes_talk.synthesis.band_calibration.BandCalibration`
+switching SGPDM) and the :class:`~bayes_talk.calibration.bands.BandCalibration`
 of one of its inference methods (stages 0-3: mean shrinkage, band scale, level map, pool
 with the constant band; fitted on held-out *training* utterances by
-:func:`~bayes_talk.synthesis.band_calibration.fit_band_calibration`). Its ``predict_dist``
+:func:`~bayes_talk.calibration.bands.fit_band_calibration`). Its ``predict_dist``
 is the wrapped estimator's, recalibrated when the result is of the calibrated method
 (``result.method == calibration.method``) and returned as it is otherwise (e.g. the
 sequential path, or another sampler). It saves and loads as every estimator
@@ -21,9 +21,9 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.synthesis import band_calibration
-from bayes_talk.synthesis.band_calibration import HOLDOUT_FRACTION, BandCalibration
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
+from bayes_talk.calibration import bands as band_calibration
+from bayes_talk.calibration.bands import HOLDOUT_FRACTION, BandCalibration
+from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["BandCalibrated"]
@@ -61,7 +61,7 @@ class BandCalibrated(Estimator):
     def fit(self, train: list[Utterance], executor=None, progress=None) -> Self:
         """Fit the estimator on all of ``train`` (through ``executor`` where its ``fit`` takes
         one), then the calibration (one more fit on ``1 - holdout`` of ``train``, the rest
-        synthesised: :func:`~bayes_talk.synthesis.band_calibration.fit_band_calibration`)."""
+        synthesised: :func:`~bayes_talk.calibration.bands.fit_band_calibration`)."""
         fit_kw = {} if executor is None else {"executor": executor}
         self.estimator_ = self.estimator.fit(list(train), **fit_kw)
         self.calibration_ = band_calibration.fit_band_calibration(

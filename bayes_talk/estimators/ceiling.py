@@ -81,7 +81,7 @@ def _generator_context(seq: Utterance) -> dict:
     missing = [k for k in ("intervals", "aam_path", "image_size", "renderer") if meta.get(k) is None]
     if missing:
         raise ValueError(f"method 'oracle': utterance {seq.name!r} lacks {missing} in its meta "
-                         "(load it with bayes_talk.data.corpus.load_corpus)")
+                         "(load it with bayes_talk.corpus.load_corpus)")
     return meta
 
 
@@ -99,7 +99,7 @@ def oracle_draws(intervals: list, n_frames: int, aam, *, n_draws: int, seed: int
     face from ``default_rng([*seed, k])`` -- the conditional mean then averages over both.
     """
     from bayes_talk.data.face import face_landmarks
-    from bayes_talk.data.render import render_frames
+    from bayes_talk.corpus.render import render_frames
 
     if int(n_draws) < 2:
         raise ValueError(f"oracle: n_draws must be >= 2 (the bias correction needs a variance), "
@@ -139,7 +139,7 @@ class OracleModel(Estimator):
 
     def moments(self, seq: Utterance) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean_K, predictive variance s^2 (1 + 1/K), finite-sample MSE bias s^2 / K)."""
-        from bayes_talk.data.corpus.workers import cached_aam
+        from bayes_talk.corpus.workers import cached_aam
 
         meta = _generator_context(seq)
         aam = cached_aam(str(meta["aam_path"]))

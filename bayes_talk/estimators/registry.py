@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bayes_talk.baselines import REGISTRY as BASELINES
-from bayes_talk.bundle import BUNDLE_MANIFEST
+from bayes_talk.estimators.baselines import REGISTRY as BASELINES
+from bayes_talk.base.bundle import BUNDLE_MANIFEST
 from bayes_talk.estimators.base import ESTIMATOR_FILE, Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import OracleModel, ZeroModel

@@ -29,7 +29,7 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.files import read_model_files
+from bayes_talk.base.files import read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise

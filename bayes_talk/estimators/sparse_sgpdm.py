@@ -15,7 +15,7 @@ import numpy as np
 
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.files import read_model_files
+from bayes_talk.base.files import read_model_files
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM, SparseSGPDMConfig
 from bayes_talk.synthesis.latents import infer_latents
 from bayes_talk.synthesis.result import SynthesisResult

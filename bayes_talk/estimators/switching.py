@@ -5,7 +5,7 @@
 inference of :mod:`bayes_talk.synthesis` on top: ``synthesize`` runs deena2010's
 Algorithm 1 or 2 (:func:`bayes_talk.synthesis.sequential.synthesize`), ``predict`` returns
 its mean, ``predict_dist`` its mean and GP predictive variance. The whole-utterance
-posterior is :func:`bayes_talk.synthesis.posterior.sample_synthesis` (it takes this
+posterior is :func:`bayes_talk.posterior.sampling.sample_synthesis` (it takes this
 estimator as its model).
 """
 from __future__ import annotations
@@ -18,8 +18,8 @@ import numpy as np
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
-from bayes_talk.synthesis import posterior as synthesis_posterior
-from bayes_talk.synthesis.defaults import INFERENCE
+from bayes_talk.posterior import sampling as synthesis_posterior
+from bayes_talk.posterior.methods import INFERENCE
 from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.sequential import SEGMENT_MAX_ITER, synthesize
 
@@ -64,9 +64,9 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
         ``posterior`` None: deena2010's sequential path (Algorithm 1, or 2 with
         ``algorithm="predict"``; ``kw`` as :meth:`synthesize`), its mean and GP predictive
         variance, with latents and segments. A method of
-        :data:`~bayes_talk.synthesis.defaults.INFERENCE` (e.g. "laplace"): the
+        :data:`~bayes_talk.posterior.methods.INFERENCE` (e.g. "laplace"): the
         whole-utterance synthesis posterior,
-        :func:`bayes_talk.synthesis.posterior.sample_synthesis` with ``n_draws``, ``seed``
+        :func:`bayes_talk.posterior.sampling.sample_synthesis` with ``n_draws``, ``seed``
         and ``kw``; its failed convergence checks are in ``.warnings`` (logged too with
         ``log_warnings``). ``init``: the initialiser of the path, nearest neighbour ("nn"),
         the only one of the switching model."""

@@ -21,7 +21,7 @@ from that type only:
   form E|X − z| − ½ E|X − X'| from ``crps_samples`` draws of (1) (``result.sample``,
   seeded), with the fair (unbiased) pair term (:func:`~bayes_talk.evaluation.metrics.crps_sample_entries`);
   the same for a band-calibrated result
-  (:class:`~bayes_talk.synthesis.recalibrated_result.RecalibratedResult`, whose ``cdf``,
+  (:class:`~bayes_talk.calibration.recalibrated.RecalibratedResult`, whose ``cdf``,
   ``logpdf`` and ``interval`` are those of the recalibrated distribution, exactly, and
   whose draws are inverse-transform draws of it).
   (A maintained closed form for normal mixtures exists — ``scoringrules.crps_mixnorm`` —
@@ -309,7 +309,7 @@ def plot_calibration(summaries: Mapping[str, Mapping[str, Any]], path: str | Pat
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from bayes_talk.files import write_figure
+    from bayes_talk.base.files import write_figure
 
     if not summaries:
         raise ValueError("plot_calibration: no summaries")

@@ -14,7 +14,7 @@ minimum-MSE prediction of the mean-removed AAM parameters ``z`` given the phone 
 ``I`` is the conditional mean ``mu = E[z | I]``. It is estimated by Monte Carlo: K draws of
 the generator with fresh randomness and the utterance's true intervals
 (``meta["intervals"]``, read from its ``.lab``), each rendered exactly as the corpus was
-(:func:`bayes_talk.data.corpus.renderer_settings` of its format version), projected through
+(:func:`bayes_talk.corpus.renderer_settings` of its format version), projected through
 the AAM the test frames were projected through (``meta["aam_path"]``), and mean-removed per
 utterance like the truth::
 

@@ -24,7 +24,7 @@ added to ``train_seconds`` and reported as ``calibration_seconds``); their
 ``calibration_raw`` scores the same predictive before it, ``band_calibration``
 holds the fitted factors, ``calibration_control`` scores the constant-band control (the
 calibrated mean with a constant per-parameter band, calibrated the same way:
-:meth:`~bayes_talk.synthesis.band_calibration.BandCalibration.control_result`) and
+:meth:`~bayes_talk.calibration.bands.BandCalibration.control_result`) and
 ``uncertainty_beats_control`` says whether the calibrated predictive's NLPD and CRPS are
 below the control's (:func:`~bayes_talk.evaluation.calibration.control_verdict`).
 """
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.audio import DEFAULT_CMVN
+from bayes_talk.features.audio import DEFAULT_CMVN
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.evaluation import calibration as CAL
@@ -63,7 +63,7 @@ from bayes_talk.evaluation.systems import (
     predict,
     resolve_methods,
 )
-from bayes_talk.files import check_writable_json
+from bayes_talk.base.files import check_writable_json
 
 __all__ = ["Trajectory", "evaluate", "run_protocol"]
 
@@ -208,12 +208,12 @@ def run_protocol(
     ``model_cache``: a dict reused across calls with the same training utterances: the
     fitted model of each (family, split) is taken from it or stored in it (label sources).
 
-    ``executor``: a parallel :class:`~bayes_talk.executor.Executor` runs the splits (repeats,
+    ``executor``: a parallel :class:`~bayes_talk.base.executor.Executor` runs the splits (repeats,
     folds) as its tasks when there are several (and no ``model_cache``), each training its
     switching states in turn; with one split it trains the states (as does anything else
     with a ``map``). The numbers do not depend on it (timings aside).
     """
-    from bayes_talk.memory import release_large_blocks
+    from bayes_talk.base.memory import release_large_blocks
 
     release_large_blocks()  # freed N×N matrices leave the process (issue 14, memory)
     names = resolve_methods(methods, protocol.default_methods)
@@ -241,7 +241,7 @@ def run_protocol(
     t_start = time.perf_counter()
     jobs = [_SplitJob(split, len(splits), [pool[i] for i in split.train], [pool[i] for i in split.test],
                       families, cfg, first=k == 0) for k, split in enumerate(splits)]
-    from bayes_talk.executor import Executor
+    from bayes_talk.base.executor import Executor
 
     if isinstance(executor, Executor) and executor.parallel and len(jobs) > 1 and model_cache is None:
         # the splits in parallel (each trains its states in turn); a split's numbers do not
@@ -354,7 +354,7 @@ def evaluate(
     :mod:`bayes_talk.evaluation.label_sources`).
     executor: "local" (default), "processes" (``workers`` processes) or "dask" (a
     ``LocalCluster`` of ``workers`` processes, or the running scheduler at ``scheduler``), or
-    an :class:`~bayes_talk.executor.Executor` (left open): what runs the splits, or the
+    an :class:`~bayes_talk.base.executor.Executor` (left open): what runs the splits, or the
     per-state models of a single split, and the featurisation (docs/scaling.md). Without
     ``executor`` the protocol runs here and ``workers`` > 1 featurises in that many
     processes (``bayes-talk evaluate``: 2); the default 1 starts no process.
@@ -363,7 +363,7 @@ def evaluate(
     or training anything. Writes ``json_path``, ``json_path`` with suffix ``.md`` and
     ``<stem>_trajectories.png`` beside it (each atomically).
     """
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.data.phones import PHONES
     from bayes_talk.evaluation import report
 
@@ -376,7 +376,7 @@ def evaluate(
 
     sources = parse_label_sources(labels)
     out = check_writable_json(json_path)
-    from bayes_talk.executor import executor_for
+    from bayes_talk.base.executor import executor_for
 
     kind = executor if executor is not None else ("dask" if scheduler else "local")
     with executor_for(kind, workers, scheduler) as ex:

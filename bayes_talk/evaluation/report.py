@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.files import write_figure, write_text
+from bayes_talk.base.files import write_figure, write_text
 
 __all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
 

@@ -20,8 +20,8 @@ the middle (∩), biased on one side.
 * :func:`synthesis_sbc` - SBC of the whole-utterance synthesis model of a trained
   switching SGPDM (:mod:`bayes_talk.synthesis.joint`) on a given frame-label sequence:
   latent trajectories and audio simulated with ``pyro.infer.Predictive`` on
-  ``synthesis_model`` (:func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`),
-  each simulated audio given to :func:`~bayes_talk.synthesis.posterior.sample_synthesis`
+  ``synthesis_model`` (:func:`~bayes_talk.posterior.predictive_checks.prior_predictive`),
+  each simulated audio given to :func:`~bayes_talk.posterior.sampling.sample_synthesis`
   (any method), ranks over the T·d latent coordinates. With smoothness on (the default,
   as in synthesis) each smoothness factor is the density at u = 0 of a pseudo-observation
   u | X (:mod:`bayes_talk.synthesis.joint`, (S)); the simulation draws (X, audio, u) from
@@ -220,7 +220,7 @@ class _SamplerPosterior:
     kw: dict
 
     def __call__(self, model, audio, labels, seed, smooth_shift=None):
-        from bayes_talk.synthesis.posterior import sample_synthesis
+        from bayes_talk.posterior.sampling import sample_synthesis
 
         r = sample_synthesis(model, audio, labels, method=self.method, n_draws=self.n_draws, seed=seed,
                              log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift), **self.kw)
@@ -235,7 +235,7 @@ class _ScaledLaplace:
     n_draws: int
 
     def __call__(self, model, audio, labels, seed, smooth_shift=None):
-        from bayes_talk.synthesis.posterior import sample_synthesis
+        from bayes_talk.posterior.sampling import sample_synthesis
 
         r = sample_synthesis(model, audio, labels, method="laplace", n_draws=self.n_draws, seed=seed,
                              log_warnings=False, audio_view=True, **_smooth_kw(smooth_shift))
@@ -284,7 +284,7 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     ranked per simulation, after thinning. ``info`` records the sampler diagnostics
     (worst R-hat, smallest bulk ESS, k̂, divergences over the simulations) and seconds.
 
-    ``executor`` (bayes_talk.executor, e.g. ``ProcessExecutor(2)``): when it runs tasks in
+    ``executor`` (bayes_talk.base.executor, e.g. ``ProcessExecutor(2)``): when it runs tasks in
     other processes, the simulations' posterior runs go to it in contiguous chunks (a
     posterior must then be picklable: :func:`sampler_posterior` and :func:`scaled_laplace`
     are). Each run is seeded by its simulation (seed + 1000 + i), so the ranks do not depend
@@ -292,7 +292,7 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     import time
 
     from bayes_talk.synthesis.joint import make_plan
-    from bayes_talk.synthesis.predictive_checks import prior_predictive
+    from bayes_talk.posterior.predictive_checks import prior_predictive
 
     labels = list(labels)
     check_bins(n_draws, n_sims, bins)

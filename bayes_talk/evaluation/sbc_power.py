@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.stats
 
-from bayes_talk import arviz_compat as azc
+from bayes_talk.base import arviz_compat as azc
 
 #: family-wise level shared by the three tests of :func:`combined_verdict`
 ALPHA = 0.05

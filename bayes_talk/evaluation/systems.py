@@ -45,7 +45,7 @@ sparse-sgpdm                sparse-sgpdm        ours (issue 14): one sparse SGPD
 
 The ``*-posterior`` methods (our addition, DESIGN.md §6) replace Algorithm 1's path by the
 posterior over the whole utterance's latents (:mod:`bayes_talk.synthesis.joint`; Laplace
-approximation at the joint MAP, :func:`~bayes_talk.synthesis.posterior.sample_synthesis`,
+approximation at the joint MAP, :func:`~bayes_talk.posterior.sampling.sample_synthesis`,
 ``posterior_draws`` draws) and report the mean and variance of the resulting visual
 mixture, i.e. the Bayes estimate under squared error rather than the mode.
 
@@ -67,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
+from bayes_talk.estimators.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
@@ -83,8 +83,8 @@ from bayes_talk.estimators.sgplvm import SGPLVM
 from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.switching import SwitchingConfig
-from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS, HOLDOUT_FRACTION
-from bayes_talk.synthesis.defaults import DEFAULT_DRAWS
+from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
+from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
@@ -166,7 +166,7 @@ class SystemConfig:
     #: generator draws per utterance of method ``oracle`` (>= 2)
     oracle_draws: int = 32
     #: fraction of the training utterances held out to fit the band calibration of the
-    #: ``*-posterior`` methods (bayes_talk.synthesis.band_calibration); None: raw bands only
+    #: ``*-posterior`` methods (bayes_talk.calibration.bands); None: raw bands only
     band_calibration: float | None = HOLDOUT_FRACTION
     #: which model the calibration is scored with (CALIBRATED_MODELS, as ``train --calibrated-model``)
     calibrated_model: str = "refit"
@@ -357,15 +357,15 @@ def calibrated_method(names: Iterable[str]) -> str | None:
 def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConfig, method: str,
                          executor=None, progress=None) -> Any:
     """Fit the band calibration of ``model``'s posterior ``method`` on held-out training
-    utterances (:func:`bayes_talk.synthesis.band_calibration.fit_band_calibration`; one
+    utterances (:func:`bayes_talk.calibration.bands.fit_band_calibration`; one
     extra fit on the other ``1 - cfg.band_calibration`` of ``train``; with
-    ``cfg.calibrated_model`` "cv" :func:`~bayes_talk.synthesis.band_calibration.crossfit_band_calibration`,
+    ``cfg.calibrated_model`` "cv" :func:`~bayes_talk.calibration.bands.crossfit_band_calibration`,
     K = round(1/``cfg.band_calibration``) extra fits). Returns ``model``
     wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
     ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
     from bayes_talk.gp.threads import torch_threads
-    from bayes_talk.synthesis.band_calibration import crossfit_band_calibration
-    from bayes_talk.synthesis.band_calibration import fit_band_calibration as held_out_calibration
+    from bayes_talk.calibration.bands import crossfit_band_calibration
+    from bayes_talk.calibration.bands import fit_band_calibration as held_out_calibration
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")
@@ -381,9 +381,9 @@ def fit_calibrated_family(family: str, train: Sequence[Utterance], cfg: SystemCo
     """``cfg.calibrated_model`` "holdout": the model of ``family`` trained on the utterances of
     ``train`` outside the calibration's held-out ``cfg.band_calibration`` fraction, wrapped
     with the calibration of its posterior ``method`` fitted on the held-out ones
-    (:func:`bayes_talk.synthesis.band_calibration.holdout_calibrated_model`; one fit in all)."""
+    (:func:`bayes_talk.calibration.bands.holdout_calibrated_model`; one fit in all)."""
     from bayes_talk.gp.threads import torch_threads
-    from bayes_talk.synthesis.band_calibration import holdout_calibrated_model
+    from bayes_talk.calibration.bands import holdout_calibrated_model
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")

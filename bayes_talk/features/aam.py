@@ -68,7 +68,7 @@ from bayes_talk.features.procrustes import (
     procrustes_align,
 )
 from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine
-from bayes_talk.files import check_format, write_bytes
+from bayes_talk.base.files import check_format, write_bytes
 
 __all__ = ["AAM", "FORMAT_VERSION", "remove_sequence_mean"]
 

@@ -1,6 +1,6 @@
 """The context-window features of the context regressions (issue #15): one-hot phone
 labels and standardised MFCCs in windows of ±L / ±M frames around each frame
-(:mod:`bayes_talk.baselines.context` describes the method)."""
+(:mod:`bayes_talk.estimators.baselines.context` describes the method)."""
 from __future__ import annotations
 
 from collections.abc import Sequence as Seq

@@ -1,6 +1,6 @@
 """The fixed settings of the MFCC front end, shared by :mod:`bayes_talk.features.mfcc`
-(which computes the features) and :mod:`bayes_talk.audio` (which records them in a
-model's bundle as :class:`~bayes_talk.audio.AudioSettings`).
+(which computes the features) and :mod:`bayes_talk.features.audio` (which records them in a
+model's bundle as :class:`~bayes_talk.features.audio.AudioSettings`).
 
 A module of its own so that the audio loader and the MFCC code do not import each other.
 """

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.audio import downmix, load_audio
+from bayes_talk.features.audio import downmix, load_audio
 from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
 
 __all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "noise_power", "samples_per_frame"]
@@ -67,7 +67,7 @@ def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: f
     """MFCCs aligned to video frames; returns ``(n_frames, n_mfcc)`` float64.
 
     ``y``: mono waveform (float in [-1, 1], or int16 scaled by 1/32768; a 2-D (n, channels)
-    array is downmixed by :func:`bayes_talk.audio.downmix`). ``n_frames``: default
+    array is downmixed by :func:`bayes_talk.features.audio.downmix`). ``n_frames``: default
     :func:`frame_count`; a smaller value truncates, a larger one is an error. ``where`` names the source in errors.
     ``fmax``: the mel filterbank's upper edge (None: sr/2); ``floor_dbfs``: the absolute
     floor (module docstring; None: none).
@@ -130,7 +130,7 @@ def noise_power(dbfs: float, sample_rate: int, win: int, n_mels: int = N_MELS, f
 def load_wav(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarray, int]:
     """Read a WAV (any soundfile-readable file) as float64 mono in [-1, 1] and its rate.
 
-    Several channels are downmixed by :func:`bayes_talk.audio.downmix` (average when
+    Several channels are downmixed by :func:`bayes_talk.features.audio.downmix` (average when
     correlated, else the loudest channel); ``target_sr``: resample to it (one log line).
     Errors name the file: unreadable, empty, or non-finite audio raise ValueError.
     """

@@ -2,7 +2,7 @@
 
 Used by the AAM (shape-free texture sampling, :mod:`bayes_talk.features.aam`), the AAM
 fitter (:mod:`bayes_talk.features.aam_fit`) and the synthetic-face renderer
-(:mod:`bayes_talk.data.render`).
+(:mod:`bayes_talk.corpus.render`).
 
 Speed. Warping is one compiled (numba) pass, :func:`warp_triangles`: for every frame and
 every non-degenerate destination triangle, in triangle order, the pixel centres of its

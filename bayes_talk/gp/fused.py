@@ -53,7 +53,7 @@ import numba
 import numpy as np
 import torch
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.gp.lapack import potrf_lower, potri_lower, potrs_lower
 from bayes_talk.gp.threads import THREADED_MIN_N
 
@@ -317,7 +317,7 @@ def rbf_matrix_normal_grad(X: np.ndarray, a: float, gm: float, b: float, V: np.n
 
 
 def fused_ok(*tensors) -> bool:
-    """Whether the fused path applies: switched on (:mod:`bayes_talk.settings` ``fused``),
+    """Whether the fused path applies: switched on (:mod:`bayes_talk.base.settings` ``fused``),
     float64 CPU tensors (or plain numbers)."""
     return settings.get("fused") and all(not isinstance(t, torch.Tensor) or (t.dtype == torch.float64 and t.device.type == "cpu")
                for t in tensors)

@@ -19,14 +19,14 @@ Two providers of the three routines:
   symbols (other platforms, other torch builds).
 
 The default is ``torch-mkl`` when available, else ``scipy``; the switch ``lapack`` of
-:mod:`bayes_talk.settings` (``BAYES_TALK_LAPACK=scipy``, read at each call) or
+:mod:`bayes_talk.base.settings` (``BAYES_TALK_LAPACK=scipy``, read at each call) or
 :func:`set_provider` chooses scipy.
 :func:`provider` names the one in use.
 
 Threads: MKL inside torch follows ``torch.set_num_threads``; each routine takes
 ``threads``, the most MKL threads for that call (set thread-locally with
 ``MKL_Set_Num_Threads_Local`` and restored; None: torch's count), and ``dpotri`` runs on
-at most ``potri_threads`` MKL threads besides (:mod:`bayes_talk.settings`; default 1,
+at most ``potri_threads`` MKL threads besides (:mod:`bayes_talk.base.settings`; default 1,
 environment variable ``BAYES_TALK_POTRI_THREADS``, 0 = follow torch). The scipy provider
 ignores ``threads`` (its OpenBLAS keeps its own count). Measured on this shared 2-core machine
 with other processes on both cores (one thread; median of 7): MKL ``dpotrf`` + ``dpotri``
@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from scipy.linalg import lapack
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.gp.threads import torch_cpu_library
 
 _c_int = ctypes.c_int
@@ -77,7 +77,7 @@ def provider() -> str:
 
 def set_provider(name: str) -> None:
     """Use ``"torch-mkl"`` (when torch exports it) or ``"scipy"`` from now on (sets the
-    ``lapack`` switch of :mod:`bayes_talk.settings` for the process)."""
+    ``lapack`` switch of :mod:`bayes_talk.base.settings` for the process)."""
     if name not in ("torch-mkl", "scipy"):
         raise ValueError(f"unknown LAPACK provider {name!r}: expected 'torch-mkl' or 'scipy'")
     if name == "torch-mkl" and _TORCH_LIB is None:

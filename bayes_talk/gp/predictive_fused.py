@@ -20,7 +20,7 @@ count. :class:`~bayes_talk.synthesis.segment_objective._NumpyGP` uses it unless
 ``BAYES_TALK_FUSED=0`` (then the NumPy/LAPACK path, the reference a test compares with).
 
 Floating-point flags: the loops here, in :mod:`bayes_talk.gp.fused` and in
-:mod:`bayes_talk.synthesis.noncentred` are compiled with ``fastmath={"reassoc"}`` (so the
+:mod:`bayes_talk.posterior.noncentred` are compiled with ``fastmath={"reassoc"}`` (so the
 reductions vectorise), not with ``"contract"`` too: with both, the machine code numba
 compiled in a process and the code it loaded from its on-disk cache (``cache=True``) gave
 different last bits (session 16: the segment objective, the packed predictives), so a

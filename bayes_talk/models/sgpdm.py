@@ -49,8 +49,8 @@ import pyro
 import torch
 from pyro import poutine
 
-from bayes_talk.errors import not_fitted
-from bayes_talk.files import check_format, read_model_files, write_model_files
+from bayes_talk.base.errors import not_fitted
+from bayes_talk.base.files import check_format, read_model_files, write_model_files
 from bayes_talk.gp.backconstraint import MLPBackConstraint
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.terms import dynamics_split

@@ -33,7 +33,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.gp.fused import rbf_matrix_normal_grad
 from bayes_talk.gp.lbfgs import LBFGS
 from bayes_talk.gp.terms import LOG_2PI, W_PRIOR_VARIANCE, dynamics_split
@@ -45,7 +45,7 @@ __all__ = ["SGPDMObjective", "fit_direct", "supports"]
 def supports(cfg: SGPDMConfig) -> bool:
     """Whether :class:`SGPDMObjective` evaluates this configuration: no back-constraint, no
     linear dynamics term, and the compiled GP passes on (switch ``fused``) as well as the
-    direct fit itself (switch ``direct_fit`` of :mod:`bayes_talk.settings`)."""
+    direct fit itself (switch ``direct_fit`` of :mod:`bayes_talk.base.settings`)."""
     return (cfg.back_constraint is None and cfg.dyn_linear is None and bool(settings.get("fused"))
             and bool(settings.get("direct_fit")))
 

@@ -27,7 +27,7 @@ package's one unseen-phone policy (:func:`bayes_talk.data.phones.substitute_unse
 most frequent training phone of its viseme).
 
 Synthesis is in :mod:`bayes_talk.synthesis.sequential` (Algorithms 1-2) and
-:mod:`bayes_talk.synthesis.posterior`; the estimator is
+:mod:`bayes_talk.posterior.sampling`; the estimator is
 :class:`bayes_talk.estimators.switching.SwitchingSGPDM`.
 """
 from __future__ import annotations
@@ -42,10 +42,10 @@ import numpy as np
 
 from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.errors import not_fitted
+from bayes_talk.base.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.features.context_view import ContextView
-from bayes_talk.files import check_format, read_model_files
+from bayes_talk.base.files import check_format, read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.right_context import RightContextStates
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
@@ -207,7 +207,7 @@ class SwitchingModel:
 
     The keyword arguments are the fields of :class:`SwitchingConfig` (their one source of
     defaults), stored as given; :attr:`config` gathers them. Synthesis from new audio is
-    in :mod:`bayes_talk.synthesis.sequential` and :mod:`bayes_talk.synthesis.posterior`;
+    in :mod:`bayes_talk.synthesis.sequential` and :mod:`bayes_talk.posterior.sampling`;
     the estimator with ``predict`` / ``predict_dist`` is
     :class:`bayes_talk.estimators.switching.SwitchingSGPDM`.
     """

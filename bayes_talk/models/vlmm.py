@@ -80,8 +80,8 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from bayes_talk.errors import not_fitted
-from bayes_talk.files import check_format, write_text
+from bayes_talk.base.errors import not_fitted
+from bayes_talk.base.files import check_format, write_text
 
 __all__ = ["FORMAT_VERSION", "START", "VLMM", "Segment", "State"]
 

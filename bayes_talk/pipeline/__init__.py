@@ -9,13 +9,13 @@ the command line's workflow, split by idea (issue 26, item 4):
   settings (what ``train`` records, what ``synth`` applies to new audio);
 * :mod:`~bayes_talk.pipeline.talking_face`: ``synth`` (WAV + labels -> face, bands, video).
 
-The model directory's descriptor is :mod:`bayes_talk.bundle`'s. The public names of the
+The model directory's descriptor is :mod:`bayes_talk.base.bundle`'s. The public names of the
 four modules are importable from here (on first access, PEP 562, so that importing the
 package for the command line's defaults loads no more than those).
 """
 from __future__ import annotations
 
-from bayes_talk.lazy import lazy_exports
+from bayes_talk.base.lazy import lazy_exports
 
 _EXPORTS: dict[str, str] = {
     **dict.fromkeys(("DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands",

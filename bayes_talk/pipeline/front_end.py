@@ -1,5 +1,5 @@
 """The audio front end of a trained model, built in one place (issue 26, item 4): the
-settings ``train`` records in the model's bundle (:class:`bayes_talk.audio.AudioSettings`:
+settings ``train`` records in the model's bundle (:class:`bayes_talk.features.audio.AudioSettings`:
 sample rate, MFCC settings, cepstral normalisation, mel edge and floor, feature statistics)
 and the one computation of an utterance's features from a WAV with them, given its phone
 labels (:func:`read_utterance`) or phone intervals derived from its audio
@@ -10,8 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from bayes_talk.audio import DEFAULT_CMVN, AudioSettings, feature_statistics
-from bayes_talk.audio import cmvn as apply_cmvn
+from bayes_talk.features.audio import DEFAULT_CMVN, AudioSettings, feature_statistics
+from bayes_talk.features.audio import cmvn as apply_cmvn
 from bayes_talk.data.checks import check_audio_vs_labels
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.data.utterance import Utterance
@@ -46,7 +46,7 @@ def read_utterance(wav: str | os.PathLike, labels: str | os.PathLike, fps: float
     """MFCCs and frame labels of a WAV and its HTK .lab or Praat TextGrid.
 
     ``sample_rate``: resample the audio to it (the model's training rate; one log line);
-    ``cmvn``: the model's cepstral normalisation (:func:`bayes_talk.audio.cmvn`); ``tier``:
+    ``cmvn``: the model's cepstral normalisation (:func:`bayes_talk.features.audio.cmvn`); ``tier``:
     the TextGrid tier holding the phones; ``fmax``: the model's mel filterbank edge (None:
     sr/2, the front end of models trained before it was recorded); ``floor_dbfs``: its
     absolute mel-power floor (None: none, likewise). Raises ValueError

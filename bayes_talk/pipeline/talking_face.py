@@ -18,22 +18,22 @@ import warnings
 from pathlib import Path
 
 from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
-from bayes_talk.audio import load_audio, speech_problem
-from bayes_talk.bundle import OutputSet, check_output_dir
+from bayes_talk.features.audio import load_audio, speech_problem
+from bayes_talk.base.bundle import OutputSet, check_output_dir
 from bayes_talk.data.labels import write_lab
-from bayes_talk.files import write_json, write_npy, write_npz
+from bayes_talk.base.files import write_json, write_npy, write_npz
 from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
-from bayes_talk.synthesis.defaults import DEFAULT_METHOD, INFERENCE, check_method
+from bayes_talk.posterior.methods import DEFAULT_METHOD, INFERENCE, check_method
 from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
-from bayes_talk.uncertainty_outputs import (
+from bayes_talk.pipeline.uncertainty_outputs import (
     BAND_LEVELS,
     plot_bands,
     read_truth,
     uncertainty_frames,
     write_posterior_netcdf,
 )
-from bayes_talk.video import write_video
+from bayes_talk.base.video import write_video
 
 __all__ = ["SYNTH_OUTPUT_NAMES", "synth"]
 
@@ -88,13 +88,13 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     R-hat, ESS, divergences, warnings) are written too; "map": the paper's sequential path
     (``algorithm`` 1 or 2, deena2010) with the GP variance, the only choice (and the
     default) for an sgplvm model. A posterior whose diagnostics fail the convergence checks
-    (bayes_talk.synthesis.posterior) is logged as a WARNING and marked ``"converged": false``
+    (bayes_talk.posterior.sampling) is logged as a WARNING and marked ``"converged": false``
     in ``diagnostics.json``.
 
     The audio is resampled to the model's training rate and normalised as in training
-    (bayes_talk.audio); ``tier`` names the TextGrid tier with the phones. With ``force``
+    (bayes_talk.features.audio); ``tier`` names the TextGrid tier with the phones. With ``force``
     the files of an earlier run in ``out_dir`` that this run does not write are removed
-    (only files recorded by that run; bayes_talk.bundle.OutputSet).
+    (only files recorded by that run; bayes_talk.base.bundle.OutputSet).
 
     Without ``labels`` (issue 13): the phone labels come from aligning ``text`` (or the
     ``transcript`` file) to the audio, or, with neither, from the phone recogniser (a
@@ -106,7 +106,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     ArviZ InferenceData), ``bands.png`` (the first AAM parameters: mean, bands, and the
     ``truth`` when given: a .npy (T, n_params) in the space of ``trajectory.npy``) and, with
     a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
-    rendered predictive draws; bayes_talk.uncertainty_outputs).
+    rendered predictive draws; bayes_talk.pipeline.uncertainty_outputs).
 
     ``calibrated``: apply the model's band calibration (the model is saved band-calibrated by
     ``train --calibrate-bands``, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`) when ``posterior`` is the method it was fitted on; False:
@@ -253,7 +253,7 @@ def _sampler_args(options: dict | None) -> dict:
 
 
 def _check_speech(wav, recognise: bool) -> None:
-    """No speech in ``wav`` (:func:`bayes_talk.audio.speech_problem`): an error before the
+    """No speech in ``wav`` (:func:`bayes_talk.features.audio.speech_problem`): an error before the
     phone recogniser invents phones for it; a warning when labels or a transcript were given
     (the face then follows them, not the audio). The file's own warnings (clipping, an MP3
     without its gapless header) are left to the load that makes the features, so that each

@@ -1,5 +1,5 @@
 """A trained-model directory, read back (``bayes-talk synth``, ``align``, ``recognise``):
-the descriptor (:func:`bayes_talk.bundle.read_descriptor`, every file checked against the
+the descriptor (:func:`bayes_talk.base.bundle.read_descriptor`, every file checked against the
 bundle's manifest), the estimator saved in its ``estimator`` sub-directory
 (:func:`bayes_talk.estimators.registry.load_estimator`: the class its own descriptor names;
 the band-calibrated wrapper when the model was trained with a calibration), the corpus AAM
@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.audio import AudioSettings
-from bayes_talk.bundle import DESCRIPTOR, ESTIMATOR_DIR, BundleError, read_descriptor
+from bayes_talk.features.audio import AudioSettings
+from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR, BundleError, read_descriptor
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.registry import ESTIMATORS, load_estimator
 from bayes_talk.features.aam import AAM
 from bayes_talk.pipeline.training import model_kinds
-from bayes_talk.synthesis.band_calibration import BandCalibration
+from bayes_talk.calibration.bands import BandCalibration
 
 __all__ = ["LEGACY_ESTIMATOR_PATHS", "TrainedModel", "load_trained"]
 

@@ -7,7 +7,7 @@ The data flow::
                        baseline with a predictive distribution; estimators.registry)
               ──save──▶ model directory
 
-A model directory holds ``bayes_talk_model.json`` (the descriptor, :mod:`bayes_talk.bundle`:
+A model directory holds ``bayes_talk_model.json`` (the descriptor, :mod:`bayes_talk.base.bundle`:
 what kind of model, the audio front end of :mod:`bayes_talk.pipeline.front_end`, the AAM
 offset), the estimator in ``estimator/`` (:meth:`Estimator.save
 <bayes_talk.estimators.base.Estimator.save>`, the one layout: the band-calibrated wrapper when
@@ -22,18 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk import bundle
+from bayes_talk.base import bundle
 from bayes_talk.alignment import commands as alignment_commands
-from bayes_talk.bundle import DESCRIPTOR, ESTIMATOR_DIR
-from bayes_talk.data import corpus as corpus_store
+from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR
+from bayes_talk import corpus as corpus_store
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
-from bayes_talk.executor import executor_for
+from bayes_talk.base.executor import executor_for
 from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
-from bayes_talk.progress import ProgressMapper
-from bayes_talk.synthesis import band_calibration
-from bayes_talk.synthesis.band_calibration import CALIBRATED_MODELS, HOLDOUT_FRACTION
+from bayes_talk.base.progress import ProgressMapper
+from bayes_talk.calibration import bands as band_calibration
+from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
 
 __all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
            "model_kinds", "new_model", "select_holdout", "train"]
@@ -61,10 +61,10 @@ def new_model(kind: str, **overrides):
 
 
 def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, scheduler: str | None = None):
-    """Fit, training the switching model's states through ``executor`` (bayes_talk.executor:
+    """Fit, training the switching model's states through ``executor`` (bayes_talk.base.executor:
     "local", "processes", "dask" or an ``Executor``, left open; None: ``workers`` processes,
     or this process when ``workers`` is 1, the default; ``scheduler``: a running dask scheduler), with a
-    progress bar of states done / total on a terminal (bayes_talk.progress). The model
+    progress bar of states done / total on a terminal (bayes_talk.base.progress). The model
     does not depend on the executor."""
     if "executor" not in inspect.signature(model.fit).parameters:
         return model.fit(train)
@@ -85,12 +85,12 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     utterances (corpus order), or ``holdout_list``, a file naming them one a line (see
     :func:`select_holdout`). The descriptor records the held-out names (``held_out``).
 
-    ``cmvn``: per-utterance cepstral normalisation (bayes_talk.audio; ``DEFAULT_CMVN``, "mean");
+    ``cmvn``: per-utterance cepstral normalisation (bayes_talk.features.audio; ``DEFAULT_CMVN``, "mean");
     ``fmax``: mel filterbank edge (default ``features.frontend.FMAX_HZ``; None: sr/2, as before).
     ``floor_dbfs``: absolute mel-power floor (default ``features.frontend.FLOOR_DBFS``; None: none, as before).
     The bundle records the audio front end (:func:`bayes_talk.pipeline.front_end.audio_settings`)
     and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
-    last (bayes_talk.bundle).
+    last (bayes_talk.base.bundle).
 
     ``alignment``: also fit the aligner / phone recogniser (docs/alignment.md) into the
     same directory, so that ``synth`` runs from a transcript or from audio alone.
@@ -100,10 +100,10 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
     ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
     the band calibration of the Laplace posterior (switching models;
-    bayes_talk.synthesis.band_calibration: one extra fit on the rest; the model is saved
+    bayes_talk.calibration.bands: one extra fit on the rest; the model is saved
     wrapped with it, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`, and ``synth``
     applies it); None: no calibration. ``calibrated_model``: which model is saved with it
-    (:data:`~bayes_talk.synthesis.band_calibration.CALIBRATED_MODELS`): "holdout", the model
+    (:data:`~bayes_talk.calibration.bands.CALIBRATED_MODELS`): "holdout", the model
     trained on the other utterances, the one the calibration was fitted for (one fit);
     "refit", a second model trained on all of them, the factors carried over (two fits);
     "cv", the model trained on all of them with the factors fitted on out-of-fold syntheses
@@ -161,7 +161,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
 
 def calibrates_bands(kind: str) -> bool:
     """Whether a model of ``kind`` takes a band calibration: it has a whole-utterance
-    posterior (bayes_talk.synthesis.band_calibration calibrates its bands)."""
+    posterior (bayes_talk.calibration.bands calibrates its bands)."""
     return kind in ESTIMATORS and "posterior" in ESTIMATORS[kind][0].synthesis_options
 
 

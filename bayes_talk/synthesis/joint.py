@@ -39,7 +39,7 @@ Relation to deena2010's Algorithm 1: Algorithm 1 maximises this density one bloc
 time, left to right, each block given the previous block's result (so it ignores a
 block's effect on the next one's smoothness factor), and it puts the entry density on
 every block's first point, also after a block of the same model. The MAP of this model
-is the joint maximum; Algorithm 1's path is where :mod:`bayes_talk.synthesis.posterior`
+is the joint maximum; Algorithm 1's path is where :mod:`bayes_talk.posterior.sampling`
 starts the joint optimisation.
 
 Two implementations of the same log density:
@@ -145,7 +145,7 @@ def make_plan(model: SwitchingModel, mfcc: np.ndarray, labels, smoothness: str =
     explain by ``model.audio_input`` (the identity, or the context window of
     :mod:`bayes_talk.features.audio_context`); with ``audio_view=True`` it is that view
     already (``plan.audio`` of another plan, audio simulated by
-    :func:`~bayes_talk.synthesis.predictive_checks.prior_predictive`) and is used as it is.
+    :func:`~bayes_talk.posterior.predictive_checks.prior_predictive`) and is used as it is.
     ``smooth_shift`` (T, D_z): the smoothness factors' pseudo-observations u (module
     docstring (S); simulated ones in simulation-based calibration); None: u = 0."""
     if smoothness not in SMOOTHNESS:

@@ -1,5 +1,5 @@
 """The joint MAP of the whole-utterance synthesis density (the first step of every
-posterior method of :mod:`bayes_talk.synthesis.posterior`; issue 9).
+posterior method of :mod:`bayes_talk.posterior.sampling`; issue 9).
 
 :func:`maximise_utterance` starts at deena2010's Algorithm 1 path (carried along the dynamics
 means when it is off them: :func:`along_dynamics`, :data:`CARRY_RMS_Z`) and maximises
@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from bayes_talk.gp.predictive_fused import Runs
-from bayes_talk.synthesis.defaults import INFERENCE
 from bayes_talk.synthesis.joint import UtteranceDensity
 
 #: trust-region Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
@@ -36,11 +35,10 @@ MAP_DTOL = 1e-6
 #: (40 development utterances) and 0.1-2.7 on a small phone-state model, 66-95 on a VLMM model
 #: of 12 utterances (docs/experiments.md, "Where the joint MAP starts")
 CARRY_RMS_Z = 10.0
-#: restarts of the joint MAP from draws of its Laplace approximation, per round (at most
-#: MAP_RESTART_ROUNDS rounds), by method: the joint density has several modes (on a 3-s
-#: held-out utterance restarts found one 27 nats above the first, docs/uncertainty.md), and
+#: at most this many rounds of restarts of the joint MAP from draws of its Laplace
+#: approximation (the restarts per round are each method's ``map_restarts`` in
+#: :data:`bayes_talk.posterior.methods.INFERENCE`): the joint density has several modes, and
 #: the samplers run in coordinates whitened at the best mode found
-MAP_RESTARTS = {n: m.map_restarts for n, m in INFERENCE.items()}
 MAP_RESTART_ROUNDS = 3
 
 

@@ -1,6 +1,6 @@
 """The one result type of every synthesis path (issue 10): :class:`SynthesisResult`.
 
-MAP, Laplace, NUTS and emcee (:func:`bayes_talk.synthesis.posterior.sample_synthesis`),
+MAP, Laplace, NUTS and emcee (:func:`bayes_talk.posterior.sampling.sample_synthesis`),
 deena2010's Algorithms 1 and 2 (:func:`bayes_talk.synthesis.sequential.synthesize`),
 deena2009's SGPLVM (:meth:`bayes_talk.models.sgplvm.SGPLVM.synthesize`) and the baselines
 that have a predictive variance all describe the visual prediction of frame t the same
@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import logsumexp, ndtr, ndtri
 
-from bayes_talk.errors import check_level
+from bayes_talk.base.errors import check_level
 
 if TYPE_CHECKING:
     import arviz
@@ -333,7 +333,7 @@ class SynthesisResult:
         diagnostics, warnings and segmentation are attributes of the posterior group
         (JSON strings where not scalars), so they survive ``to_netcdf``.
         """
-        from bayes_talk.arviz_compat import from_dict
+        from bayes_talk.base.arviz_compat import from_dict
 
         T, D = self.n_frames, self.n_dims
         coords: dict[str, Any] = {"frame": np.arange(T), "aam_param": np.arange(D)}

@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
-from bayes_talk import settings
+from bayes_talk.base import settings
 from bayes_talk.gp.predictive import GPPredictor
 from bayes_talk.gp.predictive_fused import (
     pad_inputs,

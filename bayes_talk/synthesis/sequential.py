@@ -180,13 +180,13 @@ def _synthesize_job(job: tuple) -> SynthesisResult:
 def synthesize_many(model: SwitchingModel, utterances: list, workers: int = 2, executor=None,
                     **kw) -> list[SynthesisResult]:
     """:func:`synthesize` for many ``(mfcc, labels)`` pairs, through ``executor``
-    (bayes_talk.executor; None: ``workers`` processes, or this process when 1).
+    (bayes_talk.base.executor; None: ``workers`` processes, or this process when 1).
 
     Utterances are independent, so on a machine with several cores throughput scales with
     the processes (each runs torch with one thread); each task carries the model.
     Results come back in input order and equal the one-process results.
     """
-    from bayes_talk.executor import executor_for
+    from bayes_talk.base.executor import executor_for
 
     jobs = [(model, np.asarray(m), list(lab), kw) for m, lab in utterances]
     if executor is None and len(jobs) <= 1:

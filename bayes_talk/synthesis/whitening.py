@@ -1,6 +1,6 @@
 """The synthesis posterior in whitened coordinates (DESIGN.md §6).
 
-Every sampler of :mod:`bayes_talk.synthesis.posterior` moves in z with X = X_MAP + L z, L Lᵀ
+Every sampler of :mod:`bayes_talk.posterior.sampling` moves in z with X = X_MAP + L z, L Lᵀ
 the Laplace covariance (−∇² ln p)⁻¹ at a mode (:func:`whitening`): an affine map, so the
 target is unchanged, and close to N(0, I) where the Laplace approximation is good.
 :class:`Whitened` is ln p(X_MAP + L z) with its gradient from the numpy twin

@@ -25,10 +25,10 @@ def main() -> None:
     import soundfile as sf
 
     from bayes_talk.data import articulatory as art
-    from bayes_talk.data.corpus import load_npz
+    from bayes_talk.corpus import load_npz
     from bayes_talk.data.labels import read_lab
     from bayes_talk.data.phones import BILABIALS, SILENCE
-    from bayes_talk.files import write_figure
+    from bayes_talk.base.files import write_figure
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("corpus")

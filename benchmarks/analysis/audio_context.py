@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
 

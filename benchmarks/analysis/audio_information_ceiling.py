@@ -42,12 +42,12 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     from bayes_talk.data.articulatory import face_articulators, synthesize_articulatory
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.data.face import face_trajectories
     from bayes_talk.data.face.coarticulation import ARTICULATORS
     from bayes_talk.data.labels import read_lab
     from bayes_talk.data.phones import PHONE_INDEX, PHONES
-    from bayes_talk.files import write_json
+    from bayes_talk.base.files import write_json
 
     c = load_corpus(args.corpus)
     if c.manifest.get("speech") != "vtl":

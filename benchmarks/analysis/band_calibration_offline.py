@@ -8,13 +8,13 @@
 ``dump`` does what ``evaluate --protocol deena2010 --corpus data/v2/train250
 --test-corpus data/v2/heldout40 --methods ssgpdm-vlmm-posterior`` does for this
 method, with the same functions and seeds: the calibration's model on 80 % of the training
-utterances (:func:`bayes_talk.synthesis.band_calibration.split_for_calibration`) and the
+utterances (:func:`bayes_talk.calibration.bands.split_for_calibration`) and the
 Laplace posterior of each held-out training utterance (``fit/``), then the model on all of
 them and the posterior of each test sentence (``test/``, projected through the training
 AAM). It stores each raw :class:`~bayes_talk.synthesis.result.SynthesisResult`'s mixture
 (``draw_mean``, ``draw_var``) and the truth, one ``.npz`` per utterance, written as it goes.
 
-``score`` fits :class:`~bayes_talk.synthesis.band_calibration.BandCalibration` on ``fit/``,
+``score`` fits :class:`~bayes_talk.calibration.bands.BandCalibration` on ``fit/``,
 applies it to ``test/`` and scores raw and calibrated with
 :func:`bayes_talk.evaluation.calibration.score_utterance` / ``summarise_calibration``
 (the functions ``evaluate`` uses), with and without the 4 Hz post-filter
@@ -40,12 +40,12 @@ def _save(path: Path, res, truth: np.ndarray, seconds: float) -> None:
 
 
 def dump(out: Path) -> None:
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.evaluation.protocols import get_protocol
     from bayes_talk.evaluation.systems import _build, fit_family
     from bayes_talk.gp.threads import torch_threads
-    from bayes_talk.synthesis.band_calibration import split_for_calibration
-    from bayes_talk.synthesis.posterior import sample_synthesis
+    from bayes_talk.calibration.bands import split_for_calibration
+    from bayes_talk.posterior.sampling import sample_synthesis
 
     cfg = get_protocol("deena2010").system
     tr = load_corpus(TRAIN, cmvn="mean")
@@ -99,7 +99,7 @@ def _load(folder: Path) -> tuple[list, list]:
 
 def _variants(fit_res, fit_truths) -> dict:
     """raw, stage 1 alone (the former calibration), stage 2 alone, both stages (the default)."""
-    from bayes_talk.synthesis.band_calibration import LEVEL_KNOTS, BandCalibration
+    from bayes_talk.calibration.bands import LEVEL_KNOTS, BandCalibration
 
     cal = BandCalibration.fit(fit_res, fit_truths, method="laplace")
     D = cal.scale.size
@@ -128,7 +128,7 @@ def score(where: Path, out: Path | None) -> None:
     report["calibration"] = cal.to_dict()
     for lp in (None, 4.0):
         if lp is not None:  # also: the calibration fitted on post-filtered held-out predictions
-            from bayes_talk.synthesis.band_calibration import BandCalibration
+            from bayes_talk.calibration.bands import BandCalibration
 
             variants["stages 1+2 fitted post-filtered"] = BandCalibration.fit(
                 [r.shift(lowpass(r.mean, lp) - r.mean) for r in fit_res], fit_truths, method="laplace")

@@ -25,7 +25,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
 sys.path.insert(0, str(HERE.parent.parent / "tests"))
 
-from bayes_talk import arviz_compat as azc
+from bayes_talk.base import arviz_compat as azc
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.synthesis.joint import make_plan
 
@@ -37,9 +37,9 @@ def frame_kinds(T: int) -> tuple[dict[int, str], list[int]]:
     dynamics; and the isolated frames (no dynamics on either side: ``dynamics_blocks(ff, 1)``)."""
     from toydata import make_utterances
 
-    from bayes_talk.synthesis.frame_updates import dynamics_blocks
+    from bayes_talk.posterior.frame_updates import dynamics_blocks
     from bayes_talk.synthesis.joint import UtteranceDensity
-    from bayes_talk.synthesis.particle_gibbs import FrameFactors
+    from bayes_talk.posterior.particle_gibbs import FrameFactors
 
     model = SwitchingSGPDM(states="vlmm", **SMALL).fit(make_utterances(24, seed=0))
     u = make_utterances(1, seed=1, mean_len=80)[0]

@@ -15,12 +15,12 @@ import time
 import numpy as np
 from sklearn.model_selection import GroupKFold
 
-from bayes_talk.baselines.context import ContextRidge
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.estimators.baselines.context import ContextRidge
+from bayes_talk.corpus import load_corpus
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation import metrics as M
 from bayes_talk.gp.threads import torch_threads
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 tr = load_corpus(sys.argv[1]); te = load_corpus(sys.argv[2], aam=tr.aam_path)
 train = tr.sequences

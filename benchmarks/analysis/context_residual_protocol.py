@@ -2,7 +2,7 @@
 residual of a label/MFCC context ridge (4 Hz post-filter, band calibration as in evaluate).
 
 A GP with explicit basis functions (Rasmussen & Williams 2006, §2.7): z_t = h(x_t)ᵀβ + f(latent)
-with h the context features of bayes_talk.baselines.context. The ridge is fitted on the training
+with h the context features of bayes_talk.estimators.baselines.context. The ridge is fitted on the training
 utterances; the SGPDM is trained on out-of-fold residuals (5-fold, grouped by utterance, so the
 residuals have the size they will have on new audio); synthesis = ridge(test) + SGPDM(test).
 
@@ -18,8 +18,8 @@ import time
 import numpy as np
 from sklearn.model_selection import GroupKFold
 
-from bayes_talk.baselines.context import ContextRidge
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.estimators.baselines.context import ContextRidge
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation import systems
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol

@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bayes_talk.cli import main as cli_main
+from bayes_talk.app.cli import main as cli_main
 from bayes_talk.estimators import registry
 from bayes_talk.models import switching
 

@@ -48,10 +48,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import build_corpus
+from bayes_talk.corpus import build_corpus
 from bayes_talk.evaluation.harness import evaluate
-from bayes_talk.files import write_json
-from bayes_talk.synthesis import joint_map, posterior
+from bayes_talk.base.files import write_json
+from bayes_talk.synthesis import joint_map
+from bayes_talk.posterior import sampling as posterior
 from bayes_talk.synthesis.joint_map import along_dynamics, dynamics_rms_z, maximise_utterance
 
 
@@ -84,7 +85,7 @@ def capture(n_utterances: int, seed: int, work: Path) -> list:
 def capture_synth(model_dir: Path, corpus: Path, n: int, work: Path) -> list:
     """The first joint MAP problem of ``bayes-talk synth`` on each of the first n utterances
     of a corpus (their own label files; restarts are not the start)."""
-    from bayes_talk.cli import main as cli
+    from bayes_talk.app.cli import main as cli
 
     first = []
     for i, wav in enumerate(sorted((corpus / "utterances").glob("*.wav"))[:n]):

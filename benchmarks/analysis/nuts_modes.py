@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import load_corpus
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import load_trained
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import maximise_utterance
-from bayes_talk.synthesis.posterior import sample_synthesis, visual_predictive
+from bayes_talk.posterior.sampling import sample_synthesis, visual_predictive
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 

@@ -17,12 +17,12 @@ import time
 
 import numpy as np
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation.metrics import acc, amse, normalised_mse
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.pipeline import load_trained
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 from bayes_talk.synthesis.sequential import lowpass
 
 mdir, train_dir, test_dir, out_path = sys.argv[1:5]

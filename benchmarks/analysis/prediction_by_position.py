@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.evaluation.protocols import PROTOCOLS
 from bayes_talk.evaluation.splits import make_splits

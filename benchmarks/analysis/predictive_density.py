@@ -22,10 +22,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.pipeline import load_trained
-from bayes_talk.synthesis.band_calibration import BandCalibration
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.calibration.bands import BandCalibration
+from bayes_talk.posterior.sampling import sample_synthesis
 
 
 def main(argv=None) -> int:
@@ -46,7 +46,7 @@ def main(argv=None) -> int:
         print(f"{u.name}: k̂ {raws[-1].diagnostics.get('khat'):.2f}", flush=True)
     out: dict = {}
     # the shipped calibration's stages one at a time (fitted on the training hold-out)
-    from bayes_talk.synthesis.band_calibration import _constant_band, _shrunk
+    from bayes_talk.calibration.bands import _constant_band, _shrunk
     n_all = sum(z.size for z in truths)
     stage = {
         "stages_0_1_2 (shipped)": lambda r: cal.apply(r),

@@ -23,16 +23,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.estimators.registry import make_estimator
 from bayes_talk.pipeline import load_trained
-from bayes_talk.synthesis.band_calibration import (
+from bayes_talk.calibration.bands import (
     BandCalibration,
     _constant_band,
     _shrunk,
     split_for_calibration,
 )
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 
 def main(argv=None):

@@ -45,8 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from raw_variance_decomposition import decompose
 
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import load_corpus
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline.trained import load_trained
 
 SCALES = (1.0, 1.49, 2.0, 2.5, 3.0, 3.35, 4.0, 5.0)

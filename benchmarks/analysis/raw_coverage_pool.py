@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 
 #: the per-entry means pooled besides the coverages and widths
 SCALARS = ("crps", "nlpd", "amse")

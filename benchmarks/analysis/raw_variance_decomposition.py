@@ -31,8 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.data.corpus import load_corpus
-from bayes_talk.files import write_json
+from bayes_talk.corpus import load_corpus
+from bayes_talk.base.files import write_json
 from bayes_talk.pipeline.trained import load_trained
 
 

@@ -17,7 +17,7 @@ import time
 from audio_context_patch import use_audio_context
 
 import bayes_talk.models.switching as sw
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation.harness import run_protocol
 from bayes_talk.evaluation.protocols import get_protocol
 from bayes_talk.models.vlmm import Segment

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation.systems import SystemConfig, fit_family, predict
 
 

@@ -7,7 +7,7 @@ thread and attributed to the phase running; prints each phase's peak and ``ru_ma
 (the SGPLVM is freed before Voice Puppetry's fit).
 MAX_ITER and SYNTH_ITER cap the SGPLVM's training and synthesis iterations (the peak
 depends on N, not on the iteration count). Large freed blocks go back to the system
-(:mod:`bayes_talk.memory`) unless ``BAYES_TALK_MALLOC=0``: run both to see its share.
+(:mod:`bayes_talk.base.memory`) unless ``BAYES_TALK_MALLOC=0``: run both to see its share.
 
     PYTHONPATH=. python benchmarks/analysis/split_memory.py MAX_ITER SYNTH_ITER N_TEST [CORPUS]
 """
@@ -43,11 +43,11 @@ def main() -> None:
         print(f"{time.perf_counter() - t0:7.1f} s  {name}: RSS {_rss_mb():.0f} MB", flush=True)
 
     enter("import")
-    from bayes_talk.data.corpus import load_corpus
+    from bayes_talk.corpus import load_corpus
     from bayes_talk.evaluation import systems
     from bayes_talk.evaluation.protocols import get_protocol
     from bayes_talk.evaluation.splits import make_splits
-    from bayes_talk.memory import release_large_blocks
+    from bayes_talk.base.memory import release_large_blocks
 
     release_large_blocks()
     enter("load corpus")

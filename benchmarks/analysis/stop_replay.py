@@ -2,7 +2,7 @@
 
 ``sample_synthesis(method="pg-nuts")`` stops drawing once the latents' and the AAM parameters'
 rank R-hat ≤ 1.01 and bulk and tail ESS ≥ 400
-(:class:`bayes_talk.synthesis.posterior.TargetCheck`), asked after ``min_draws_per_chain``
+(:class:`bayes_talk.posterior.sampling.TargetCheck`), asked after ``min_draws_per_chain``
 draws per chain and every ``check_every`` after (``PG_NUTS_BUDGET``). The chains draw in
 batches between the checks, and batches draw exactly what one uninterrupted run draws
 (``tests/test_warmup_pooling.py``), so on the draws a fixed-budget run saved
@@ -27,9 +27,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bayes_talk.files import write_json
-from bayes_talk.synthesis.defaults import PG_NUTS_BUDGET
-from bayes_talk.synthesis.posterior import TargetCheck
+from bayes_talk.base.files import write_json
+from bayes_talk.posterior.methods import PG_NUTS_BUDGET
+from bayes_talk.posterior.sampling import TargetCheck
 
 
 def replay(latents: np.ndarray, aam: np.ndarray, first: int, every: int) -> dict:

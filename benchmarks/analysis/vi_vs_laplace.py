@@ -15,12 +15,12 @@ import time
 
 import numpy as np
 
-from bayes_talk.data.corpus import load_corpus
+from bayes_talk.corpus import load_corpus
 from bayes_talk.evaluation.metrics import amse, coverage
-from bayes_talk.files import write_json
+from bayes_talk.base.files import write_json
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.pipeline import load_trained
-from bayes_talk.synthesis.posterior import sample_synthesis
+from bayes_talk.posterior.sampling import sample_synthesis
 
 mdir, train_dir, test_dir, out_path = sys.argv[1:5]
 n = int(sys.argv[5]) if len(sys.argv) > 5 else 8

@@ -42,7 +42,7 @@ gives bit-identical landmarks.
 
 The package: :mod:`~bayes_talk.data.face.coarticulation` (phones to articulator tracks)
 and :mod:`~bayes_talk.data.face.geometry` (articulators to landmarks); rendering the
-landmarks as grey-level frames is :mod:`bayes_talk.data.render`. Their public names are
+landmarks as grey-level frames is :mod:`bayes_talk.corpus.render`. Their public names are
 re-exported here.
 """
 from __future__ import annotations
