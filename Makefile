@@ -35,9 +35,27 @@ demo: $(STAMP)
 test: $(STAMP)
 	OMP_NUM_THREADS=$(TEST_THREADS) MKL_NUM_THREADS=$(TEST_THREADS) OPENBLAS_NUM_THREADS=$(TEST_THREADS) $(PY) -m pytest -q -n $(TEST_WORKERS) --dist $(TEST_DIST) --nbmake --nbmake-timeout=600 notebooks tests   # tests/ and every notebook executed
 
+# the benchmark suite (docs/benchmarks.md): every script of benchmarks/ in turn, each writing
+# benchmarks/results/NAME.json. QUICK=1: each at toy size on corpora it builds, into
+# benchmarks/results/quick/ (never committed), BENCH_JOBS of them at a time (timings of a quick
+# run mean nothing), each one's output in benchmarks/results/quick/NAME.log
+BENCHMARKS = $(filter-out __init__ common,$(basename $(notdir $(wildcard benchmarks/*.py))))
+BENCH_JOBS ?= 2
+# the longest quick runs start first, so the last ones to finish are short
+BENCH_QUICK_FIRST = sbc train_speed posterior scaling calibration_budget
 bench: $(STAMP)
-	mkdir -p benchmarks/results
-	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+ifdef QUICK
+	PYTHONPATH=. $(PY) -c "from benchmarks.common import bench_corpus, bench_model; bench_corpus('test', True); bench_model(True)"
+	$(MAKE) --no-print-directory -k -j $(BENCH_JOBS) $(addprefix bench-quick-,$(BENCH_QUICK_FIRST) \
+		$(filter-out $(BENCH_QUICK_FIRST),$(sort $(BENCHMARKS))))
+else
+	for b in $(sort $(BENCHMARKS)); do echo "== benchmarks/$$b.py"; PYTHONPATH=. $(PY) benchmarks/$$b.py || exit 1; done
+endif
+
+bench-quick-%:
+	@echo "== benchmarks/$*.py --quick"
+	@PYTHONPATH=. OMP_NUM_THREADS=1 $(PY) benchmarks/$*.py --quick > benchmarks/results/quick/$*.log 2>&1 \
+		|| { tail -n 30 benchmarks/results/quick/$*.log; echo "benchmarks/$*.py --quick failed"; exit 1; }
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check bayes_talk tests benchmarks

@@ -1,4 +1,4 @@
-"""AAM search (issue #16): tracking speed and landmark error on a held-out built corpus.
+"""AAM search: tracking speed and landmark error on a held-out built corpus.
 
 A built corpus knows the true landmarks of every frame. The fitter is built from the
 landmarks of the corpus's AAM prototype frames only (4 random frames per phone,
@@ -16,28 +16,25 @@ whose landmarks are known, no search) as the per-frame cost floor.
 
 Run: .venv/bin/python benchmarks/aam_fit.py [--corpus DIR] [--max-videos N]
      -> benchmarks/results/aam_fit.json
+     .venv/bin/python benchmarks/aam_fit.py --quick    # the quick held-out corpus -> results/quick/
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from bayes_talk.corpus import load_npz
 from bayes_talk.features.aam_fit import AAMFitter
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _default_corpus() -> Path:
-    v2 = Path("data/v2")
-    return v2 / "heldout40" if (v2 / "READY").exists() else Path("data/v1/heldout40")
+from benchmarks.common import bench_corpus, result_path, write_result
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:
@@ -47,10 +44,13 @@ def _stats(x: np.ndarray) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--corpus", type=Path, default=_default_corpus())
+    ap.add_argument("--corpus", type=Path, default=None, help="a built corpus (default: the suite's held-out corpus)")
+    ap.add_argument("--quick", action="store_true", help="the quick held-out corpus")
     ap.add_argument("--max-videos", type=int, default=None)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "aam_fit.json")
+    ap.add_argument("--out", type=Path, default=None, help="default benchmarks/results/aam_fit.json (--quick: results/quick/)")
     args = ap.parse_args()
+    args.out = result_path("aam_fit", args.quick, args.out)
+    args.corpus = args.corpus or bench_corpus("test", args.quick)
     root = args.corpus
     m = json.loads((root / "manifest.json").read_text())
     seqs = m["sequences"][: args.max_videos]
@@ -122,11 +122,9 @@ def main() -> None:
         "acceptance": {"median_le_0.5": bool(np.median(e) <= 0.5),
                        "p95_le_1.5": bool(np.percentile(e, 95) <= 1.5)},
         "score_of_tracked_frames": _stats(sc),
-        "machine": {"nproc": os.cpu_count(), "loadavg_start": load0, "loadavg_end": load1,
-                    "python": platform.python_version(), "blas_threads": 1},
+        "machine": {"loadavg_start": load0, "loadavg_end": load1, "blas_threads": 1},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(args.out, out)
     print(json.dumps({k: out[k] for k in ("n_frames", "track", "landmark_error_px_all_points_of_tracked_frames",
                                           "acceptance", "lost_frames")}, indent=1))
 

@@ -13,18 +13,22 @@ The alignment models come from ``--model-dir`` (a trained model directory, or an
 directory with alignment.json/.npz) or are fitted on ``--train-corpus`` (timed, saved to
 ``--save-model`` if given). Writes benchmarks/results/align.json.
 
-    .venv/bin/python benchmarks/align.py --train-corpus data/v1/train250 \\
-        --test-corpus data/v1/heldout40 /tmp/wt13/heldout40_f3
+    .venv/bin/python benchmarks/align.py --train-corpus data/train250 \\
+        --test-corpus data/heldout40 data/heldout40_f3
+    .venv/bin/python benchmarks/align.py --quick    # the quick corpora -> benchmarks/results/quick/align.json
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import ROOT, bench_corpus, result_path, write_result
+
 TARGET_REALTIME = 10.0
 
 
@@ -33,27 +37,30 @@ def main() -> None:
     from bayes_talk.alignment.model import AlignmentModel
     from bayes_talk.alignment.scoring import score_segmentation, summarise_scores
     from bayes_talk.corpus import load_corpus
-    from bayes_talk.base.files import write_json
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    g = ap.add_mutually_exclusive_group(required=True)
+    g = ap.add_mutually_exclusive_group()
     g.add_argument("--model-dir", default=None)
     g.add_argument("--train-corpus", default=None)
     ap.add_argument("--save-model", default=None, help="save the fitted models here")
-    ap.add_argument("--test-corpus", nargs="+", required=True)
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "align.json"))
+    ap.add_argument("--test-corpus", nargs="+", default=None)
+    ap.add_argument("--quick", action="store_true", help="the quick corpora (benchmarks/common.py)")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/align.json (--quick: results/quick/)")
     args = ap.parse_args()
+    args.out = result_path("align", args.quick, args.out)
+    if not args.model_dir:
+        args.train_corpus = args.train_corpus or str(bench_corpus("train", args.quick))
+    args.test_corpus = args.test_corpus or [str(bench_corpus("test", args.quick))]
 
-    result: dict = {"machine": platform.platform(), "cpus": os.cpu_count(),
-                    "load_average_start": os.getloadavg(), "target_realtime": TARGET_REALTIME}
+    result: dict = {"load_average_start": os.getloadavg(), "target_realtime": TARGET_REALTIME}
     if args.model_dir:
         model = AlignmentModel.load(args.model_dir)
-        result["model"] = str(Path(args.model_dir).resolve())
+        result["model"] = os.path.relpath(Path(args.model_dir).resolve(), ROOT)
     else:
         t0 = time.perf_counter()
         model = fit_alignment(load_corpus(args.train_corpus).sequences)
         result["fit_seconds"] = time.perf_counter() - t0
-        result["train_corpus"] = str(Path(args.train_corpus).resolve())
+        result["train_corpus"] = os.path.relpath(Path(args.train_corpus).resolve(), ROOT)
         if args.save_model:
             model.save(args.save_model)
     result["recogniser"] = {"lm_weight": model.lm_weight, "insertion": model.insertion,
@@ -81,9 +88,9 @@ def main() -> None:
             print(f"{Path(path).name} {name}: {audio / wall:.1f}x real time, PER "
                   f"{entry[name]['phone_error_rate']:.3f}, boundary median "
                   f"{entry[name]['boundary_error_ms_median']:.1f} ms, p90 {entry[name]['boundary_error_ms_p90']:.1f} ms")
-        result["corpora"][str(Path(path).resolve())] = entry
+        result["corpora"][os.path.relpath(Path(path).resolve(), ROOT)] = entry
     result["load_average_end"] = os.getloadavg()
-    write_json(args.out, result)
+    write_result(args.out, result)
     print(f"wrote {args.out}")
 
 

@@ -1,4 +1,4 @@
-"""Benchmark: how much the audio tells about the face beyond the phone labels (issue 25).
+"""Benchmark: how much the audio tells about the face beyond the phone labels.
 
 A difference in differences. On an espeak corpus and a ``--speech vtl`` (VocalTractLab)
 corpus of the same sentences and seed, a non-linear regressor (scikit-learn's
@@ -16,6 +16,7 @@ at least 0.03 larger on the articulatory corpus.
 
     PYTHONPATH=. .venv/bin/python benchmarks/audio_information.py [--n 60] [--seed 0]
         [--workdir DIR] [--workers 1] [--out benchmarks/results/audio_information.json]
+    PYTHONPATH=. .venv/bin/python benchmarks/audio_information.py --quick   # 6 utterances -> results/quick/
 
 ``--workdir`` keeps the two corpora (reused when their manifests match, and then their
 fits too, in ``audio_information_fit.json`` beside each manifest); VocalTractLab
@@ -27,16 +28,23 @@ import argparse
 import hashlib
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bayes_talk.base.files import write_json
 from bayes_talk.corpus import build_corpus, load_corpus
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
+from benchmarks.common import result_path, write_result
 
 CONTEXT = 4
+#: keywords of the regressor beyond its defaults (the quick mode's fewer boosting iterations)
+REGRESSOR: dict = {}
 ARTICULATORS = ("aperture", "jaw", "protrusion")
 
 
@@ -104,7 +112,7 @@ def _fit_all(feats: dict, y: np.ndarray, groups: np.ndarray, names: list[str], s
         pred = np.zeros_like(y)
         for tr, te in GroupKFold(n_splits=5).split(X, y, groups):
             for j in range(y.shape[1]):
-                m = HistGradientBoostingRegressor(random_state=seed).fit(X[tr], y[tr, j])
+                m = HistGradientBoostingRegressor(random_state=seed, **REGRESSOR).fit(X[tr], y[tr, j])
                 pred[te, j] = m.predict(X[te])
         res[fname] = {n: float(r2_score(y[:, j], pred[:, j])) for j, n in enumerate(names)}
         print(fname, {k: round(v, 3) for k, v in res[fname].items()}, flush=True)
@@ -142,16 +150,20 @@ def main() -> None:
     ap.add_argument("--workdir", default=None, help="keep (and reuse) the two corpora here")
     ap.add_argument("--workers", type=int, default=1, help="corpus-build workers (VocalTractLab "
                     "costs ~1.5 CPU-s per second of audio)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "audio_information.json"))
+    ap.add_argument("--quick", action="store_true", help="6 utterances, 20 boosting iterations")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/audio_information.json (--quick: results/quick/)")
     args = ap.parse_args()
+    args.out = result_path("audio_information", args.quick, args.out)
+    if args.quick:
+        args.n = 6
+        REGRESSOR["max_iter"] = 20
     import sklearn
-
-    from bayes_talk.base.files import write_json
 
     with tempfile.TemporaryDirectory() as td:
         work = Path(args.workdir) if args.workdir else Path(td)
         out: dict = {"n_utterances": args.n, "seed": args.seed, "context_frames": CONTEXT,
-                     "regressor": "HistGradientBoostingRegressor (defaults), GroupKFold(5) by utterance",
+                     "regressor": "HistGradientBoostingRegressor (defaults"
+                                  + (f"; {REGRESSOR}" if REGRESSOR else "") + "), GroupKFold(5) by utterance",
                      "load_start": [round(x, 2) for x in os.getloadavg()], "corpora": {}}
         for speech in ("espeak", "vtl"):
             t0 = time.perf_counter()
@@ -160,7 +172,7 @@ def main() -> None:
             corpus = load_corpus(root)
             # the fits of an unchanged corpus are reused from --workdir (keyed by its manifest)
             key = hashlib.sha256((root / "manifest.json").read_bytes()
-                                 + f"|{CONTEXT}|{args.seed}|{sklearn.__version__}".encode()).hexdigest()
+                                 + f"|{CONTEXT}|{args.seed}|{sklearn.__version__}|{REGRESSOR}".encode()).hexdigest()
             saved = root / "audio_information_fit.json"
             old = json.loads(saved.read_text()) if saved.exists() else {}
             if old.get("key") == key:
@@ -181,8 +193,7 @@ def main() -> None:
         out["difference_in_gain_aam_mean3"] = float(d)
         out["accepted"] = bool(d >= 0.03)
         out["load_end"] = [round(x, 2) for x in os.getloadavg()]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.out, out)
+    write_result(args.out, out)
     print(f"difference in AAM gain (vtl - espeak): {d:+.3f} (accept >= 0.03) -> {args.out}")
 
 

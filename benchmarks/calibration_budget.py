@@ -1,4 +1,4 @@
-"""What the band calibration's budget costs in training time and buys in calibration (issue 29).
+"""What the band calibration's budget costs in training time and buys in calibration.
 
 ``bayes-talk train`` spends most of its time on the band calibration: a second fit of the
 state models (``--calibrated-model refit``) and the posterior synthesis of the held-out
@@ -21,7 +21,8 @@ recordings arrive:
 
     PYTHONPATH=. .venv/bin/python benchmarks/calibration_budget.py data/train250 --test data/dev40 \\
         --configs refit:0.2,holdout:0.1,holdout:0.05,refit:0.05 \\
-        --out benchmarks/results/calibration_budget_dev.json
+        --out benchmarks/results/calibration_budget.json
+    PYTHONPATH=. .venv/bin/python benchmarks/calibration_budget.py --quick   # the quick corpora -> results/quick/
 
 A configuration is ``SCHEME:FRACTION`` (``train --calibrated-model SCHEME --calibrate-bands
 FRACTION``). The test utterances' AAM parameters are projected on the trained model's AAM
@@ -32,7 +33,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import subprocess
+import resource
 import sys
 import tempfile
 import time
@@ -44,11 +45,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from train_speed import run_train
-
 from bayes_talk.evaluation.calibration import ratio_se, score_utterance, summarise_calibration
 from bayes_talk.evaluation.metrics import amse
-from bayes_talk.base.files import write_json
+from benchmarks.common import QUICK_MODEL, bench_corpus, result_path, write_result
+from benchmarks.train_speed import run_train
 
 _LOADED: dict = {}
 
@@ -116,17 +116,36 @@ def parse_configs(text: str) -> list[tuple[str, float]]:
     return out
 
 
+def _train_quick(corpus: str, out: Path, scheme: str, frac: float, kind: str | None) -> dict:
+    """Quick mode: ``pipeline.train`` in this process with the quick mode's small settings."""
+    from bayes_talk import pipeline
+
+    load0, c0, t0 = os.getloadavg(), resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    pipeline.train(corpus, kind or pipeline.DEFAULT_MODEL, out, workers=1, calibrate_bands=frac,
+                   calibrated_model=scheme, **QUICK_MODEL)
+    c1 = resource.getrusage(resource.RUSAGE_SELF)
+    return {"wall_s": round(time.perf_counter() - t0, 2),
+            "cpu_s": round((c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime), 2),
+            "loadavg_before": [round(x, 2) for x in load0], "loadavg_after": [round(x, 2) for x in os.getloadavg()]}
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("corpus", help="training corpus")
-    ap.add_argument("--test", required=True, help="test corpus (sentences not in the training corpus)")
+    ap.add_argument("corpus", nargs="?", default=None, help="training corpus")
+    ap.add_argument("--test", default=None, help="test corpus (sentences not in the training corpus)")
     ap.add_argument("--configs", default="refit:0.2,holdout:0.05", help="SCHEME:FRACTION,...; the first is "
                     "the reference the others are paired against")
     ap.add_argument("--model", default=None, help="train --model (default: train's default family)")
     ap.add_argument("--posterior", default="laplace", help="the calibrated posterior method")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--quick", action="store_true", help="the quick corpora; small models trained in this process")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/calibration_budget.json (--quick: results/quick/)")
     args = ap.parse_args(argv)
+    args.out = result_path("calibration_budget", args.quick, args.out)
+    args.corpus = args.corpus or str(bench_corpus("train", args.quick))
+    args.test = args.test or str(bench_corpus("test", args.quick))
+    if args.quick:
+        args.configs = "refit:0.2,holdout:0.2"
     configs = parse_configs(args.configs)
     from bayes_talk.corpus import load_corpus
 
@@ -138,7 +157,8 @@ def main(argv: list[str] | None = None) -> dict:
         for i, (scheme, frac) in enumerate(configs):
             out = Path(tmp) / f"model_{i}"
             cfg = ["--calibrated-model", scheme, "--calibrate-bands", str(frac), "--workers", str(args.workers)]
-            timing = run_train(ROOT, corpus, out, extra + cfg, {})
+            timing = (_train_quick(corpus, out, scheme, frac, args.model) if args.quick
+                      else run_train(ROOT, corpus, out, extra + cfg, {}))
             scores = score_model(out, str(Path(args.test).resolve()), names, args.posterior, args.workers)
             run = {"scheme": scheme, "fraction": frac, "train": timing, **scores}
             if runs:
@@ -149,13 +169,11 @@ def main(argv: list[str] | None = None) -> dict:
                   f"{s['nlpd']['mean']:.4f} crps {s['crps']['mean']:.4f} amse {s['amse']:.3f}"
                   + (f"; vs reference nlpd {run['vs_reference']['nlpd']['diff']:+.4f}"
                      f"±{run['vs_reference']['nlpd']['se']:.4f}" if "vs_reference" in run else ""), flush=True)
-    result = {"benchmark": "calibration_budget", "issue": 29,
+    result = {"quick_model_settings": QUICK_MODEL if args.quick else None,
               "corpus": os.path.relpath(corpus, ROOT), "test": os.path.relpath(Path(args.test).resolve(), ROOT),
               "model": args.model or "default", "posterior": args.posterior, "workers": args.workers,
-              "commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                                       check=False, capture_output=True, text=True).stdout.strip(),
-              "cpus": os.cpu_count(), "runs": runs}
-    write_json(args.out, result)
+              "runs": runs}
+    write_result(args.out, result)
     return result
 
 

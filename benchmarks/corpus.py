@@ -11,9 +11,8 @@ cores (``total_vs_target`` = total / 180), size <= 200 MB.
 The build uses ``--workers`` processes (default 2, what ``bayes-talk corpus build`` uses
 from 16 utterances on; the output does not depend on it).
 
-``--speech vtl`` (issue 25: VocalTractLab audio and face; needs
-``pip install 'bayes_talk[articulatory]'``) writes benchmarks/results/corpus_vtl.json: the
-build with the synthesis cache ``--cache-dir`` (default: a fresh empty directory, i.e. a
+``--speech vtl`` (VocalTractLab audio and face; needs ``pip install 'bayes_talk[articulatory]'``)
+times the build with the synthesis cache ``--cache-dir`` (default: a fresh empty directory, i.e. a
 truly cold build; the number of cache entries before and after is recorded, so a warm
 start is visible), target <= 15 min = 900 s on 2 cores; then a rebuild into a second
 directory from the (now full) cache, target <= 2 min; and whether the two are
@@ -25,15 +24,16 @@ with ``--workers`` free cores (every utterance's work is single-threaded).
 
     .venv/bin/python benchmarks/corpus.py [--n 300] [--seed 0] [--speech espeak|vtl]
         [--workers 2] [--cache-dir DIR] [--peer-espeak]
+    .venv/bin/python benchmarks/corpus.py --quick     # 6 espeak utterances -> results/quick/corpus.json
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import resource
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -41,8 +41,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Self
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from bayes_talk.corpus import build_corpus, load_corpus
 from bayes_talk.data.phones import PHONES
+from benchmarks.common import result_path, write_result
 
 
 def _size(d: Path, exclude: tuple[str, ...] = ()) -> int:
@@ -128,12 +131,12 @@ def main() -> None:
     ap.add_argument("--keep", default=None,
                     help="copy the built corpora (featurised) into this directory after measuring: "
                          "KEEP/<speech> and, with --peer-espeak, KEEP/espeak; refuses an existing target")
-    ap.add_argument("--out", default=None,
-                    help="default benchmarks/results/corpus.json (corpus_vtl.json with --speech vtl)")
+    ap.add_argument("--quick", action="store_true", help="6 espeak utterances")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/corpus.json (--quick: results/quick/)")
     args = ap.parse_args()
-    if args.out is None:
-        name = "corpus.json" if args.speech == "espeak" else "corpus_vtl.json"
-        args.out = str(Path(__file__).parent / "results" / name)
+    args.out = result_path("corpus", args.quick, args.out)
+    if args.quick:
+        args.n, args.speech = 6, "espeak"
     if args.speech == "espeak" and (args.cache_dir or args.peer_espeak):
         ap.error("--cache-dir and --peer-espeak go with --speech vtl")
     if args.keep:
@@ -222,14 +225,10 @@ def main() -> None:
             "phones_missing": [p for p in PHONES if segs[p] == 0],
             "phone_segments": {p: segs[p] for p in PHONES},
             "phone_frames": {p: frames[p] for p in PHONES},
-            "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+            "speech": args.speech,
             **vtl_extra,
         }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(tmp, out)
+    write_result(args.out, result)
     print(json.dumps({k: v for k, v in result.items() if not k.startswith("phone_")}, indent=1))
 
 

@@ -1,4 +1,4 @@
-"""Benchmark of the GP core against GPy (issue #2).
+"""Benchmark of the GP core against GPy.
 
 Everything below is measured in one run, on the same machine load:
 
@@ -13,17 +13,17 @@ Everything below is measured in one run, on the same machine load:
                   x alternates between two nearby vectors so no cache can answer.
     * ours_pyro:  ``loss = -m.log_joint(); loss.backward()`` through the Pyro trace
                   (``sgpdm_program.trace_log_joint``: X prior, observation term, 1/θ hyperprior).
-    * ours_direct: the same, by the model's default path since issue 29 (the same site
+    * ours_direct: the same, by the model's default path (the same site
                   log-densities summed without the trace, equal bit for bit:
                   ``sgpdm_program.sgpdm_log_joint``).
-    * ours_np:    the same objective and gradient as the fit evaluates them since issue 29's
+    * ours_np:    the same objective and gradient as the fit evaluates them in its
                   direct fit: ``models.sgpdm_objective.SGPDMObjective`` on the flat
                   parameters (hand-written gradient, NumPy, no autograd).
     * ours_raw:   ``bayes_talk.gp.terms.observation_loglik(Y, X, α, γ, β, w)`` with X and
                   log α, log γ, log β requiring grad, plus backward (no Pyro overhead).
     * ours_raw_torch: the same term through the torch path (``train_cov`` + the Cholesky
-                  autograd function of terms.py), the default before issue 14's fused
-                  path: the "before" measured side by side.
+                  autograd function of terms.py), the alternative to the fused
+                  path, measured side by side.
     * floor_ours / floor_gpy: the LAPACK calls alone on this N×N kernel matrix, timed
                   without the copy that precedes them: ours ``dpotrf`` + ``dpotri``
                   (bayes_talk.gp.lapack's provider), GPy's ``pdinv`` ``dpotrf`` +
@@ -40,8 +40,7 @@ variants are interleaved within each repeat so they see the same machine load. W
 ``--block K`` (default 1) each variant runs K times in a row within a repeat and only the
 K-th call is timed: the steady state of an optimiser's loop, where one library's calls follow
 its own. With K = 1 each timed call follows another variant's, so a call pays for what the
-previous one left behind (other BLAS/OpenMP pools still spinning, cold caches); session 15
-measured that penalty side by side (docs/scaling.md).
+previous one left behind (other BLAS/OpenMP pools still spinning, cold caches).
 A correctness check compares our GPLVM objective with GPy's at one small N, and a
 profile splits one of our evaluations at the largest N into its parts.
 
@@ -51,20 +50,21 @@ Run:  .venv/bin/python benchmarks/gp_core.py [--quick] [--out PATH] [--repeats 5
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
 import logging
 import math
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import result_path, write_result
 
 D_GPLVM = 50
 D_VIEWS = {"audio": 20, "visual": 30}
@@ -92,19 +92,14 @@ def quiet_fit(model, views):
 
 
 # ---------------------------------------------------------------------------- setups
-@contextlib.contextmanager
-def log_joint_path(path: str):
-    """SGPDM.log_joint by ``path`` in the block: "direct" (``sgpdm_program.sgpdm_log_joint``,
-    the default) or "pyro" (``sgpdm_program.trace_log_joint``, the Pyro trace's log joint)."""
-    import bayes_talk.models.sgpdm as sgpdm_mod
-    from bayes_talk.models import sgpdm_program
+def pyro_log_joint(m):
+    """The model's log joint as its Pyro trace's ``log_prob_sum()``
+    (``sgpdm_program.trace_log_joint``), on the threads ``SGPDM.log_joint`` uses."""
+    from bayes_talk.gp.threads import problem_threads
+    from bayes_talk.models.sgpdm_program import trace_log_joint
 
-    fn = {"direct": sgpdm_program.sgpdm_log_joint, "pyro": sgpdm_program.trace_log_joint}[path]
-    prev, sgpdm_mod.program_log_joint = sgpdm_mod.program_log_joint, fn
-    try:
-        yield
-    finally:
-        sgpdm_mod.program_log_joint = prev
+    with problem_threads(sum(m.seq_lengths_)):
+        return trace_log_joint(m._Y, m._latents(), m._hyper(), m.seq_lengths_, m.config, m._learned_thetas())
 
 
 class Ours:
@@ -124,8 +119,11 @@ class Ours:
                      for k in ("alpha", "gamma", "beta")]
 
     def pyro_eval(self) -> float:
-        with log_joint_path("pyro"):
-            return self.direct_eval()
+        for t in self.free:
+            t.grad = None
+        loss = -pyro_log_joint(self.m)
+        loss.backward()
+        return float(loss.detach())
 
     def direct_eval(self) -> float:
         for t in self.free:
@@ -209,8 +207,11 @@ class Full:
         return float(loss.detach())
 
     def pyro_eval(self) -> float:
-        with log_joint_path("pyro"):
-            return self.eval()
+        for t in self.free:
+            t.grad = None
+        loss = -pyro_log_joint(self.m)
+        loss.backward()
+        return float(loss.detach())
 
     def np_eval(self) -> float:
         return _np_objective(self)
@@ -440,25 +441,11 @@ def machine_info() -> dict:
     return info
 
 
-def write_atomic(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
 def main(argv=None) -> int:
-    here = Path(__file__).resolve().parent
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=here / "results" / "gp_core.json")
-    p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only")
-    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--out", type=Path, default=None, help="default results/gp_core.json (--quick: results/quick/)")
+    p.add_argument("--quick", action="store_true", help=f"N = {QUICK_SIZES} only, 2 repeats")
+    p.add_argument("--repeats", type=int, default=None, help="default 5 (--quick: 2)")
     p.add_argument("--block", type=int, default=1,
                    help="calls of a variant in a row per repeat, the last one timed (default 1: "
                         "every timed call follows another variant's)")
@@ -472,6 +459,9 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None,
                    help="limit torch and BLAS/OpenMP threads (default: leave as found)")
     args = p.parse_args(argv)
+    args.out = result_path("gp_core", args.quick, args.out)
+    if args.repeats is None:
+        args.repeats = 2 if args.quick else 5
     if args.block < 1:
         p.error(f"--block must be >= 1, got {args.block}")
     from bayes_talk.base import settings
@@ -493,7 +483,6 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     result = {
         "benchmark": "gp_core",
-        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
         "machine": machine_info(),
         "settings": {"d": LATENT, "D_gplvm": D_GPLVM, "D_views": D_VIEWS, "repeats": args.repeats, "block": args.block,
                      "warmup": 1, "sizes": list(sizes),
@@ -531,7 +520,7 @@ def main(argv=None) -> int:
           f"max |dX diff| {c['max_abs_dX_difference_obs_term_vs_gpy']:.3g}")
     result["machine"]["loadavg_at_end"] = os.getloadavg()
     result["wall_s"] = time.perf_counter() - t_start
-    write_atomic(args.out, result)
+    write_result(args.out, result)
     print(f"wrote {args.out}")
     return 0
 

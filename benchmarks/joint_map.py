@@ -1,4 +1,4 @@
-"""The joint MAP of the whole-utterance synthesis posterior on held-out utterances (issue 9/10).
+"""The joint MAP of the whole-utterance synthesis posterior on held-out utterances.
 
 For each of the first ``--n-test`` utterances of ``--test-corpus`` (projected through the
 training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
@@ -14,16 +14,16 @@ training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
   by more than 10⁻³). A unimodal posterior brings every restart back to the same mode.
 
     PYTHONPATH=. python benchmarks/joint_map.py --model MODEL_DIR \\
-        --test-corpus data/v2/heldout40 --aam data/v2/train250/aam.npz \\
+        --test-corpus data/dev40 --aam data/train250/aam.npz \\
         [--n-test 8] [--utterances utt0001,utt0003] [--restarts 6] [--khat-draws 200] \\
         [--out benchmarks/results/joint_map.json]
+    PYTHONPATH=. python benchmarks/joint_map.py --quick   # -> benchmarks/results/quick/joint_map.json
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -34,10 +34,11 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.gp.threads import torch_threads
+from bayes_talk.posterior.diagnostics import psis_diagnostics
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import floored_precision, maximise_utterance
-from bayes_talk.posterior.sampling import psis_diagnostics
 from bayes_talk.synthesis.sequential import synthesize
+from benchmarks.common import bench_corpus, bench_model, result_path, write_result
 
 
 def _map_row(dens: UtteranceDensity, X0: np.ndarray) -> tuple[dict, object]:
@@ -52,16 +53,24 @@ def _map_row(dens: UtteranceDensity, X0: np.ndarray) -> tuple[dict, object]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--test-corpus", required=True)
-    ap.add_argument("--aam", required=True, help="the training corpus's aam.npz")
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--test-corpus", default=None)
+    ap.add_argument("--aam", default=None, help="the training corpus's aam.npz")
     ap.add_argument("--n-test", type=int, default=8)
     ap.add_argument("--utterances", default=None, help="comma-separated names (instead of the first --n-test)")
     ap.add_argument("--restarts", type=int, default=0)
     ap.add_argument("--khat-draws", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "joint_map.json")
+    ap.add_argument("--quick", action="store_true", help="the quick model and held-out corpus: 1 utterance, "
+                    "1 restart, 50 k-hat draws")
+    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    args.out = result_path("joint_map", args.quick, args.out)
+    if args.quick:
+        args.n_test, args.restarts, args.khat_draws = 1, 1, 50
+    args.model = args.model or bench_model(args.quick)
+    args.test_corpus = args.test_corpus or bench_corpus("test", args.quick)
+    args.aam = args.aam or bench_corpus("train", args.quick) / "aam.npz"
 
     from bayes_talk.corpus import load_corpus
     from bayes_talk.pipeline import load_trained
@@ -73,8 +82,8 @@ def main() -> None:
         seqs = [s for s in seqs if s.name in want]
     else:
         seqs = seqs[:args.n_test]
-    res = {"command": "benchmarks/joint_map.py " + " ".join(sys.argv[1:]), "model": str(args.model),
-           "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+    res = {"model": os.path.relpath(Path(args.model).resolve(), HERE.parent),
+           "test_corpus": os.path.relpath(Path(args.test_corpus).resolve(), HERE.parent),
            "loadavg_start": os.getloadavg()[0], "utterances": []}
     with torch_threads(1):
         for s in seqs:
@@ -113,10 +122,7 @@ def main() -> None:
                       "seconds_mean": float(np.mean([r["seconds"] for r in u])),
                       "khat": [r.get("khat") for r in u],
                       "loadavg_end": os.getloadavg()[0]}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=1))
-    tmp.replace(args.out)
+    write_result(args.out, res)
     print(json.dumps(res["summary"]))
 
 

@@ -1,4 +1,4 @@
-"""Does the warning's k̂ predict where the calibrated bands fail? (issue 27, "warnings that mean something").
+"""Does the warning's k̂ predict where the calibrated bands fail?
 
 A default ``synth`` warns when the Laplace posterior's PSIS k̂ lies above the largest k̂ of
 the held-out utterances its band calibration was fitted on
@@ -16,7 +16,8 @@ the utterances it lets through. This script measures that on held-out utterances
   of the unflagged utterances (frames × parameters pooled).
 
     python benchmarks/khat_coverage.py --model-dir MODEL --test data/dev40 --first 10 --n-test 20 \\
-        --json benchmarks/results/khat_coverage.json
+        --out benchmarks/results/khat_coverage.json
+    python benchmarks/khat_coverage.py --quick     # -> benchmarks/results/quick/khat_coverage.json
 
 ``MODEL`` is a ``bayes-talk train`` output (with its band calibration). ``--snr-db S`` adds
 white noise (seeded) at S dB below the utterance's RMS before synthesis: a recording unlike
@@ -39,8 +40,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bayes_talk.corpus import load_corpus
-from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import synth
+from benchmarks.common import (
+    QUICK_TEST_UTTERANCES,
+    bench_corpus,
+    bench_model,
+    result_path,
+    write_result,
+)
 
 
 def _inside(truth: np.ndarray, bands, level: int) -> np.ndarray:
@@ -113,19 +120,24 @@ def measure(model_dir: Path, test: Path, first: int, n_test: int, work: Path,
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--model-dir", required=True, help="a bayes-talk train output")
-    ap.add_argument("--test", required=True, help="held-out corpus directory")
+    ap.add_argument("--model-dir", default=None, help="a bayes-talk train output")
+    ap.add_argument("--test", default=None, help="held-out corpus directory")
     ap.add_argument("--first", type=int, default=0, help="index of the first held-out utterance")
     ap.add_argument("--n-test", type=int, default=20, help="number of held-out utterances")
     ap.add_argument("--snr-db", type=float, default=None, help="add white noise this many dB below the RMS")
     ap.add_argument("--seed", type=int, default=0, help="seed of the added noise")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/khat_coverage.json"))
+    ap.add_argument("--quick", action="store_true", help="the quick model and held-out corpus")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/khat_coverage.json (--quick: results/quick/)")
     a = ap.parse_args(argv)
+    a.out = result_path("khat_coverage", a.quick, a.out)
+    if a.quick:
+        a.n_test = QUICK_TEST_UTTERANCES
+    a.model_dir = a.model_dir or bench_model(a.quick)
+    a.test = a.test or bench_corpus("test", a.quick)
     with tempfile.TemporaryDirectory(prefix="bt_khat_") as tmp:
         r = measure(Path(a.model_dir), Path(a.test), a.first, a.n_test, Path(tmp), a.snr_db, a.seed)
-    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name,
-             command="python benchmarks/khat_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:]))
-    write_json(a.json, r)
+    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name)
+    write_result(a.out, r)
     print(json.dumps({k: v for k, v in r.items() if k != "per_utterance"}, indent=1))
     return 0
 

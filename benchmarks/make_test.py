@@ -1,4 +1,4 @@
-"""`make test` wall time: the recipe of one commit against another's, in one run (issue 29).
+"""`make test` wall time: the recipe of one commit against another's, in one run.
 
 Each run clones the repository into a scratch directory, checks out its commit (a clean
 clone: no feature or numba caches, no build/), asks that commit's Makefile for the commands
@@ -10,7 +10,8 @@ the load average is recorded before and after each command, and the CPU time of 
 command's processes (user + system, children included) beside the wall time.
 
     python benchmarks/make_test.py                      # serial=HEAD:0, then parallel=HEAD:2
-    python benchmarks/make_test.py --run after=HEAD:2 --run before=3d15395 --out benchmarks/results/make_test_s12.json
+    python benchmarks/make_test.py --run after=HEAD:2 --run before=COMMIT
+    python benchmarks/make_test.py --quick              # HEAD's recipe on one small test file -> results/quick/
 
 ``LABEL=REV[:WORKERS]``: WORKERS is passed as ``TEST_WORKERS`` to the Makefile (commits
 whose Makefile has no such variable run their recipe as written). The JSON is rewritten
@@ -19,9 +20,7 @@ after every command, so an interrupted invocation keeps what it measured.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import re
 import resource
 import shlex
@@ -32,7 +31,12 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import ROOT, result_path, write_result
+
+#: what ``--quick`` runs in place of the recipe's test paths (one small, fast test file)
+QUICK_TESTS = ("tests/base/test_settings.py",)
 
 SUMMARY = re.compile(r"^=*\s*(?P<body>(\d+ \w+(, )?)+) in (?P<secs>[\d.]+)s", re.MULTILINE)
 
@@ -74,11 +78,23 @@ def counts(text: str) -> dict:
     return {k: int(n) for n, k in re.findall(r"(\d+) (\w+)", body)}
 
 
+def with_tests(cmd: str, tests: list[str]) -> str:
+    """``cmd`` with its test paths (``notebooks``, ``tests``) replaced by ``tests``."""
+    argv = shlex.split(cmd)
+    keep = [a for a in argv if a not in ("notebooks", "tests")]
+    return shlex.join(keep + list(tests))
+
+
 def run_command(cmd: str, cwd: Path, env: dict, log: Path) -> dict:
+    argv = shlex.split(cmd)
+    env = dict(env)
+    while argv and re.fullmatch(r"[A-Za-z_]\w*=.*", argv[0]):   # the recipe's VAR=value prefix
+        k, _, v = argv.pop(0).partition("=")
+        env[k] = v
     load_before = os.getloadavg()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run(shlex.split(cmd), cwd=cwd, env=env, capture_output=True, text=True, check=False)
+    proc = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     out = proc.stdout + proc.stderr
@@ -102,25 +118,24 @@ def main(argv: list[str] | None = None) -> int:
                          "serial=HEAD:0 then parallel=HEAD:2)")
     ap.add_argument("--venv", type=Path, default=ROOT / ".venv",
                     help="the venv whose python runs the tests (default .venv)")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "make_test.json")
+    ap.add_argument("--out", type=Path, default=None, help="default benchmarks/results/make_test.json (--quick: results/quick/)")
+    ap.add_argument("--tests", nargs="+", default=None, help="run these test paths in place of the recipe's")
+    ap.add_argument("--quick", action="store_true", help=f"one run of HEAD's recipe (1 worker) on {', '.join(QUICK_TESTS)}")
     ap.add_argument("--only", choices=("tests", "notebooks"),
                     help="run only the recipe's commands that name this directory among their "
-                         "arguments (a recipe that runs tests/ and notebooks/ in one command, as "
-                         "since session 13, runs that command either way)")
+                         "arguments (a recipe that runs tests/ and notebooks/ in one command runs "
+                         "that command either way)")
     ap.add_argument("--keep", action="store_true", help="keep the clones (the pytest output is always kept)")
     args = ap.parse_args(argv)
+    args.out = result_path("make_test", args.quick, args.out)
+    if args.quick:
+        args.run, args.tests = args.run or [parse_run("quick=HEAD:0")], args.tests or list(QUICK_TESTS)
     args.run = args.run or [parse_run("serial=HEAD:0"), parse_run("parallel=HEAD:2")]
     venv = args.venv.absolute()
     if not (venv / "bin" / "python").exists():
         raise SystemExit(f"--venv {venv}: no bin/python there")
     scratch = Path(tempfile.mkdtemp(prefix="bt-make-test-"))
-    result = {
-        "benchmark": "make_test",
-        "argv": [a.replace(str(venv), "VENV").replace(str(ROOT) + os.sep, "") for a in sys.argv[1:]],
-        "machine": {"nproc": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "niceness": os.nice(0)},
-        "runs": [],
-    }
+    result = {"tests": args.tests or "the recipe's", "machine": {"niceness": os.nice(0)}, "runs": []}
     for run in args.run:
         sha = git("rev-parse", "--verify", run["rev"] + "^{commit}")
         tree = scratch / run["label"]
@@ -131,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         result["runs"].append(entry)
         cmds = [c for c in test_commands(tree, venv, run["workers"])
                 if args.only is None or args.only in shlex.split(c)]
+        if args.tests:
+            cmds = [with_tests(c, args.tests) for c in cmds]
         for i, cmd in enumerate(cmds):
             print(f"[{run['label']}] {cmd}", flush=True)
             log = scratch / f"{run['label']}-{i}.log"
@@ -145,8 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             first = result["runs"][0]
             result["wall_ratio_to_first"] = {r["label"]: round(r["wall_s"] / first["wall_s"], 3)
                                              for r in result["runs"] if first.get("wall_s")}
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+            write_result(args.out, result)
         if not args.keep:
             shutil.rmtree(tree, ignore_errors=True)
     print(f"wrote {args.out}")

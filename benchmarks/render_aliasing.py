@@ -16,7 +16,7 @@ by side in one run) this script
 2. for ``--n-heldout`` held-out utterances renders the full face and the pose-only face,
    projects both through that AAM, removes each utterance's mean, and reports per combined
    mode ``share_d = var(pose-only)_d / var(full)_d`` (pooled over held-out frames), with
-   summaries: mode 5 and modes 10-32 (1-based, the issue's figures), all modes
+   summaries: mode 5 and modes 10-32 (1-based), all modes
    (variance-weighted and the plain mean of the per-mode shares).
 
 Phone timings come from the ``.lab`` files of built corpora (``--train-corpus``,
@@ -25,23 +25,23 @@ the frames are the corpus's own) or, without them, from
 :func:`~bayes_talk.data.face.random_phone_intervals` (no speech synthesis needed).
 
     .venv/bin/python benchmarks/render_aliasing.py \
-        --train-corpus data/v1/train250 --heldout-corpus data/v1/heldout40
+        --train-corpus data/train250 --heldout-corpus data/heldout40
     .venv/bin/python benchmarks/render_aliasing.py --quick      # random timings, small
 
-Writes benchmarks/results/render_aliasing.json (``--out``).
+Writes benchmarks/results/render_aliasing.json (``--out``; ``--quick``: results/quick/).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data import face
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bayes_talk.corpus import render
 from bayes_talk.corpus.format import (
@@ -51,11 +51,10 @@ from bayes_talk.corpus.format import (
     FPS,
     prototype_frames,
 )
+from bayes_talk.data import face
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.features.aam import AAM
-from bayes_talk.base.files import write_json
-
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.common import result_path, write_result
 
 
 def corpus_timings(root: Path, n: int) -> tuple[list[tuple[list, int]], int]:
@@ -154,8 +153,10 @@ def main() -> None:
     ap.add_argument("--n-heldout", type=int, default=20)
     ap.add_argument("--image-size", type=int, default=128)
     ap.add_argument("--quick", action="store_true", help="random timings, 60 train / 8 held-out")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "render_aliasing.json")
+    ap.add_argument("--out", type=Path, default=None, help="default benchmarks/results/render_aliasing.json "
+                    "(--quick: results/quick/)")
     a = ap.parse_args()
+    a.out = result_path("render_aliasing", a.quick, a.out)
     factors = [(int(x.split(":")[0]), float(x.split(":")[1]) if ":" in x else 0.0)
                for x in a.supersample.split(",") if x.strip()]
     if a.quick:
@@ -184,9 +185,8 @@ def main() -> None:
         "image_size": a.image_size,
         "runs": runs,
         "loadavg_start": load0, "loadavg_end": [round(x, 2) for x in os.getloadavg()],
-        "python": platform.python_version(), "numpy": np.__version__, "cpu_count": os.cpu_count(),
     }
-    write_json(a.out, result)
+    write_result(a.out, result)
     for r in runs:
         c = r["combined"]
         print(f"supersample {r['supersample']} psf {r['psf_px']}: modes {r['aam_modes_shape_texture_combined']}, "

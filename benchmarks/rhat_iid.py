@@ -1,6 +1,6 @@
-"""What R-hat and ESS perfectly mixed chains reach over many coordinates (issue 10).
+"""What R-hat and ESS perfectly mixed chains reach over many coordinates.
 
-The acceptance of issue 10 asks NUTS for rank R-hat ≤ 1.01 and bulk ESS ≥ 400 *for every
+The convergence targets ask a sampler for rank R-hat ≤ 1.01 and bulk ESS ≥ 400 *for every
 coordinate* of a whole utterance (T·d = 450 latents for 3 s). This script draws iid
 N(0, 1) "chains" of the given shape — a sampler that mixes perfectly — and reports, over
 ``--seeds`` repetitions, the largest rank R-hat and the smallest bulk/tail ESS over the
@@ -9,6 +9,7 @@ the largest R-hat is within 1.01. That is the best any sampler of that many draw
 
     PYTHONPATH=. python benchmarks/rhat_iid.py [--chains 4] [--dim 450] \
         [--draws-per-chain 100,250,500,1000] [--seeds 10] [--out benchmarks/results/rhat_iid.json]
+    PYTHONPATH=. python benchmarks/rhat_iid.py --quick    # -> benchmarks/results/quick/rhat_iid.json
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.posterior.diagnostics import ESS_MIN, RHAT_MAX, chain_diagnostics
+from benchmarks.common import result_path, write_result
 
 
 def iid_reference(chains: int, draws: int, dim: int, seeds: int = 10) -> dict:
@@ -46,19 +48,20 @@ def main() -> None:
     ap.add_argument("--dim", type=int, default=450)
     ap.add_argument("--draws-per-chain", default="100,250,500,1000")
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "rhat_iid.json")
+    ap.add_argument("--quick", action="store_true", help="60 coordinates, 100 and 250 draws per chain, 3 seeds")
+    ap.add_argument("--out", type=Path, default=None, help="default results/rhat_iid.json (--quick: results/quick/)")
     args = ap.parse_args()
+    if args.quick:
+        args.dim, args.draws_per_chain, args.seeds = 60, "100,250", 3
+    args.out = result_path("rhat_iid", args.quick, args.out)
     warnings.filterwarnings("ignore", category=FutureWarning)
-    res = {"command": "benchmarks/rhat_iid.py " + " ".join(sys.argv[1:]), "thresholds": {"rhat": RHAT_MAX,
-           "ess": ESS_MIN}, "rows": []}
+    res = {"settings": {k: v for k, v in vars(args).items() if k != "out"},
+           "thresholds": {"rhat": RHAT_MAX, "ess": ESS_MIN}, "rows": []}
     for n in (int(v) for v in args.draws_per_chain.split(",")):
         row = iid_reference(args.chains, n, args.dim, args.seeds)
         print(json.dumps(row), flush=True)
         res["rows"].append(row)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=1))
-    tmp.replace(args.out)
+    write_result(args.out, res)
 
 
 if __name__ == "__main__":

@@ -1,26 +1,27 @@
-"""Robustness of synthesis to how the audio was recorded (issue 12).
+"""Robustness of synthesis to how the audio was recorded.
 
-Trains a model on a training corpus (``bayes-talk train``), then for each held-out
-utterance synthesises (``pipeline.synth``'s path: read_utterance with the model's recorded
-sample rate and cepstral normalisation, then the model's MAP synthesis) from
+A model (``--model-dir``, a ``bayes-talk train`` output; or one trained here on ``--train``
+with ``--model`` kind) synthesises each held-out utterance (``pipeline.read_utterance`` with
+the model's recorded sample rate and cepstral normalisation, then the model's MAP synthesis)
+from
 
 * the original WAV, and from variants of it: -6 dB, +6 dB, resampled to 16 kHz and
   44.1 kHz, stereo with one silent channel, and all-zero (silent) audio,
 
 and reports the RMS difference of each variant's AAM trajectory from the original's,
 averaged over utterances, and its ratio to the silent audio's difference (acceptance:
-every ratio below 0.1). With ``--frontends new,before`` the same is measured for the front end
-before issue 12 (no cepstral normalisation, mel bands up to sr/2, no resampling: a model
-trained with ``cmvn="off", fmax=None`` and the audio read at its own rate; stereo is
-downmixed by the new rule in both, so that row does not show the old channel average).
+every ratio below 0.1).
 
-    python benchmarks/robustness.py --train data/v1/train250 --test data/v1/heldout40 \
-        --frontends new,before --json benchmarks/results/robustness.json
+    python benchmarks/robustness.py --train data/train250 --test data/heldout40 \
+        [--model ssgpdm-phone] [--out benchmarks/results/robustness.json]
+    python benchmarks/robustness.py --model-dir MODEL --test data/heldout40
+    python benchmarks/robustness.py --quick     # the quick model and held-out corpus -> results/quick/
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -33,9 +34,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bayes_talk.features.audio import resample
-from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
-from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import load_trained, read_utterance, train
+from benchmarks.common import bench_corpus, bench_model, result_path, write_result
 
 CONDITIONS = ("minus6dB", "plus6dB", "sr16000", "sr44100", "stereo_one_silent", "silent")
 
@@ -52,29 +52,26 @@ def variants(y: np.ndarray, sr: int) -> dict[str, tuple[np.ndarray, int]]:
     }
 
 
-def synth_mean(tm, wav: Path, lab: Path, frontend: str) -> np.ndarray:
-    if frontend == "new":
-        utt = read_utterance(wav, lab, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
-                             fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
-    else:  # before issue 12: the file's own rate, mel bands to sr/2, no normalisation
-        utt = read_utterance(wav, lab, tm.fps, sample_rate=None, cmvn="off", fmax=None)
+def synth_mean(tm, wav: Path, lab: Path) -> np.ndarray:
+    utt = read_utterance(wav, lab, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
+                         fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
     res = tm.uncalibrated.synthesize(utt.mfcc, utt.labels, algorithm="optimise")
     return np.asarray(res.mean)
 
 
-def measure(model_dir: Path, test: Path, n_test: int | None, frontend: str, work: Path) -> dict:
+def measure(model_dir: Path, test: Path, n_test: int | None, work: Path) -> dict:
     tm = load_trained(model_dir)
     wavs = sorted((test / "utterances").glob("*.wav"))[:n_test]
     diffs: dict[str, list[float]] = {c: [] for c in CONDITIONS}
     for wav in wavs:
         lab = wav.with_suffix(".lab")
         y, sr = sf.read(str(wav), dtype="float64")
-        ref = synth_mean(tm, wav, lab, frontend)
+        ref = synth_mean(tm, wav, lab)
         for name, (yy, rr) in variants(y, sr).items():
             p = work / f"{wav.stem}_{name}.wav"
             sf.write(str(p), yy.astype(np.float32), rr, subtype="FLOAT")
             try:
-                out = synth_mean(tm, p, lab, frontend)
+                out = synth_mean(tm, p, lab)
             except ValueError as exc:  # e.g. 16 kHz audio without resampling: not a frame grid
                 diffs[name].append(float("nan"))
                 print(f"{wav.stem} {name}: {exc}", file=sys.stderr)
@@ -92,34 +89,36 @@ def measure(model_dir: Path, test: Path, n_test: int | None, frontend: str, work
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--train", default="data/v1/train250", help="training corpus")
-    ap.add_argument("--test", default="data/v1/heldout40", help="held-out corpus")
-    ap.add_argument("--model", default="ssgpdm-phone", help="model kind")
+    ap.add_argument("--model-dir", default=None, help="a bayes-talk train output (default: the suite's model)")
+    ap.add_argument("--train", default=None, help="train a --model on this corpus instead of --model-dir")
+    ap.add_argument("--model", default="ssgpdm-phone", help="model kind trained on --train")
+    ap.add_argument("--test", default=None, help="held-out corpus (default: the suite's)")
     ap.add_argument("--n-test", type=int, default=None, help="first N held-out utterances (default all)")
-    ap.add_argument("--frontends", default="new",
-                    help="comma-separated: new (this front end), before (before issue 12)")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/robustness.json"))
+    ap.add_argument("--quick", action="store_true", help="the quick model and held-out corpus")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/robustness.json (--quick: results/quick/)")
     a = ap.parse_args(argv)
-    result = {"train_corpus": a.train, "test_corpus": a.test, "model": a.model, "algorithm": "optimise",
+    a.out = result_path("robustness", a.quick, a.out)
+    if a.quick or a.model_dir is None and a.train is None:
+        a.model_dir = a.model_dir or bench_model(a.quick)
+    a.test = a.test or bench_corpus("test", a.quick)
+    result = {"model_dir": None if a.model_dir is None else os.path.relpath(Path(a.model_dir).resolve(), ROOT),
+              "train_corpus": None if a.model_dir else a.train, "model": None if a.model_dir else a.model,
+              "test_corpus": os.path.relpath(Path(a.test).resolve(), ROOT), "algorithm": "optimise",
               "metric": "RMS over frames and AAM parameters of (variant trajectory - original trajectory), "
-                        "mean over utterances", "frontends": {}}
+                        "mean over utterances"}
     with tempfile.TemporaryDirectory(prefix="bt_robust_") as tmp:
         tmp = Path(tmp)
-        known = {"new": ("new", "mean"), "before": ("before_issue12", "off")}
-        runs = [known[f] for f in a.frontends.split(",")]
-        for label, cm in runs:
-            t0 = time.perf_counter()
-            mdir = train(a.train, a.model, tmp / f"model_{cm}", cmvn=cm,
-                         fmax=FMAX_HZ if label == "new" else None, floor_dbfs=FLOOR_DBFS if label == "new" else None)
-            t1 = time.perf_counter()
-            work = tmp / f"audio_{cm}"
-            work.mkdir()
-            r = measure(mdir, Path(a.test), a.n_test, "new" if label == "new" else "old", work)
-            r.update(cmvn=cm, train_seconds=t1 - t0, measure_seconds=time.perf_counter() - t1)
-            result["frontends"][label] = r
-            print(label, json.dumps(r["ratio_to_silent"]), flush=True)
-    write_json(a.json, result)
-    print(f"wrote {a.json}")
+        t0 = time.perf_counter()
+        mdir = Path(a.model_dir) if a.model_dir else train(a.train, a.model, tmp / "model")
+        t1 = time.perf_counter()
+        work = tmp / "audio"
+        work.mkdir()
+        r = measure(mdir, Path(a.test), a.n_test, work)
+        r.update(train_seconds=None if a.model_dir else t1 - t0, measure_seconds=time.perf_counter() - t1)
+        result.update(r)
+        print(json.dumps(r["ratio_to_silent"]), flush=True)
+    write_result(a.out, result)
+    print(f"wrote {a.out}")
     return 0
 
 

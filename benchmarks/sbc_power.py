@@ -1,5 +1,5 @@
 """Power of simulation-based calibration: the rejection rate of a positive control (a sampler
-whose spread is 0.85× the truth) and the false-rejection rate of an exact sampler (issue 24, item 6).
+whose spread is 0.85× the truth) and the false-rejection rate of an exact sampler.
 
 Conjugate Gaussian, K coordinates: θ ~ N(0, I), y = θ + N(0, s² I), posterior N(y/(1+s²), s²/(1+s²) I).
 Each "sampler" is MCMC-like: ``--chains`` AR(1) chains of ``--chain-draws`` draws with
@@ -17,14 +17,13 @@ criterion of ``SBCResult.passed``), the dispersion test alone at α = 0.05, and 
 verdict (:func:`bayes_talk.evaluation.sbc_power.combined_verdict`, α/3 each).
 
     PYTHONPATH=. python benchmarks/sbc_power.py [--sims 200] [--repeats 20] [--coords 24]
-        [--rank-draws 19] [--out benchmarks/results/sbc_power_gaussian.json]
+        [--rank-draws 19] [--out benchmarks/results/sbc_power.json]
+    PYTHONPATH=. python benchmarks/sbc_power.py --quick   # 60 simulations, 3 repeats -> results/quick/
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.evaluation.sbc import ALPHA, run_sbc
 from bayes_talk.evaluation.sbc_power import combined_verdict, dispersion_test, thin_to_ess
-from bayes_talk.base.files import write_json
+from benchmarks.common import result_path, write_result
 
 S2 = 0.5
 
@@ -93,11 +92,13 @@ def main() -> None:
     ap.add_argument("--ess-every", type=int, default=10)
     ap.add_argument("--variants", default="exact,control-0.85,exact-consecutive")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "sbc_power_gaussian.json")
+    ap.add_argument("--quick", action="store_true", help="60 simulations, 3 repeats")
+    ap.add_argument("--out", type=Path, default=None, help="default results/sbc_power.json (--quick: results/quick/)")
     args = ap.parse_args()
-    res = {"command": "benchmarks/sbc_power.py " + " ".join(sys.argv[1:]),
-           "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
-           "settings": {k: v for k, v in vars(args).items() if k != "out"}, "variants": {}}
+    if args.quick:
+        args.sims, args.repeats = 60, 3
+    args.out = result_path("sbc_power", args.quick, args.out)
+    res = {"settings": {k: v for k, v in vars(args).items() if k != "out"}, "variants": {}}
     for variant in args.variants.split(","):
         if variant not in ("exact", "control-0.85", "exact-consecutive"):
             raise SystemExit(f"unknown variant {variant!r}")
@@ -115,8 +116,7 @@ def main() -> None:
                        ranked_draws_le_ess_fraction=float(np.mean(ess >= args.rank_draws)))
         res["variants"][variant] = out
         print(variant, json.dumps(out), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.out, res)
+    write_result(args.out, res)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
-"""Benchmark: the executors (bayes_talk.base.executor) and the peak memory of the full protocols (issue 14).
+"""Benchmark: the executors (bayes_talk.base.executor) and the peak memory of the full protocols.
 
-Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with sections:
+Writes benchmarks/results/scaling.json (``--quick``: results/quick/scaling.json) with sections:
 
 - ``executors``: per-state training of the switching SGPDM (VLMM states, default
-  settings; ``--quick``: 30 iterations, 100-frame caps) on the first ``--n-train``
+  settings; ``--quick``: the quick mode's small settings) on the first ``--n-train``
   utterances of ``--corpus``, side by side in one run: the local serial executor, the local
   process pool (``ProcessExecutor``, 2 processes) and dask ``LocalCluster``s of 1 and 2
   worker processes on 127.0.0.1. Wall time of the training only (the cluster's start-up is
@@ -14,22 +14,22 @@ Writes benchmarks/results/scaling.json (``--quick``: scaling_quick.json) with se
   process (``self_mb``) and of its largest child (``children_mb``: the worker processes of
   ``--executor``), their sum (an upper bound of the job's peak), and the wall time. The goal
   for the full deena2009 protocol is <= 2 GB (it was 4.6 GB, 23 min).
-- ``sparse``: the sparse whole-corpus SGPDM's time and memory against N (and the exact
-  SGPDM's up to 2,000 frames), from ``benchmarks/sparse.py``'s ``measure`` (issue 14 item 2;
-  see :func:`sparse_section`).
 
 Every section records the load average at its start and end (the machine is shared).
 
-    python benchmarks/scaling.py [--quick] [--corpus data/v2/train250] [--n-train 100]
-        [--sections executors,peak_rss,sparse] [--protocols deena2009,deena2010,englebienne2008]
-        [--executor local|processes|dask] [--repeats K] [--out PATH] [--tag TAG]
+    python benchmarks/scaling.py [--corpus data/train250] [--n-train 100]
+        [--sections executors,peak_rss] [--protocols deena2009,deena2010,englebienne2008]
+        [--executor local|processes|dask] [--repeats K] [--out PATH]
+    python benchmarks/scaling.py --quick    # the quick corpus (benchmarks/common.py), small settings
+
+A run of some ``--sections`` replaces those sections of an existing result file and keeps the
+others. The sparse SGPDM's time and memory against N: ``benchmarks/sparse.py``.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -38,10 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.base.files import write_json
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_CORPUS = "data/v2/train250"
+from benchmarks.common import QUICK_MODEL, ROOT, bench_corpus, result_path, write_result
 
 
 def _load() -> list[float]:
@@ -66,11 +65,11 @@ def _same_model(a, b) -> bool:
 
 # ------------------------------------------------------------------------------- executors
 def executors_section(args: argparse.Namespace) -> dict:
+    from bayes_talk.base.executor import DaskExecutor, LocalExecutor, ProcessExecutor
     from bayes_talk.corpus import load_corpus
     from bayes_talk.estimators.switching import SwitchingSGPDM
-    from bayes_talk.base.executor import DaskExecutor, LocalExecutor, ProcessExecutor
 
-    settings = ({"max_iter": 30, "max_frames_per_state": 100, "fallback_frames": 200} if args.quick else {})
+    settings = dict(QUICK_MODEL) if args.quick else {}
     train = load_corpus(args.corpus).sequences[: args.n_train]
     out: dict = {"corpus": args.corpus, "n_train": len(train), "n_frames": int(sum(s.n_frames for s in train)),
                  "model": "SwitchingSGPDM(states='vlmm')", "settings": settings or "defaults",
@@ -112,16 +111,20 @@ def _rss_child(args: argparse.Namespace) -> None:
     repeats/folds) and print its peak RSS as JSON."""
     import dataclasses
 
+    from bayes_talk.base.executor import make_executor
     from bayes_talk.corpus import load_corpus
     from bayes_talk.evaluation.harness import run_protocol
     from bayes_talk.evaluation.protocols import get_protocol
-    from bayes_talk.base.executor import make_executor
 
     t0 = time.perf_counter()
     proto = get_protocol(args.rss_child, quick=args.quick)
     if args.repeats:
         proto = dataclasses.replace(proto, **({"n_folds": args.repeats} if proto.scheme == "kfold"
                                               else {"n_repeats": args.repeats}))
+    if args.quick and proto.n_train is not None:   # the quick corpus holds 12 utterances
+        proto = dataclasses.replace(proto, n_train=min(proto.n_train, 8), n_test=min(proto.n_test, 4))
+    if args.quick and proto.n_use is not None:
+        proto = dataclasses.replace(proto, n_use=min(proto.n_use, 12))
     with make_executor(args.executor, args.workers) as ex:
         corpus = load_corpus(args.corpus, executor=ex if ex.parallel else None)
         res, _ = run_protocol(proto, corpus.sequences, executor=ex)
@@ -213,33 +216,14 @@ def peak_rss_section(args: argparse.Namespace) -> dict:
     return out
 
 
-# ------------------------------------------------------------------------------- sparse SGPDM
-def sparse_section(args: argparse.Namespace) -> dict:
-    """benchmarks/sparse.py's ``measure`` at each N (the sparse SGPDM, and the exact one up
-    to ``exact_max``), each fit in its own process: time, objective evaluations, peak RSS.
-    ``--quick``: N = 300, 600 on the corpus, the exact model at N = 300 (SGPDM.fit runs L-BFGS
-    in steps of 20 iterations, so 20 is the smallest budget)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from sparse import SIZES, measure  # benchmarks/sparse.py
-
-    sizes, iters, exact_max = ((300, 600), 20, 300) if args.quick else (SIZES, 20, 2000)
-    out: dict = {"corpus": args.corpus, "iters": iters, "n_inducing": 150, "exact_max": exact_max,
-                 "loadavg_start": _load(), "sizes": []}
-    for n in sizes:
-        print(f"[scaling] sparse SGPDM, N = {n} ...", flush=True)
-        out["sizes"].append(measure(n, args.corpus, n_inducing=150, iters=iters, exact_max=exact_max))
-    out["loadavg_end"] = _load()
-    return out
-
-
 # ------------------------------------------------------------------------------- main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small settings; the quick protocols")
-    ap.add_argument("--corpus", default=DEFAULT_CORPUS)
+    ap.add_argument("--corpus", default=None, help="a built corpus (default: the suite's training corpus)")
     ap.add_argument("--n-train", type=int, default=None, help="utterances for the executors section "
-                    "(default 100; --quick 24)")
-    ap.add_argument("--sections", default="executors,peak_rss,sparse")
+                    "(default 100; --quick 12)")
+    ap.add_argument("--sections", default="executors,peak_rss")
     ap.add_argument("--protocols", default="deena2009")
     ap.add_argument("--executor", default="local", choices=("local", "processes", "dask"),
                     help="executor of the peak-RSS protocol runs")
@@ -249,29 +233,28 @@ def main() -> None:
                     help="peak_rss: run only this many of each protocol's repeats/folds (0: all); the peak "
                          "of one split does not grow with their number (each split's models are freed)")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--tag", default=None, help="store each section under SECTION_TAG in the JSON (e.g. "
-                    "peak_rss_before_local), so runs of one section can sit side by side in one file")
     ap.add_argument("--rss-child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.rss_child:
         return _rss_child(args)
-    args.n_train = args.n_train or (24 if args.quick else 100)
-    out_path = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / (
-        "scaling_quick.json" if args.quick else "scaling.json")
+    args.corpus = args.corpus or str(bench_corpus("train", args.quick))
+    args.n_train = args.n_train or (12 if args.quick else 100)
+    if args.quick and args.repeats == 0:
+        args.repeats = 1
+    out_path = result_path("scaling", args.quick, args.out)
     result = json.loads(out_path.read_text()) if out_path.exists() else {}
-    result.update({"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                               "platform": platform.platform()}, "quick": args.quick})
-    sections = {"executors": executors_section, "peak_rss": peak_rss_section, "sparse": sparse_section}
+    for k in ("command", "machine", "commit"):
+        result.pop(k, None)
+    result["quick"] = args.quick
+    sections = {"executors": executors_section, "peak_rss": peak_rss_section}
     for name in args.sections.split(","):
         if name not in sections:
             raise SystemExit(f"--sections: unknown section {name!r}; choose among {', '.join(sections)}")
         t0 = time.perf_counter()
-        key = f"{name}_{args.tag}" if args.tag else name
-        result[key] = sections[name](args)
-        result[key]["section_wall_s"] = round(time.perf_counter() - t0, 1)
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        write_json(out_path, result)  # atomically, each section as soon as it is done
-    print(json.dumps({k: result[f"{k}_{args.tag}" if args.tag else k] for k in args.sections.split(",")}, indent=1))
+        result[name] = sections[name](args)
+        result[name]["section_wall_s"] = round(time.perf_counter() - t0, 1)
+        write_result(out_path, result)  # atomically, each section as soon as it is done
+    print(json.dumps({k: result[k] for k in args.sections.split(",")}, indent=1))
     print(f"wrote {out_path}")
 
 

@@ -1,5 +1,5 @@
 """Training time and peak memory of the sparse SGPDM against N, beside the exact SGPDM
-where it fits (issue 14).
+where it fits.
 
 Each fit runs in a fresh child process (``multiprocessing`` spawn) so that its peak
 resident memory (``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the child) is its own.
@@ -16,13 +16,13 @@ and the same L-BFGS iteration budget (``--iters``); reported: wall and CPU secon
 
 Run:  PYTHONPATH=. .venv/bin/python benchmarks/sparse.py [--corpus DIR] [--sizes 1000,2000,4000,8000,15000]
       [--exact-max 2000] [--iters 20] [--inducing 150] [--out PATH]
+      PYTHONPATH=. .venv/bin/python benchmarks/sparse.py --quick     # synthetic data, N = 300, 600
 """
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
 import os
-import platform
 import resource
 import sys
 import time
@@ -30,9 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.base.files import write_json
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import result_path, write_result
 
 SIZES = (1000, 2000, 4000, 8000, 15000)
+QUICK_SIZES = (300, 600)
 
 
 def synthetic_views(n_frames: int, seed: int = 0) -> tuple[dict[str, np.ndarray], list[int]]:
@@ -79,16 +82,17 @@ def _child(kind: str, views, lens, settings: dict, queue) -> None:
     from bayes_talk.models.sparse_sgpdm import SparseSGPDM
 
     torch.set_num_threads(settings.pop("threads"))
-    cls = SparseSGPDM if kind == "sparse" else SGPDM
-    model = cls(**settings)
     calls = [0]
-    log_joint = model.log_joint
 
-    def counted():  # the fit's L-BFGS closure calls model.log_joint: count the evaluations
-        calls[0] += 1
-        return log_joint()
+    class Counted(SparseSGPDM if kind == "sparse" else SGPDM):
+        """The model, counting the evaluations of its objective (the fit's L-BFGS closure
+        calls ``log_joint``)."""
 
-    model.log_joint = counted
+        def log_joint(self):
+            calls[0] += 1
+            return super().log_joint()
+
+    model = Counted(**settings)
     w0, c0 = time.perf_counter(), time.process_time()
     model.fit(views, seq_lengths=lens)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
@@ -141,56 +145,8 @@ def measure(n_frames: int, corpus: str | os.PathLike | None = None, n_inducing: 
     return out
 
 
-ROW_KEYS = {"N", "sequences", "data", "sparse", "exact"}
-FIT_KEYS = {"wall_s", "cpu_s", "lbfgs_outer_steps", "objective_start", "objective_end", "peak_rss_mb", "s_per_iter"}
-COMPARED_SETTINGS = ("corpus", "iters", "inducing", "threads")
-
-
-def merge_results(paths: list[Path], note: str | None = None) -> dict:
-    """Combine earlier outputs of this script into one result, taking every row as it is.
-
-    Each file must be this script's JSON (``benchmark`` "sparse"; rows with the keys of
-    :func:`measure`), else ValueError naming the file and what is missing. Every row gets a
-    ``source`` (file, its command, settings, load average, the file's modification time in
-    UTC: when its last row was written). Rows whose settings (corpus, iterations, M, threads)
-    differ from the first file's go to ``other_runs``; the first row of each N is kept
-    and later duplicates go to ``other_runs`` too.
-    """
-    import datetime
-    import json
-
-    out: dict = {"benchmark": "sparse", "merged_from": [], "note": note, "sizes": [], "other_runs": []}
-    ref = None
-    for path in paths:
-        data = json.loads(Path(path).read_text())
-        missing = {"benchmark", "command", "machine", "settings", "sizes"} - data.keys()
-        if data.get("benchmark") != "sparse" or missing:
-            raise ValueError(f"{path}: not a benchmarks/sparse.py result (benchmark={data.get('benchmark')!r}, "
-                             f"missing keys {sorted(missing)})")
-        settings = {k: data["settings"].get(k) for k in COMPARED_SETTINGS}
-        mtime = datetime.datetime.fromtimestamp(Path(path).stat().st_mtime, datetime.UTC)
-        source = {"file": str(path), "command": data["command"], "settings": data["settings"],
-                  "loadavg_at_start": data["machine"].get("loadavg_at_start"),
-                  "loadavg_at_end": data["machine"].get("loadavg_at_end"),
-                  "file_mtime_utc": mtime.isoformat(timespec="seconds")}
-        out["merged_from"].append(source)
-        ref = settings if ref is None else ref
-        for row in data["sizes"]:
-            if not ROW_KEYS <= row.keys():
-                raise ValueError(f"{path}: row N={row.get('N')} lacks {sorted(ROW_KEYS - row.keys())}")
-            for kind in ("sparse", "exact"):
-                if row[kind] is not None and not FIT_KEYS <= row[kind].keys():
-                    raise ValueError(f"{path}: row N={row['N']} {kind} lacks {sorted(FIT_KEYS - row[kind].keys())}")
-            row = {**row, "source": {k: source[k] for k in ("file", "command", "file_mtime_utc")}}
-            same = settings == ref and all(r["N"] != row["N"] for r in out["sizes"])
-            (out["sizes"] if same else out["other_runs"]).append(row)
-    out["settings"] = ref
-    out["sizes"].sort(key=lambda r: r["N"])
-    return out
-
 
 def main(argv=None) -> int:
-    here = Path(__file__).resolve().parent
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--corpus", default=None, help="built corpus (default: synthetic data)")
     p.add_argument("--sizes", default=",".join(map(str, SIZES)), help="comma-separated frame counts")
@@ -198,21 +154,14 @@ def main(argv=None) -> int:
     p.add_argument("--iters", type=int, default=20, help="L-BFGS iterations per fit")
     p.add_argument("--inducing", type=int, default=150, help="inducing inputs M")
     p.add_argument("--threads", type=int, default=1, help="torch threads in each fit")
-    p.add_argument("--out", type=Path, default=here / "results" / "sparse.json")
-    p.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
-                   help="combine earlier outputs of this script into --out (no fits are run)")
-    p.add_argument("--note", default=None, help="with --merge: a note on where the rows came from")
+    p.add_argument("--quick", action="store_true", help=f"synthetic data, N = {QUICK_SIZES}")
+    p.add_argument("--out", type=Path, default=None, help="default results/sparse.json (--quick: results/quick/)")
     args = p.parse_args(argv)
-    if args.merge:
-        res = merge_results(args.merge, args.note)
-        res["command"] = " ".join([os.path.basename(sys.executable), *sys.argv])
-        write_json(args.out, res)
-        print(f"merged {len(res['sizes'])} rows (+{len(res['other_runs'])} other) into {args.out}")
-        return 0
+    args.out = result_path("sparse", args.quick, args.out)
+    if args.quick:
+        args.corpus, args.sizes, args.exact_max = None, ",".join(map(str, QUICK_SIZES)), max(QUICK_SIZES)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
-    res = {"benchmark": "sparse", "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
-           "machine": {"nproc": os.cpu_count(), "platform": platform.platform(),
-                       "loadavg_at_start": os.getloadavg()},
+    res = {"benchmark": "sparse", "machine": {"loadavg_at_start": os.getloadavg()},
            "settings": vars(args) | {"out": str(args.out)}, "sizes": []}
     print(f"{'N':>6} {'sparse s':>9} {'s/iter':>7} {'RSS MB':>7} | {'exact s':>8} {'s/iter':>7} {'RSS MB':>7}")
     for n in sizes:
@@ -221,9 +170,9 @@ def main(argv=None) -> int:
         s, e = r["sparse"], r["exact"]
         ex = f"{e['wall_s']:>8.1f} {e['s_per_iter']:>7.2f} {e['peak_rss_mb']:>7.0f}" if e else f"{'-':>8} {'-':>7} {'-':>7}"
         print(f"{n:>6} {s['wall_s']:>9.1f} {s['s_per_iter']:>7.2f} {s['peak_rss_mb']:>7.0f} | {ex}", flush=True)
-        write_json(args.out, res)
+        write_result(args.out, res)
     res["machine"]["loadavg_at_end"] = os.getloadavg()
-    write_json(args.out, res)
+    write_result(args.out, res)
     print(f"wrote {args.out}")
     return 0
 

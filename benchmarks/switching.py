@@ -1,9 +1,10 @@
-"""Benchmark of the switching SGPDM: training time and synthesis speed (issue #4).
+"""Benchmark of the switching SGPDM: training time and synthesis speed.
 
 Measured in one run on a built-in corpus (``--corpus DIR`` reuses an existing built corpus,
-else ``build_corpus(tmpdir, n_utterances=278, seed=0)`` is built first, ~90 s; ``--quick``:
-60 utterances). The utterances are split as the deena2010 protocol splits them
-(``evaluation.splits.make_splits``, seed 0): 250 train / 28 held out (quick: 50 / 10).
+else ``build_corpus(tmpdir, n_utterances=278, seed=0)`` is built first, ~90 s). The utterances
+are split as the deena2010 protocol splits them (``evaluation.splits.make_splits``, seed 0):
+250 train / 28 held out. ``--quick``: the quick corpus of ``benchmarks/common.py`` (12
+utterances: 10 train / 2 held out) and the quick mode's small model settings.
 
 (a) training: ``fit_model(SwitchingSGPDM(states="vlmm"), train, workers=2)`` (a process
     pool of 2, default settings: ≤ 300 frames per state, 100 L-BFGS iterations, d = 6),
@@ -28,13 +29,13 @@ phase with ``"complete": false`` until the end.
 
     .venv/bin/python benchmarks/switching.py [--corpus DIR | --keep-corpus DIR] [--quick]
         [--out PATH] [--workers 2] [--profile {auto,always,never}]
+    -> benchmarks/results/switching.json (--quick: results/quick/switching.json)
 """
 from __future__ import annotations
 
 import argparse
 import cProfile
 import io
-import json
 import logging
 import os
 import platform
@@ -52,11 +53,21 @@ from typing import Self
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from benchmarks.common import (
+    QUICK_MODEL,
+    QUICK_TRAIN_UTTERANCES,
+    bench_corpus,
+    result_path,
+    write_result,
+)
+
 TRAIN_TARGET_S = 600.0
 FPS_TARGET = 100.0
 VIDEO_FPS = 25.0
 FULL = {"n_utterances": 278, "n_train": 250, "n_test": 28}
-QUICK = {"n_utterances": 60, "n_train": 50, "n_test": 10}
+QUICK = {"n_utterances": QUICK_TRAIN_UTTERANCES, "n_train": QUICK_TRAIN_UTTERANCES - 2, "n_test": 2}
 
 
 # ---------------------------------------------------------------------------- bookkeeping
@@ -84,20 +95,6 @@ class Phase:
         self.record = {"wall_s": round(self.wall, 2), "cpu_s": cpu,
                        "cpu_per_wall": round(cpu["total"] / self.wall, 2) if self.wall > 0 else None,
                        "loadavg_start": self.load0, "loadavg_end": [round(x, 2) for x in os.getloadavg()]}
-
-
-def write_atomic(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def _stats(xs) -> dict:
@@ -148,12 +145,12 @@ def train_stats(model) -> dict:
     }
 
 
-def train(kind: str, train_seqs, workers: int):
+def train(kind: str, train_seqs, workers: int, settings: dict):
     from bayes_talk.estimators.switching import SwitchingSGPDM
     from bayes_talk.pipeline import fit_model
 
     with Phase() as ph:
-        model = fit_model(SwitchingSGPDM(states=kind), train_seqs, workers=workers)
+        model = fit_model(SwitchingSGPDM(states=kind, **settings), train_seqs, workers=workers)
     return model, ph
 
 
@@ -225,13 +222,17 @@ def main(argv=None) -> int:
     ap.add_argument("--corpus", type=Path, default=None, help="an existing built corpus to reuse")
     ap.add_argument("--keep-corpus", type=Path, default=None,
                     help="build the corpus into this (new) directory instead of a temporary one")
-    ap.add_argument("--quick", action="store_true", help="60 utterances: 50 train / 10 test")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "switching.json")
+    ap.add_argument("--quick", action="store_true", help="the quick corpus (10 train / 2 test), small models")
+    ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--workers", type=int, default=2, help="process pool size for training (2)")
     ap.add_argument("--seed", type=int, default=0, help="corpus build seed and split seed")
     ap.add_argument("--profile", choices=("auto", "always", "never"), default="auto",
                     help="cProfile one state fit: auto = when the training target is missed")
     args = ap.parse_args(argv)
+    args.out = result_path("switching", args.quick, args.out)
+    if args.quick and args.corpus is None:
+        args.corpus = bench_corpus("train", True)
+    settings = QUICK_MODEL if args.quick else {}
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
     from bayes_talk.corpus import build_corpus, load_corpus
     from bayes_talk.evaluation.protocols import PROTOCOLS
@@ -241,20 +242,19 @@ def main(argv=None) -> int:
     sizes = QUICK if args.quick else FULL
     t_start = time.perf_counter()
     res: dict = {"benchmark": "switching", "complete": False,
-                 "command": " ".join([os.path.relpath(sys.executable, Path.cwd()), *sys.argv]),
-                 "quick": args.quick, "machine": machine_info(),
+                 "quick": args.quick, "model_settings": settings or "defaults", "machine": machine_info(),
                  "loadavg_at_start": [round(x, 2) for x in os.getloadavg()],
                  "targets": {"train_vlmm_s_max": TRAIN_TARGET_S, "synth_optimise_frames_per_s_min": FPS_TARGET}}
 
     def save() -> None:
         res["wall_so_far_s"] = round(time.perf_counter() - t_start, 1)
-        write_atomic(args.out, res)
+        write_result(args.out, res)
 
     tmp = None
     try:
         if args.corpus is not None:
             root = args.corpus
-            res["corpus"] = {"path": str(root.resolve()), "built_here": False}
+            res["corpus"] = {"path": os.path.relpath(Path(root).resolve(), HERE.parent), "built_here": False}
         else:
             if args.keep_corpus is not None:
                 root = args.keep_corpus
@@ -288,7 +288,7 @@ def main(argv=None) -> int:
         for kind in ("vlmm", "phone"):
             print(f"training states={kind} on {len(train_seqs)} utterances ({args.workers} workers) ...",
                   flush=True)
-            model, ph = train(kind, train_seqs, args.workers)
+            model, ph = train(kind, train_seqs, args.workers, settings)
             models[kind] = model
             res["train"][kind] = {"call": f'fit_model(SwitchingSGPDM(states="{kind}"), train, '
                                           f"workers={args.workers})", **ph.record, **train_stats(model)}

@@ -1,6 +1,6 @@
-"""Does a default ``synth`` warn on normal utterances, and is its mean stable? (issue 27).
+"""Does a default ``synth`` warn on normal utterances, and is its mean stable?
 
-Two acceptance items of issue 27 on held-out utterances, through ``pipeline.synth`` exactly
+Two acceptance checks on held-out utterances, through ``pipeline.synth`` exactly
 as ``bayes-talk synth`` runs it (the model's default posterior, its band calibration, its
 post-filter; no video):
 
@@ -19,7 +19,8 @@ than the noise's, which the −50 dBFS MFCC floor absorbs; it tests whether the 
 lands in the same posterior mode for nearly the same input.
 
     python benchmarks/synth_stability.py --model-dir MODEL --test data/dev40 --n-test 10 \\
-        --json benchmarks/results/synth_stability.json
+        [--perturbation noise|resample] [--out benchmarks/results/synth_stability.json]
+    python benchmarks/synth_stability.py --quick    # the quick model and held-out corpus -> results/quick/
 
 ``MODEL`` is a ``bayes-talk train`` output (with its band calibration).
 """
@@ -39,8 +40,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bayes_talk.corpus import load_corpus
-from bayes_talk.base.files import write_json
 from bayes_talk.pipeline import synth
+from benchmarks.common import (
+    bench_corpus,
+    bench_model,
+    result_path,
+    write_result,
+)
 
 #: level of the added white noise, dB relative to full scale (RMS)
 NOISE_DBFS = -60.0
@@ -107,19 +113,24 @@ def measure(model_dir: Path, test: Path, n_test: int, seed: int, work: Path, per
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--model-dir", required=True, help="a bayes-talk train output")
-    ap.add_argument("--test", required=True, help="held-out corpus directory")
+    ap.add_argument("--model-dir", default=None, help="a bayes-talk train output")
+    ap.add_argument("--test", default=None, help="held-out corpus directory")
     ap.add_argument("--n-test", type=int, default=10, help="first N held-out utterances")
     ap.add_argument("--seed", type=int, default=0, help="seed of the added noise")
     ap.add_argument("--perturbation", choices=("noise", "resample"), default="noise",
                     help="-60 dBFS white noise added, or the WAV resampled to 44.1 kHz")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/synth_stability.json"))
+    ap.add_argument("--quick", action="store_true", help="the quick model and 2 utterances of the quick held-out corpus")
+    ap.add_argument("--out", default=None, help="default benchmarks/results/synth_stability.json (--quick: results/quick/)")
     a = ap.parse_args(argv)
+    a.out = result_path("synth_stability", a.quick, a.out)
+    if a.quick:
+        a.n_test = 2
+    a.model_dir = a.model_dir or bench_model(a.quick)
+    a.test = a.test or bench_corpus("test", a.quick)
     with tempfile.TemporaryDirectory(prefix="bt_stability_") as tmp:
         r = measure(Path(a.model_dir), Path(a.test), a.n_test, a.seed, Path(tmp), a.perturbation)
-    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name, seed=a.seed,
-             command="python benchmarks/synth_stability.py " + " ".join(argv if argv is not None else sys.argv[1:]))
-    write_json(a.json, r)
+    r.update(model_dir=Path(a.model_dir).name, test_corpus=Path(a.test).name, seed=a.seed)
+    write_result(a.out, r)
     print(json.dumps({k: v for k, v in r.items() if k != "per_utterance"}, indent=1))
     return 0
 

@@ -3,7 +3,7 @@
     .venv/bin/python notebooks/clear_outputs.py notebooks/*.ipynb
 
 Removes every code cell's outputs, execution count and execution-timing metadata; leaves
-sources and everything else as they are. (tests/test_notebooks.py fails on a committed
+sources and everything else as they are. (tests/project/test_notebooks.py fails on a committed
 notebook with outputs; ``make test`` executes the notebooks through nbmake without writing
 them back.)
 """

@@ -1,6 +1,6 @@
-"""The vectorised NumPy piecewise-affine warp that bayes_talk.features.warp replaced
-(session 12), kept as the reference its compiled version must reproduce bit for bit
-(tests/test_warp.py) and as the "before" of benchmarks/render.py. Not used by the package.
+"""The vectorised NumPy piecewise-affine warp that bayes_talk.features.warp replaced, kept
+as the reference its compiled version must reproduce bit for bit (tests/features/test_warp.py). Not
+used by the package.
 
 Per destination triangle, all pixel centres of its bounding box are tested with
 barycentric coordinates in one NumPy pass over a batch of frames; covered pixels map to
@@ -15,8 +15,8 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 from skimage.transform import downscale_local_mean
 
-from bayes_talk.data import face as _face
 from bayes_talk.corpus import render as _render
+from bayes_talk.data import face as _face
 
 _BATCH = 32          # frames rasterised together (amortises NumPy call overhead)
 _EDGE_TOL = 1e-7     # barycentric tolerance: pixel centres on edges belong to both

@@ -1,4 +1,4 @@
-"""Speech in, phone labels out: transcript alignment and phone recognition (issue 13).
+"""Speech in, phone labels out: transcript alignment and phone recognition.
 
 deena2010 §6 names its limitation: phonetic labels are needed for the test audio. This
 package supplies them:

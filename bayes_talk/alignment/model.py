@@ -34,8 +34,8 @@ from bayes_talk.alignment.phone_hmm import PhoneHMMs
 from bayes_talk.alignment.scoring import score_segmentation, summarise_scores
 from bayes_talk.alignment.segments import segments_to_intervals
 from bayes_talk.alignment.viterbi import viterbi_phone_loop
-from bayes_talk.data.phones import PHONES
 from bayes_talk.base.files import check_format
+from bayes_talk.data.phones import PHONES
 
 __all__ = ["ALIGN_METHODS", "AlignmentModel", "AlignmentResult", "load_alignment_model"]
 

@@ -37,7 +37,7 @@ from bayes_talk.pipeline import DEFAULT_MODEL
 
 DEMO_UTTERANCES = 60
 #: The speech generator of the demo's corpus, chosen by ``benchmarks/audio_information.py``
-#: (docs/benchmarks.md, issue 25): on the articulatory corpus (``vtl``) the MFCCs add R²
+#: (docs/benchmarks.md): on the articulatory corpus (``vtl``) the MFCCs add R²
 #: 0.060 over the phone labels on the first three AAM parameters, on the espeak corpus
 #: -0.006 (40 utterances): only there does the audio tell the face anything the labels do
 #: not. Without VocalTractLab installed the demo falls back to ``espeak`` and says so.
@@ -75,17 +75,17 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
              workers: int = 1) -> int:
     """Build a small corpus, train, synthesise and score held-out utterances into ``out`` (``make demo``,
     ``workers`` = 2 processes); returns the exit status."""
-    from bayes_talk.estimators.baselines import REGISTRY
+    from bayes_talk.base.executor import executor_for
+    from bayes_talk.base.video import side_by_side, write_video
+    from bayes_talk.calibration.bands import calibrated_fit
     from bayes_talk.corpus import build_corpus, load_corpus
+    from bayes_talk.estimators.baselines import REGISTRY
     from bayes_talk.estimators.registry import make_estimator
     from bayes_talk.evaluation.ceiling import corpus_generator
     from bayes_talk.evaluation.metrics import acc, amse
-    from bayes_talk.base.executor import executor_for
     from bayes_talk.pipeline import DEFAULT_CALIBRATED_MODEL, aam_offset
-    from bayes_talk.calibration.bands import calibrated_fit
     from bayes_talk.posterior.sampling import sample_synthesis
     from bayes_talk.synthesis.sequential import lowpass
-    from bayes_talk.base.video import side_by_side, write_video
 
     out = Path(out)
     t0 = time.time()
@@ -190,12 +190,12 @@ def run_demo(out: Path, n_utterances: int = DEMO_UTTERANCES, n_test: int = DEMO_
 
 def _show_uncertainty(out: Path, r, s, corpus, offset: np.ndarray) -> dict[str, Path]:
     """bands.png, uncertainty.mp4 and posterior.nc of the posterior ``r`` of utterance ``s``."""
+    from bayes_talk.base.video import write_video
     from bayes_talk.pipeline.uncertainty_outputs import (
         plot_bands,
         uncertainty_frames,
         write_posterior_netcdf,
     )
-    from bayes_talk.base.video import write_video
 
     return {"plot": plot_bands(out / "bands.png", r, s.aam, fps=corpus.fps,
                                     title=f"{s.name}: posterior ({r.method}) mean, 50 %/90 % bands, truth"),

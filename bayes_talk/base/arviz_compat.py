@@ -1,4 +1,4 @@
-"""The one place that calls ArviZ (DESIGN.md §6): the same NumPy-level API on ArviZ 0.2x
+"""The one place that calls ArviZ: the same NumPy-level API on ArviZ 0.2x
 (Python 3.11) and ArviZ 1.x (``arviz-base`` / ``arviz-stats``, Python >= 3.12).
 
 * :func:`rhat` - rank-normalised split R-hat (Vehtari et al. 2021) of draws

@@ -54,7 +54,7 @@ DESCRIPTOR = "bayes_talk_model.json"
 DESCRIPTOR_FORMAT = "bayes_talk.trained_model"
 DESCRIPTOR_VERSION = 1
 #: the sub-directory of a trained-model directory that holds its estimator, as
-#: :meth:`bayes_talk.estimators.base.Estimator.save` writes every one (issue 26)
+#: :meth:`bayes_talk.estimators.base.Estimator.save` writes every one
 ESTIMATOR_DIR = "estimator"
 BUNDLE_MANIFEST = "bundle_manifest.json"
 OUTPUT_RECORD = ".bayes_talk_outputs.json"

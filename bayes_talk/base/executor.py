@@ -1,4 +1,4 @@
-"""One executor interface for the library's parallel work (issue 14).
+"""One executor interface for the library's parallel work.
 
 Every parallel job of the library -- the per-state models of the switching SGPDM, the
 splits (repeats, folds) of an evaluation protocol, the utterances of a corpus build and

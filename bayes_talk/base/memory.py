@@ -1,4 +1,4 @@
-"""Keep freed N×N arrays from inflating a process's memory (issue 14, item 4).
+"""Keep freed N×N arrays from inflating a process's memory.
 
 GP training and synthesis allocate and free many large float64 matrices: kernel
 matrices, their Cholesky factors and the buffers of the fused GP core
@@ -9,8 +9,7 @@ time such a block is freed, the threshold rises to its size (up to 32 MiB). From
 on every N×N matrix is carved out of the heap, and the heap is only given back from its
 top end, so freed matrices below a live one stay resident. On one deena2009 split this
 alone kept ~170 MB more resident than the live arrays needed (the SGPLVM fit peaked at
-897 MB with the dynamic threshold, 725 MB with a fixed one; docs/scaling.md, "Memory,
-session 5").
+897 MB with the dynamic threshold, 725 MB with a fixed one; docs/scaling.md).
 
 :func:`release_large_blocks` fixes the threshold (which turns the dynamic adjustment
 off) so every large block keeps its own mapping and goes back to the system as soon as

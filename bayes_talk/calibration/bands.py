@@ -1,10 +1,24 @@
-"""Band recalibration fitted on held-out training utterances (issue 10 item 3).
+"""Band calibration fitted on held-out training utterances: four stages per AAM parameter.
 
-The whole-utterance posterior's bands are too narrow on new sentences (90 % band ≈ 0.79
-on the deena2010 held-out test, docs/results.md): the synthesis posterior is conditional
-on the trained hyperparameters and training latents, whose own uncertainty is not
-propagated, and the GP noise levels are fitted to training frames. The remedy here has
-two stages, both per AAM parameter d and both fitted on held-out training utterances.
+The whole-utterance posterior's bands are too narrow on new sentences (their raw coverage
+is in docs/results.md): the synthesis posterior is conditional on the trained
+hyperparameters and training latents, whose own uncertainty is not propagated, and the GP
+noise levels are fitted to training frames. The remedy here has four stages, each per AAM
+parameter d, each fitted on held-out training utterances, and applied in this order by
+:meth:`BandCalibration.apply`:
+
+0. a **mean shrinkage** a_d of the mixture's component means towards the prediction's
+   mean function (0);
+1. a **scale** s_d of the whole mixture about its mean (1);
+2. a **monotone level map** H_d of the scaled mixture's central levels (quantile
+   recalibration; :class:`~bayes_talk.calibration.recalibrated.RecalibratedResult`);
+3. a **pool with a constant band** N(m_td, v_d) around the same mean, weight w_d (4)
+   (:class:`~bayes_talk.calibration.pooled.PooledResult`).
+
+Stage 1 is always there; stage 0 is off with ``shrink_mean=False``, stage 3 with
+``pool=False``, and a file of an older format version may lack stages 0, 2 or 3 (then
+they are skipped). A constant-band control, fitted on the same utterances, judges
+whether the posterior's shape of uncertainty carries information (below).
 
 **Stage 0, a mean shrinkage.** The posterior mean varies more than the truth does with it
 (mode jumps), so each parameter's component means are first pulled towards the explicit
@@ -49,9 +63,9 @@ distribution, F' = G_d ∘ F_s with G_d(u) = ½ + ½ sgn(u − ½) H_d(|2u − 1
 :class:`~bayes_talk.calibration.recalibrated.RecalibratedResult` (its docstring says
 which of its answers are exact and which approximated). Beyond the last knot the map is
 linear to (1, 1), so the scaled mixture's own tail shape is kept there: stage 1 brings
-the outer bands close first, so this last piece stays near the identity. Without the
-second stage (``level_raw`` None, e.g. a version-1 file) the calibration is stage 1 alone.
-The in-sample coverage before and after is stored beside the knots.
+the outer bands close first, so this last piece stays near the identity. Without a level
+map (``level_raw`` None, a version-1 file) stage 2 is skipped. The in-sample coverage of
+the raw predictive and after stages 0–2 is stored beside the knots.
 
 **Where the held-out utterances come from** (:func:`fit_band_calibration`): a seeded
 ``holdout`` fraction (default 20 %) of the *training* utterances; a second model of the
@@ -71,7 +85,7 @@ fitted to all of these out-of-fold syntheses (cross-conformal calibration, Vovk 
 CV+, Barber, Candès, Ramdas & Tibshirani 2021, with utterances as the exchangeable unit).
 K fits instead of one, and K times the held-out data for every stage.
 
-**The constant-band control** (issue 27 item 1). Whether the posterior's *shape* of
+**The constant-band control.** Whether the posterior's *shape* of
 uncertainty — wider where the face is harder to predict — carries information is judged
 against a control fitted on the same held-out utterances: the calibrated predictive's mean
 (after stage 0) with one constant variance per parameter, v_d = mean over held-out entries
@@ -80,9 +94,9 @@ of (y − m)², and that Gaussian then calibrated by stages 1–2 exactly as abo
 says no more about its uncertainty than a constant band would.
 :meth:`BandCalibration.control_result` builds it for a new prediction.
 
-**Stage 3, a pool with the constant band** (issue 27). The calibrated predictive P of
+**Stage 3, a pool with the constant band.** The calibrated predictive P of
 stages 0–2 is pooled with the Gaussian Q_td = N(m_td, v_d) around its own mean (v_d the
-control's variance below),
+control's variance above),
 
     p'(y) = (1 − w_d) p_P(y) + w_d N(y; m_td, v_d),                                   (4)
 
@@ -117,13 +131,13 @@ from typing import Any
 import numpy as np
 
 from bayes_talk.base.files import write_json
+from bayes_talk.calibration.pooled import PooledResult, check_pool
+from bayes_talk.calibration.recalibrated import RecalibratedResult, check_level_map
 from bayes_talk.posterior.diagnostics import (
     convergence_problems,
     is_sampler_warning,
     sampler_warning,
 )
-from bayes_talk.calibration.pooled import PooledResult, check_pool
-from bayes_talk.calibration.recalibrated import RecalibratedResult, check_level_map
 from bayes_talk.synthesis.result import DEFAULT_LEVELS, SynthesisResult
 
 __all__ = ["CALIBRATED_MODELS", "CALIBRATION_FILE", "HOLDOUT_FRACTION", "LEVEL_KNOTS", "POOL_GRID", "BandCalibration", "calibrated_fit", "crossfit_band_calibration", "crossfit_folds", "fit_band_calibration", "holdout_calibrated_model",
@@ -214,7 +228,7 @@ class BandCalibration:
     levels q_j; method: the synthesis method they were fitted on ("laplace", ...);
     levels: the levels reported; n_utterances / n_frames: the held-out data;
     coverage_raw / coverage_calibrated: {level: pooled coverage} on that data before and
-    after stages 1–2 (in-sample); pool_weight: (D,) weights w_d of stage 3 (None: no pool);
+    after stages 0–2 (in-sample); pool_weight: (D,) weights w_d of stage 3 (None: no pool);
     control_var / control: the constant-band control; held_out: the held-out utterance names; info: how it was made
     (hold-out fraction, seed, draws).
     """
@@ -353,8 +367,8 @@ class BandCalibration:
         on the approximation being exact: the Laplace (or VI) k̂ of the whole-utterance
         posterior is above 0.7 on every utterance (0.9–3.5 measured; the posterior is
         multimodal), and the calibration was fitted on exactly such posteriors. Measured on
-        held-out sentences (``benchmarks/khat_coverage.py``,
-        ``benchmarks/results/khat_coverage_dev_s11.json``), the k̂ does not predict where the
+        held-out sentences (``benchmarks/khat_coverage.py``; docs/uncertainty.md), the k̂
+        does not predict where the
         calibrated bands fail: Spearman ρ −0.05 between k̂ and |coverage₉₀ − 0.9| over 24
         utterances; the 5 whose k̂ exceeded every held-out training k̂ covered 0.891 at 90 %,
         the other 19 0.894; with white noise at 0 dB SNR k̂ rose to 2.7–3.5 and coverage
@@ -380,8 +394,8 @@ class BandCalibration:
 
         ``map_log_density_per_frame`` ℓ = ln p(X̂, audio) / T at the MAP, and the conformal
         p-value p = (1 + #{i : ℓ_i ≤ ℓ}) / (n + 1) of ℓ among the n held-out ℓ_i
-        (``info["held_out_diagnostics"]["map_log_density_per_frame"]``, recorded since
-        session 11): small when the utterance is explained worse than (nearly) every
+        (``info["held_out_diagnostics"]["map_log_density_per_frame"]``; calibrations saved
+        without it give None): small when the utterance is explained worse than (nearly) every
         utterance whose coverage the calibration measured; under exchangeable utterances
         P(p ≤ α) ≤ α. None where either is missing."""
         lp = result.diagnostics.get("map_log_density")
@@ -581,7 +595,7 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
     When ``executor`` runs tasks in other processes (its ``parallel`` is true) the held-out
     syntheses go through it too, in chunks balanced by frame count (the model is sent once per chunk);
     each synthesis is seeded and single-threaded either way, so the calibration does not
-    depend on the executor (issue 29)."""
+    depend on the executor."""
     return holdout_calibrated_model(model, train, method, holdout, n_draws, seed, executor, progress, fit)[1]
 
 
@@ -672,7 +686,7 @@ def refit_beside_calibration(model, train: Sequence, method: str = "laplace", ho
                              n_draws: int = 64, seed: int = 0, executor=None,
                              progress: Callable[[str], None] | None = None) -> tuple[Any, BandCalibration]:
     """The "refit" scheme of :func:`calibrated_fit` (``model`` fitted on all of ``train``, and
-    :func:`fit_band_calibration` for it) with the executor's workers kept busy (issue 29).
+    :func:`fit_band_calibration` for it) with the executor's workers kept busy.
 
     Done one after the other, the two fits and the syntheses each end with a worker idle
     while the last task of the phase runs, and each fit's serial part (views, state model,
@@ -685,8 +699,8 @@ def refit_beside_calibration(model, train: Sequence, method: str = "laplace", ho
     executor (None) or on one without workers the tasks run in this process, each when its
     result is first asked for (:meth:`bayes_talk.base.executor.Executor.submit`)."""
     from bayes_talk.base.executor import LocalExecutor
-    from bayes_talk.models.switching import fit_state
     from bayes_talk.base.progress import bar
+    from bayes_talk.models.switching import fit_state
 
     executor = executor if executor is not None else LocalExecutor()
 

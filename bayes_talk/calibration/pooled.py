@@ -1,6 +1,6 @@
-"""A linear pool of a synthesis predictive and a constant-variance Gaussian (issue 27).
+"""A linear pool of a synthesis predictive and a constant-variance Gaussian.
 
-The third stage of :mod:`bayes_talk.calibration.bands`. Per entry (frame t, AAM
+Stage 3, the last of the four of :mod:`bayes_talk.calibration.bands`. Per entry (frame t, AAM
 parameter d), with P the calibrated posterior predictive (stages 0–2; CDF F_P, density
 p_P, mean m_td) and Q_td = N(m_td, v_d) the Gaussian around the same mean with one
 variance per parameter (the constant-band control's v_d), the pooled predictive is

@@ -1,7 +1,8 @@
-"""A synthesis result whose bands were recalibrated by a monotone level map (issue 10 item 3).
+"""A synthesis result whose bands were recalibrated by a monotone level map.
 
-The second stage of :mod:`bayes_talk.calibration.bands`. Start from the mixture
-(1) of :mod:`bayes_talk.synthesis.result` (already scaled per parameter by the first stage),
+Stage 2 of the four of :mod:`bayes_talk.calibration.bands`. Start from the mixture
+(1) of :mod:`bayes_talk.synthesis.result` (already mean-shrunk and scaled per parameter by
+stages 0 and 1),
 with CDF F and density p per entry (frame t, AAM parameter d). The central level of a
 value y is the smallest level whose central band contains it,
 
@@ -39,7 +40,7 @@ class answers, and how:
   interpolation). The draws are independent draws of (3); the chain dimension of
   ``predictive_draws`` no longer follows the sampler's chains;
 * ``draw_mean`` / ``draw_var`` and ``to_inference_data``'s posterior group are the
-  mixture's components (the first stage); its posterior-predictive draws are of (3).
+  mixture's components (after stages 0 and 1); its posterior-predictive draws are of (3).
 
 ``shift`` (a post-filter of the mean) moves F and F' together, the map staying.
 """

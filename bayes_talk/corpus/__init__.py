@@ -1,4 +1,4 @@
-"""The built-in talking-head corpus and the user-corpus loader (DESIGN.md §8).
+"""The built-in talking-head corpus and the user-corpus loader (docs/data.md).
 
 Built corpus (:func:`build_corpus`), a self-describing directory::
 

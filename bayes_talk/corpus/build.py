@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base.executor import Executor
+from bayes_talk.base.executor import single_thread as _single_thread_blas
+from bayes_talk.base.files import write_json
 from bayes_talk.corpus.format import (
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
@@ -27,9 +30,6 @@ from bayes_talk.corpus.workers import (
     utterance_task,
 )
 from bayes_talk.data.phones import PHONES
-from bayes_talk.base.executor import Executor
-from bayes_talk.base.executor import single_thread as _single_thread_blas
-from bayes_talk.base.files import write_json
 
 log = logging.getLogger(__name__)
 

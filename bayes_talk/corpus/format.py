@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.phones import PHONES
 from bayes_talk.base.files import write_npz
+from bayes_talk.data.phones import PHONES
 
 FORMAT_NAME = "bayes_talk-corpus"
 #: 2: frames rendered with camera area integration and optics (render.RENDER_SUPERSAMPLE,

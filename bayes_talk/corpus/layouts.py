@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.checks import check_audio_vs_labels
 from bayes_talk.corpus.format import (
     FPS,
     IMAGE_EXT,
@@ -17,6 +16,7 @@ from bayes_talk.corpus.format import (
     VIDEO_EXT,
     load_npz,
 )
+from bayes_talk.data.checks import check_audio_vs_labels
 from bayes_talk.data.labels import read_labels
 from bayes_talk.features.mfcc import frame_count, load_wav, samples_per_frame
 

@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base.executor import Executor
+from bayes_talk.base.executor import single_thread as _single_thread_blas
+from bayes_talk.base.files import sha256_file
 from bayes_talk.corpus.format import (
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
@@ -35,10 +38,7 @@ from bayes_talk.corpus.workers import (
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.base.executor import Executor
-from bayes_talk.base.executor import single_thread as _single_thread_blas
 from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
-from bayes_talk.base.files import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -186,9 +186,9 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     MFCCs), so every consumer -- ``train``, ``evaluate``, the benchmarks -- sees the features
     ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
     ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
-    7.6 kHz; None: sr/2, the features before issue 12); ``floor_dbfs``: the absolute
-    mel-power floor (:data:`bayes_talk.features.frontend.FLOOR_DBFS`; None: none, the
-    features before issue 27); both part of the cache key.
+    7.6 kHz; None: sr/2); ``floor_dbfs``: the absolute
+    mel-power floor (:data:`bayes_talk.features.frontend.FLOOR_DBFS`; None: none); both part
+    of the cache key (None for either keeps the key of a cache written without it).
     """
     from bayes_talk.features.audio import cmvn as _cmvn
 
@@ -252,9 +252,9 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     cpath = root / CACHE_NAME
     if aam_files and aam_files[0].parent.resolve() != root.resolve():  # a foreign AAM
         cpath = root / f"features-{sha256_file(aam_files[0])[:12]}.npz"
-    if fmax is not None:  # the issue-12 front end: its own key (None keeps the older caches valid)
+    if fmax is not None:  # its own key (None keeps the key of caches written without it)
         key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
-    if floor_dbfs is not None:  # the issue-27 front end: its own key
+    if floor_dbfs is not None:  # its own key, likewise
         key = hashlib.sha256(f"{key}|floor={float(floor_dbfs)}".encode()).hexdigest()
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None

@@ -1,4 +1,4 @@
-"""Grayscale rendering of the synthetic landmark face (DESIGN.md §8).
+"""Grayscale rendering of the synthetic landmark face (docs/data.md).
 
 A frame is a piecewise-affine warp of one procedurally painted face texture from the
 :func:`~bayes_talk.data.face.reference_shape` (mouth half open) to the frame's landmarks,
@@ -323,7 +323,7 @@ def render_frames(landmarks: np.ndarray, image_size: int = 128,
     as by ``scipy.ndimage.gaussian_filter(mode="nearest")`` (sd ``sigma s`` fine pixels)
     and area-averaged as by :func:`skimage.transform.downscale_local_mean`, both in one
     compiled pass with their floating-point operations in their order (bit for bit the
-    same frames, tests/test_warp.py; 2-3x less CPU). Point sampling with an ideal lens
+    same frames, tests/features/test_warp.py; 2-3x less CPU). Point sampling with an ideal lens
     (s = 1, sigma = 0: the format-1 corpus, reproduced bit for bit) resamples sharp
     texture edges at positions that shift with sub-pixel head motion; that aliasing
     showed up as AAM modes (benchmarks/render_aliasing.py, docs/face.md). Cost grows as s^2.

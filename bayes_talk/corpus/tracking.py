@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base.files import write_bytes, write_json, write_npy
 from bayes_talk.corpus.format import (
     AAM_FRAMES_PER_PHONE,
     AAM_TEXTURE_INSET,
@@ -72,7 +73,6 @@ from bayes_talk.features.aam_fit import (
     TrackResult,
 )
 from bayes_talk.features.mfcc import frame_count, load_wav
-from bayes_talk.base.files import write_bytes, write_json, write_npy
 
 __all__ = [
     "NoAnnotatedFrameError",

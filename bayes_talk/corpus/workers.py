@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base.executor import Executor, executor_for
 from bayes_talk.corpus.format import (
     FORMAT_VERSION,
     FPS,
@@ -18,7 +19,6 @@ from bayes_talk.corpus.format import (
 )
 from bayes_talk.corpus.layouts import CorpusItem, load_visual
 from bayes_talk.data.labels import frame_labels, write_lab
-from bayes_talk.base.executor import Executor, executor_for
 from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, frame_count, load_wav, mfcc
 
 
@@ -62,8 +62,8 @@ def utterance_task(a: dict) -> tuple[dict, dict]:
     (espeak-ng's phones and durations, VocalTractLab's audio and the face's jaw, lip
     opening, rounding and protrusion from the same varied tract; stream ``[seed, i, 3]``).
     """
-    from bayes_talk.data.face import face_landmarks
     from bayes_talk.corpus.render import render_frames
+    from bayes_talk.data.face import face_landmarks
     from bayes_talk.data.speech import SpeechRequest, write_wav
     from bayes_talk.data.speech import synthesize_in_subprocess as synthesize_fresh
 

@@ -1,6 +1,6 @@
 """Articulatory speech with VocalTractLab: one vocal tract drives the voice and the face.
 
-The ``--speech vtl`` generator of the built-in corpus (issue 25; docs/data.md). espeak-ng
+The ``--speech vtl`` generator of the built-in corpus (docs/data.md). espeak-ng
 still gives the phone string and its durations; then, per utterance::
 
     ARPAbet intervals --ARPABET_TO_SAMPA--> VTL segment sequence (German SAMPA, pauses "")
@@ -65,7 +65,8 @@ protrusion in this tract model: lip width is not a VocalTractLab parameter), eac
 at the frame centres ``(k + 1/2)/fps`` with no visual lead (the articulation *is* the
 sound). Brows, blinks, pose, upper-lip raise and lower-lip tuck stay face-only.
 
-Determinism: VocalTractLab is byte-identical across runs and processes (FACTS.md); the
+Determinism: VocalTractLab is byte-identical across runs and processes
+(tests/data/test_articulatory.py rebuilds a corpus and compares the bytes); the
 result of an utterance is cached under :func:`cache_dir` by a hash of everything it
 depends on (segment text, random-stream key, :data:`GENERATOR_VERSION`, VTL version).
 """
@@ -124,7 +125,7 @@ VTL_PHONES: frozenset[str] = frozenset((
     "m", "n", "N", "l",
 ))
 
-#: ARPAbet -> VocalTractLab SAMPA (FACTS.md "Articulatory speech"). English /w/ has no
+#: ARPAbet -> VocalTractLab SAMPA (VocalTractLab's German phone set). English /w/ has no
 #: German counterpart: it is the rounded /u:/ gesture (short); /r/ and /er/ are the
 #: vocalised German r ``6``. ``sil`` is a pause (empty name).
 ARPABET_TO_SAMPA: dict[str, str] = {

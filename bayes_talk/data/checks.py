@@ -6,9 +6,8 @@ Audio versus labels: the phone labels must end where the audio ends, within
 boundaries to their own frame rate (10 ms for HTK, a frame for video-based tools) and
 audio exports pad or trim a few milliseconds; more than two frames of disagreement means
 the two files do not describe the same utterance (a shift that large moves every
-phone's visual target by a frame or more). Before issue 11 the corpus loader allowed one
-frame (0.04 s) and the pipeline two; a corpus that synthesis accepted could be refused
-at training.
+phone's visual target by a frame or more). The corpus loader and the pipeline share this
+one tolerance, so a corpus that synthesis accepts is not refused at training.
 """
 from __future__ import annotations
 

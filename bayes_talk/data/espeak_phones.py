@@ -44,7 +44,7 @@ espeak                 ARPAbet         note
 Stress marks prefixed to a mnemonic in phoneme events (``'aU``: primary, ``,`` secondary,
 ``%`` unstressed, ``=``) are stripped first. Anything not in the table raises a ``ValueError`` naming the code: there is no silent
 default. Codes were collected by synthesising the built-in sentence list with voice
-``en`` (see ``tests/test_speech.py``); other voices (``en-us`` ...) use other codes and
+``en`` (see ``tests/data/test_speech.py``); other voices (``en-us`` ...) use other codes and
 may need additions.
 """
 from __future__ import annotations

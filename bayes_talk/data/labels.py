@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.data.phones import SILENCE, check_phone
 from bayes_talk.base.files import write_text
+from bayes_talk.data.phones import SILENCE, check_phone
 
 __all__ = [
     "Interval",

@@ -9,9 +9,14 @@ other scripts (CJK, Cyrillic, Greek, Arabic, ...) would be read out letter by le
 """
 from __future__ import annotations
 
+import re
 import unicodedata
 
-__all__ = ["check_pronounceable", "check_voice", "is_english_voice"]
+__all__ = ["check_pronounceable", "check_voice", "content_words", "is_english_voice", "template_overlap"]
+
+#: function words left out of :func:`content_words`: two sentences built on one template
+#: ("The pilot announced a short delay because of ...") share their content words, not these
+FUNCTION_WORDS = frozenset(["a", "an", "the", "and", "or", "but", "nor", "of", "to", "in", "on", "at", "for", "from", "by", "with", "into", "onto", "over", "under", "after", "before", "until", "while", "when", "whenever", "every", "each", "his", "her", "its", "their", "our", "my", "your", "he", "she", "it", "they", "we", "you", "i", "me", "us", "them", "him", "is", "are", "was", "were", "be", "been", "being", "has", "have", "had", "do", "does", "did", "this", "that", "these", "those", "as", "than", "then", "so", "not", "no", "any", "many", "some", "all", "one", "two", "very", "too", "up", "down", "off", "out", "about", "across", "along", "near", "beside", "above", "below", "around", "through", "how", "often", "long", "last"])
 
 
 def is_english_voice(voice: str) -> bool:
@@ -38,3 +43,28 @@ def check_pronounceable(texts: list[str], voice: str, source: str = "sentences")
                 raise ValueError(f"{source}: sentence {i} {text!r} contains {script} letter {ch!r}, "
                                  f"which voice {voice!r} cannot pronounce (it would spell it out); "
                                  "use Latin-script English text")
+
+
+def content_words(text: str) -> frozenset[str]:
+    """The lower-cased words of ``text`` of three or more letters that are not in
+    :data:`FUNCTION_WORDS` (a possessive 's dropped)."""
+    words = re.findall(r"[a-z']+", text.lower().replace("'s", ""))
+    return frozenset(w for w in words if len(w) > 2 and w not in FUNCTION_WORDS)
+
+
+def template_overlap(sentences: list[str], reference: list[str]) -> tuple[float, str, str]:
+    """The largest content-word Jaccard index |A ∩ B| / |A ∪ B| between a sentence of
+    ``sentences`` and one of ``reference``, with the two sentences: a held-out set whose
+    largest overlap with the training list and the development set is below 0.3 shares no
+    sentence template with them (a paraphrase such as "The lighthouse keeper counted every
+    passing ship before dawn." / "... counted seventeen ships before midnight." scores 0.33)."""
+    best = (0.0, "", "")
+    ref = [(r, content_words(r)) for r in reference]
+    for s in sentences:
+        a = content_words(s)
+        for r, b in ref:
+            union = a | b
+            j = len(a & b) / len(union) if union else 0.0
+            if j > best[0]:
+                best = (j, s, r)
+    return best

@@ -1,4 +1,4 @@
-"""The estimator protocol every method implements (issue 11; docs/architecture.md).
+"""The estimator protocol every method implements (docs/architecture.md).
 
 An estimator turns the audio and phone labels of an utterance into visual features,
 with scikit-learn conventions:
@@ -15,7 +15,7 @@ with scikit-learn conventions:
 * ``save(directory)`` / ``load(directory)``: a model bundle, JSON + NPZ, never pickle;
 * anything but ``fit``/``load`` before fitting raises :class:`~bayes_talk.base.errors.NotFittedError`.
 
-One layout for every estimator (issue 26): :meth:`Estimator.save` writes a directory with
+One layout for every estimator: :meth:`Estimator.save` writes a directory with
 ``estimator.json`` (the descriptor: format and version, the method name, the estimator's
 module and class, its constructor parameters, the fitted metadata), ``arrays.npz`` (the
 fitted arrays) and ``bundle_manifest.json`` (SHA-256 of every file, written last;
@@ -36,17 +36,22 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from sklearn.base import BaseEstimator
 
-from bayes_talk.base.bundle import BUNDLE_MANIFEST, begin_bundle, verify_bundle, write_bundle_manifest
-from bayes_talk.data.utterance import Utterance
+from bayes_talk.base.bundle import (
+    BUNDLE_MANIFEST,
+    begin_bundle,
+    verify_bundle,
+    write_bundle_manifest,
+)
 from bayes_talk.base.errors import NotFittedError, not_fitted
 from bayes_talk.base.files import check_format, read_model_files, write_json, write_npz
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["ARRAYS_FILE", "ESTIMATOR_FILE", "FORMAT_NAME", "FORMAT_VERSION", "READ_VERSIONS", "Estimator", "NotFittedError",
            "estimator_class"]
 
 FORMAT_NAME = "bayes_talk.estimator"
-#: version 2 (issue 26): the descriptor names the module and class, and nested estimators;
+#: version 2: the descriptor names the module and class, and nested estimators;
 #: version 1 (the baselines' bundles before it) is read too
 FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)

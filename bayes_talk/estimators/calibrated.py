@@ -1,4 +1,4 @@
-"""An estimator with band-calibrated predictive bands, wrapping another (issue 26, item 3),
+"""An estimator with band-calibrated predictive bands, wrapping another,
 as scikit-learn's ``CalibratedClassifierCV`` wraps a classifier.
 
 :class:`BandCalibrated` holds a fitted estimator with a whole-utterance posterior (a
@@ -19,10 +19,10 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.data.utterance import Utterance
-from bayes_talk.estimators.base import Estimator
 from bayes_talk.calibration import bands as band_calibration
 from bayes_talk.calibration.bands import HOLDOUT_FRACTION, BandCalibration
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.base import Estimator
 from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.result import SynthesisResult
 

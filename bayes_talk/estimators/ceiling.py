@@ -1,5 +1,5 @@
-"""The floor and the ceiling of an evaluation as estimators: ``zero`` and ``oracle`` (issue 9;
-registered in :data:`bayes_talk.estimators.registry.ESTIMATORS`, issue 26).
+"""The floor and the ceiling of an evaluation as estimators: ``zero`` and ``oracle``
+(registered in :data:`bayes_talk.estimators.registry.ESTIMATORS`).
 
 ``zero`` predicts every utterance's own mean, i.e. 0 after per-utterance mean removal
 (deena2010 §3.2), with the training corpus's per-dimension variance as its predictive
@@ -98,8 +98,8 @@ def oracle_draws(intervals: list, n_frames: int, aam, *, n_draws: int, seed: int
     (``default_rng([*seed, k, 3])``) given the same phones and durations, the rest of the
     face from ``default_rng([*seed, k])`` -- the conditional mean then averages over both.
     """
-    from bayes_talk.data.face import face_landmarks
     from bayes_talk.corpus.render import render_frames
+    from bayes_talk.data.face import face_landmarks
 
     if int(n_draws) < 2:
         raise ValueError(f"oracle: n_draws must be >= 2 (the bias correction needs a variance), "

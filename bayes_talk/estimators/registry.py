@@ -1,4 +1,4 @@
-"""The one registry of what ``evaluate`` and ``synth`` can run (issue 26).
+"""The one registry of what ``evaluate`` and ``synth`` can run.
 
 :data:`ESTIMATORS`: method *families*, name -> estimator class and the constructor
 arguments the family fixes: the papers' switching SGPDMs, the default model, deena2009's
@@ -11,6 +11,12 @@ keyword arguments of its estimator's ``predict_dist`` (e.g. deena2010's Algorith
 or the Laplace posterior, of one trained switching model). Every family that names no
 method of its own is a method too, with no options, so adding a method is one estimator
 class and one line in :data:`ESTIMATORS`.
+
+A family's settings are its estimator's constructor arguments (``get_params``): an
+evaluation protocol sets them by name for the family's *model* (:func:`model_name`: the
+family, or the name the families of one class share, :data:`MODEL_NAMES`), so a new family
+declares nothing in the evaluation layer (:class:`bayes_talk.evaluation.systems.SystemConfig`
+``models``).
 
 :func:`load_estimator`: any saved estimator, registered or wrapping one (the band-calibrated
 wrapper), read back from the directory :meth:`Estimator.save
@@ -25,9 +31,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bayes_talk.estimators.baselines import REGISTRY as BASELINES
 from bayes_talk.base.bundle import BUNDLE_MANIFEST
 from bayes_talk.estimators.base import ESTIMATOR_FILE, Estimator
+from bayes_talk.estimators.baselines import REGISTRY as BASELINES
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.ceiling import OracleModel, ZeroModel
 from bayes_talk.estimators.sgplvm import SGPLVM
@@ -36,8 +42,8 @@ from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.models.sgpdm import SGPDM
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM
 
-__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "LEGACY_READERS", "METHODS", "WRAPPERS",
-           "Method", "load_estimator", "make_estimator"]
+__all__ = ["AUDIO_CONTEXT", "DEFAULT_MODEL", "ESTIMATORS", "FAMILY_DEFAULTS", "LEGACY_READERS", "METHODS", "MODEL_NAMES",
+           "WRAPPERS", "Method", "load_estimator", "make_estimator", "model_families", "model_name", "model_settings"]
 
 #: family name -> (estimator class, constructor arguments the family fixes)
 ESTIMATORS: dict[str, tuple[type[Estimator], dict[str, Any]]] = {
@@ -58,30 +64,60 @@ WRAPPERS: tuple[type[Estimator], ...] = (BandCalibrated,)
 #: the family ``train`` fits unless told otherwise: right-context phone states with an audio
 #: context of ±2 frames whose visual GPs have the phonetic-context view as their mean function
 #: (:data:`FAMILY_DEFAULTS`; docs/switching.md), the best model on our development sentences
-#: (docs/results.md "Session 9"); "ssgpdm-vlmm" is deena2010's
+#: (docs/results.md); "ssgpdm-vlmm" is deena2010's
 DEFAULT_MODEL = "ssgpdm-phone-ctx-mean"
-#: family name -> constructor arguments the family sets unless given (overridable, unlike the
-#: fixed ones): the former default model (``ssgpdm-phone-rc``; now :data:`DEFAULT_MODEL` is
-#: ``ssgpdm-phone-ctx-mean``, which keeps the same audio) sees
-#: an audio context window of ±2 frames (SwitchingConfig.audio_context), which with its
-#: band calibration predicted better on every metric on our held-out sentences and put its
-#: 90 % band in range (docs/results.md "Audio context in the default model, session 6")
 #: the audio context window (±frames, SwitchingConfig.audio_context) of our families with
-#: one: the one setting of it (deena2010's families keep the per-frame MFCCs, 0, the
-#: SwitchingConfig default)
+#: one, its one setting: with ±2 frames and its band calibration, ``ssgpdm-phone-rc``
+#: predicted better on every metric on our held-out sentences than with per-frame MFCCs and
+#: put its 90 % band in range (docs/results.md); deena2010's families keep the per-frame
+#: MFCCs (0, the SwitchingConfig default)
 AUDIO_CONTEXT = 2
+#: family name -> constructor arguments the family sets unless given (overridable, unlike the
+#: fixed ones)
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     "ssgpdm-phone-rc": {"audio_context": AUDIO_CONTEXT},
     # the default's states and audio, with the phonetic-context view of labels ±8 frames
-    # (SwitchingConfig.context_view; docs/results.md "Phonetic context in the observed view")
+    # (SwitchingConfig.context_view; docs/switching.md)
     "ssgpdm-phone-ctx": {"audio_context": AUDIO_CONTEXT, "context_view": 8},
     # the same view as the explicit mean function of the visual mapping: the state models
     # explain the residual face (SwitchingConfig.context_mean; docs/switching.md); states with
     # fewer than 60 frames back off to their suffix (their visual noise, fitted on 12-25
     # frames, was the smallest of all states and their bands the most over-confident:
-    # docs/results.md "Session 9")
+    # docs/results.md)
     "ssgpdm-phone-ctx-mean": {"audio_context": AUDIO_CONTEXT, "context_view": 8, "min_frames_per_state": 60},
 }
+
+
+#: estimator class -> the *model* name its families share: the key under which an evaluation
+#: protocol sets the class's constructor arguments and synthesis options
+#: (:class:`~bayes_talk.evaluation.systems.SystemConfig` ``models`` and ``synthesis``); a class
+#: not listed is its family's own model. A family's settings are thus declared by its
+#: registration alone: they are its estimator's constructor arguments (``get_params``).
+MODEL_NAMES: dict[type[Estimator], str] = {SwitchingSGPDM: "ssgpdm"}
+
+
+def model_name(family: str) -> str:
+    """The model of ``family`` (:data:`MODEL_NAMES`; the family's own name by default)."""
+    if family not in ESTIMATORS:
+        raise ValueError(f"unknown method family {family!r}; choose one of {', '.join(ESTIMATORS)}")
+    return MODEL_NAMES.get(ESTIMATORS[family][0], family)
+
+
+def model_families(model: str) -> list[str]:
+    """The families of ``model`` (ValueError listing the models when there is none)."""
+    fams = [fam for fam in ESTIMATORS if model_name(fam) == model]
+    if not fams:
+        valid = sorted({model_name(f) for f in ESTIMATORS})
+        raise ValueError(f"unknown model {model!r}; valid models: {', '.join(valid)}")
+    return fams
+
+
+def model_settings(model: str) -> tuple[str, ...]:
+    """The constructor arguments a protocol may set for ``model``: those of its estimator
+    (``get_params``) that none of its families fixes (:data:`ESTIMATORS`)."""
+    fams = model_families(model)
+    params = set(make_estimator(fams[0]).get_params(deep=False))
+    return tuple(sorted(params.difference(*(ESTIMATORS[f][1] for f in fams))))
 
 
 def make_estimator(name: str, **params: Any) -> Estimator:
@@ -102,8 +138,9 @@ class Method:
     estimator it uses, a key of :data:`ESTIMATORS`), ``label`` (how the papers call it),
     ``has_variance`` (its predictive variance is scored), ``options`` (keyword arguments
     of the estimator's ``predict_dist``), ``settings`` (``predict_dist`` keyword -> the
-    evaluation setting that supplies it, a field of
-    :class:`bayes_talk.evaluation.systems.SystemConfig`)."""
+    evaluation setting shared by every model that supplies it, a field of
+    :class:`bayes_talk.evaluation.systems.SystemConfig`; a model's own synthesis options
+    are its ``SystemConfig.synthesis`` entry)."""
 
     name: str
     family: str
@@ -115,7 +152,7 @@ class Method:
 
 #: deena2010's sequential path (Algorithm 1 "optimise" or 2 "predict")
 _ALGORITHM = {"max_iter": "synth_max_iter"}
-#: the whole-utterance posterior (DESIGN.md §6)
+#: the whole-utterance posterior (docs/uncertainty.md)
 _POSTERIOR = {"n_draws": "posterior_draws", "seed": "seed"}
 
 
@@ -125,7 +162,9 @@ def _switching(name: str, family: str, label: str, how: str) -> Method:
     return Method(name, family, label, True, {"posterior": how}, _POSTERIOR)
 
 
-_NAMED: tuple[Method, ...] = (
+#: the methods with a name of their own (a family with options for its ``predict_dist``); a new
+#: one is a line here (or, for a family with no options, nothing: :func:`methods`)
+NAMED_METHODS: tuple[Method, ...] = (
     _switching("ssgpdm-vlmm-optimise", "ssgpdm-vlmm", "SSGPDM-VLMM seq. optimisation", "optimise"),
     _switching("ssgpdm-vlmm-predict", "ssgpdm-vlmm", "SSGPDM-VLMM seq. prediction", "predict"),
     _switching("ssgpdm-phone-optimise", "ssgpdm-phone", "SSGPDM-phoneme seq. optimisation", "optimise"),
@@ -146,10 +185,8 @@ _NAMED: tuple[Method, ...] = (
                "optimise"),
     _switching("ssgpdm-phone-rc-optimise", "ssgpdm-phone-rc",
                "SSGPDM-phoneme + right context + audio ±2, seq. optimisation", "optimise"),
-    Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"},
-           {"max_iter": "sgplvm_synth_max_iter"}),
-    Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"},
-           {"max_iter": "sgplvm_synth_max_iter"}),
+    Method("sgplvm-a", "sgplvm", "SGPLVM A (back-constraint init.)", True, {"init": "back-constraint"}),
+    Method("sgplvm-b", "sgplvm", "SGPLVM B (HMM init.)", True, {"init": "hmm"}),
     Method("voice-puppetry", "voice-puppetry", "Voice Puppetry (Brand)", False),
     Method("slds", "slds", "SLDS", False),
     Method("dpds", "dpds", "DPDS", False),
@@ -165,8 +202,8 @@ _NAMED: tuple[Method, ...] = (
 def methods() -> dict[str, Method]:
     """Every method: the named ones above, then one per registered family without a method
     of its own (its estimator's ``predict_dist`` with no options; labelled by its class)."""
-    out = {m.name: m for m in _NAMED}
-    covered = {m.family for m in _NAMED}
+    out = {m.name: m for m in NAMED_METHODS}
+    covered = {m.family for m in NAMED_METHODS}
     for fam, (cls, _) in ESTIMATORS.items():
         if fam not in covered and fam not in out:
             out[fam] = Method(fam, fam, f"{fam} ({cls.__name__})", cls.has_distribution())
@@ -178,7 +215,7 @@ def methods() -> dict[str, Method]:
 METHODS: dict[str, Method] = methods()
 
 
-#: ``format`` of a ``<path>.json`` written before issue 26's one layout -> its reader
+#: ``format`` of a ``<path>.json`` in the per-family layout of earlier versions -> its reader
 #: (deena2009's SGPLVM and the sparse SGPDM saved to a base name; a trained-model directory
 #: held them as ``sgpdm.*`` and ``sparse_sgpdm.*``)
 LEGACY_READERS = {SGPDM.format_name: SGPLVM.read_legacy, SparseSGPDM.format_name: CorpusSparseSGPDM.read_legacy}
@@ -190,7 +227,7 @@ def load_estimator(path: str | os.PathLike) -> Estimator:
     (:meth:`Estimator.load <bayes_talk.estimators.base.Estimator.load>`; every class of
     :data:`ESTIMATORS` and :data:`WRAPPERS` is imported here).
 
-    Layouts of earlier versions (before issue 26), as trained-model directories held them,
+    Layouts of earlier versions (before ``estimator.json``), as trained-model directories held them,
     are read too: ``path/model.json`` + ``arrays.npz`` (a switching SGPDM) and ``<path>.json``
     + ``<path>.npz`` of a format in :data:`LEGACY_READERS`. Any other ``<path>.json`` (the
     context regressions' own format) is refused, naming the file and its format;

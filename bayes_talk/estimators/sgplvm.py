@@ -27,9 +27,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from bayes_talk.base.files import read_model_files
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.base.files import read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
 from bayes_talk.synthesis.initialisers import INITIALISERS, initialise
@@ -138,8 +138,8 @@ class SGPLVM(Estimator):
 
     @classmethod
     def read_legacy(cls, path: str | os.PathLike) -> SGPLVM:
-        """A model saved before issue 26's one layout: ``<path>.json`` + ``<path>.npz`` (a
-        trained-model directory's ``sgpdm.*``, up to session 11). One saved before the
+        """A model saved in the earlier per-family layout: ``<path>.json`` + ``<path>.npz`` (a
+        trained-model directory's ``sgpdm.*``). One saved before the
         estimator's settings were recorded keeps its latent dimension and the defaults."""
         path = Path(path)
         meta, arrays = read_model_files(path.with_suffix(".json"), path.with_suffix(".npz"))

@@ -1,4 +1,4 @@
-"""The evaluation system ``sparse-sgpdm`` (issue 14): one sparse shared GPDM
+"""The evaluation system ``sparse-sgpdm``: one sparse shared GPDM
 (:class:`~bayes_talk.models.sparse_sgpdm.SparseSGPDM`) on every frame of every training
 utterance — the whole-corpus model deena2010 called intractable — and its synthesis: the
 utterance's latents by maximising the sparse model's sequence density of the audio
@@ -13,9 +13,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from bayes_talk.base.files import read_model_files
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
-from bayes_talk.base.files import read_model_files
 from bayes_talk.models.sparse_sgpdm import SparseSGPDM, SparseSGPDMConfig
 from bayes_talk.synthesis.latents import infer_latents
 from bayes_talk.synthesis.result import SynthesisResult
@@ -70,8 +70,8 @@ class CorpusSparseSGPDM(Estimator):
 
     @classmethod
     def read_legacy(cls, path: str | os.PathLike) -> CorpusSparseSGPDM:
-        """A system saved before issue 26's one layout: ``<path>.json`` + ``<path>.npz`` (a
-        trained-model directory's ``sparse_sgpdm.*``, up to session 11); one saved before
+        """A system saved in the earlier per-family layout: ``<path>.json`` + ``<path>.npz`` (a
+        trained-model directory's ``sparse_sgpdm.*``); one saved before
         the estimator's settings were recorded keeps its latent dimension and inducing
         inputs, the defaults for the rest. Errors name the damaged file."""
         path = Path(path)

@@ -31,8 +31,9 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
     ``predict_dist`` from audio + labels (constructor arguments: :class:`SwitchingConfig
     <bayes_talk.models.switching.SwitchingConfig>`)."""
 
+    #: "posterior": the names of the inference table, a live view (a method added to it is a choice)
     synthesis_options: ClassVar[dict[str, tuple[str, ...]]] = {
-        "algorithm": ("optimise", "predict"), "init": ("nn",), "posterior": tuple(INFERENCE)}
+        "algorithm": ("optimise", "predict"), "init": ("nn",), "posterior": INFERENCE.keys()}
     post_filter: ClassVar[bool] = True
 
     def _is_fitted(self) -> bool:

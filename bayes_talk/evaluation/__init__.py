@@ -1,4 +1,4 @@
-"""Evaluation: error, correlation and calibration metrics (DESIGN §9), protocols, reports.
+"""Evaluation: error, correlation and calibration metrics (docs/evaluation.md), protocols, reports.
 
 The metrics live in :mod:`bayes_talk.evaluation.metrics` (its ``__all__`` is re-exported
 here); protocols in :mod:`~bayes_talk.evaluation.protocols`.

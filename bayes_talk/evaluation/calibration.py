@@ -1,4 +1,4 @@
-"""Calibration of predictive distributions against held-out truth (issue 10 item 3; DESIGN.md §6).
+"""Calibration of predictive distributions against held-out truth (docs/uncertainty.md).
 
 Every predictive is a :class:`~bayes_talk.synthesis.result.SynthesisResult`: per entry
 (frame t, AAM parameter d) the mixture over K components
@@ -36,8 +36,8 @@ cluster-robust (ratio-estimator) standard errors with the utterance as the unit,
 
 so the strong correlation of neighbouring frames within an utterance is not mistaken for
 independent evidence. Coverage is reported pooled over all parameters and per parameter,
-with the fraction of parameters whose 90 % coverage lies in [0.80, 0.97] (the issue's
-acceptance range), and per switching state (the state model that synthesised each frame). :func:`plot_calibration` draws the PIT histogram and the coverage
+with the fraction of parameters whose 90 % coverage lies in [0.80, 0.97] (the range
+counted as acceptable, :data:`PARAM_RANGE_90`), and per switching state (the state model that synthesised each frame). :func:`plot_calibration` draws the PIT histogram and the coverage
 (reliability) diagram of one or more summaries; :func:`markdown_calibration` tabulates
 them for the ``evaluate`` report.
 """
@@ -77,7 +77,7 @@ LEVELS: tuple[float, ...] = tuple(DEFAULT_LEVELS)
 PIT_BINS = 20
 #: mixture samples per entry for the sample CRPS
 CRPS_SAMPLES = 1000
-#: the issue's acceptance range for the per-parameter 90 % coverage
+#: the range of per-parameter 90 % coverage counted as acceptable (``params_in_range_90``)
 PARAM_RANGE_90 = (0.80, 0.97)
 #: a switching state's 90 % coverage counts towards ``states_in_range_90`` from this many
 #: scored entries (frames × parameters) on
@@ -250,7 +250,7 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
     """Markdown section: for every method entry with a ``calibration`` summary (and a
     ``calibration_raw`` one, shown as a second row), pooled coverage at each level ±
     standard error over utterances, the range of per-parameter 90 % coverage, the fraction
-    of parameters inside the acceptance range, mixture NLPD, CRPS and the PIT KS distance."""
+    of parameters inside :data:`PARAM_RANGE_90`, mixture NLPD, CRPS and the PIT KS distance."""
     rows = []
     levels: list[float] = []
     verdicts = []

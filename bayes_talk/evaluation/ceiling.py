@@ -1,4 +1,4 @@
-"""The floor and the ceiling of an evaluation: methods ``zero`` and ``oracle`` (issue 9).
+"""The floor and the ceiling of an evaluation: methods ``zero`` and ``oracle``.
 The two estimators are :mod:`bayes_talk.estimators.ceiling`; this module holds the maths
 and the scores built on them.
 

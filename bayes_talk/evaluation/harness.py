@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.features.audio import DEFAULT_CMVN
+from bayes_talk.base.files import check_writable_json
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.evaluation import calibration as CAL
@@ -53,6 +53,7 @@ from bayes_talk.evaluation.scoring import (
 )
 from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, make_splits
 from bayes_talk.evaluation.systems import (
+    build_family,
     calibrated_method,
     fit_band_calibration,
     fit_calibrated_family,
@@ -63,7 +64,7 @@ from bayes_talk.evaluation.systems import (
     predict,
     resolve_methods,
 )
-from bayes_talk.base.files import check_writable_json
+from bayes_talk.features.audio import DEFAULT_CMVN
 
 __all__ = ["Trajectory", "evaluate", "run_protocol"]
 
@@ -215,7 +216,7 @@ def run_protocol(
     """
     from bayes_talk.base.memory import release_large_blocks
 
-    release_large_blocks()  # freed N×N matrices leave the process (issue 14, memory)
+    release_large_blocks()  # freed N×N matrices leave the process
     names = resolve_methods(methods, protocol.default_methods)
     seqs = list(sequences)
     say = progress or (lambda msg: log.info("%s", msg))
@@ -309,7 +310,8 @@ def run_protocol(
         "n_splits": len(splits),
         "n_scored": int(sum(n_test)),
         "headline_metrics": [{"label": lab, "key": k} for lab, k in protocol.headline],
-        "settings": asdict(cfg),
+        # the protocol's settings, and the constructor arguments every trained family was built with
+        "settings": {**asdict(cfg), "families": {f: build_family(f, cfg).saved_params() for f in families}},
         "splits": [{"index": s.index, "train": [pool[i].name for i in s.train],
                     "test": [pool[i].name for i in s.test]} for s in splits],
         "methods": result_methods,
@@ -344,6 +346,8 @@ def evaluate(
 
     lowpass_hz: apply deena2010's zero-phase low-pass to every method's predicted mean
     (recorded in the JSON under ``settings``); None: off, the protocols' default.
+    oracle_draws: generator draws per utterance of method ``oracle`` (>= 2: its bias
+    correction needs an across-draw variance; the ``oracle`` model's ``n_draws``); None: its default.
     calibrated_model: which model the band calibration is scored with (``SystemConfig``; None:
     the protocol's, "refit").
     min_utterances: let a corpus smaller than the protocol needs (but with at least this
@@ -367,9 +371,13 @@ def evaluate(
     from bayes_talk.data.phones import PHONES
     from bayes_talk.evaluation import report
 
+    if oracle_draws is not None and not (isinstance(oracle_draws, (int, np.integer)) and oracle_draws >= 2):
+        raise ValueError(f"oracle_draws must be >= 2 (the oracle's bias correction needs an across-draw "
+                         f"variance), got {oracle_draws!r}")
     proto = get_protocol(protocol, quick=quick, seed=seed,
                          **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
-                         **({"oracle_draws": oracle_draws} if oracle_draws is not None else {}),
+                         **({"models": {"oracle": {"n_draws": int(oracle_draws)}}} if oracle_draws is not None
+                            else {}),
                          **({"calibrated_model": calibrated_model} if calibrated_model is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
     from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
@@ -408,7 +416,7 @@ def evaluate(
         def phone_set(c):
             return list(c.manifest.get("phone_set", PHONES))
 
-        if sources != ("true",):  # test labels from the aligner / recogniser (issue 13)
+        if sources != ("true",):  # test labels from the aligner / recogniser
             result, traj = run_label_sources(
                 run_protocol, proto, train_c.sequences, test_c.sequences if test_c is not None else None, names,
                 sources, train_phone_set=phone_set(train_c),

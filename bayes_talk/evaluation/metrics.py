@@ -1,4 +1,4 @@
-"""Error, correlation and calibration metrics (DESIGN §9).
+"""Error, correlation and calibration metrics (docs/evaluation.md).
 
 Inputs are per-utterance arrays: ``truth`` and ``pred`` are lists of (T_i, D) arrays
 (a single 2-D array is one utterance, a 3-D array (n, T, D) is n utterances of equal
@@ -13,7 +13,7 @@ Per-utterance errors, with e_td = ẑ_td − z_td over T frames and D dimensions
                                                            between generated and real frames)
     L∞    = (1 / T) Σ_t max_d |e_td|                      (englebienne2008 Fig. 4c: mean L∞ distance)
     NMSE  = (1 / D) Σ_d [ (1/T) Σ_t e_td² ] / v_d         (MSE normalised by the ground-truth variance
-                                                           v_d; DESIGN §9)
+                                                           v_d; corpora differ in scale)
     CORR  = (1 / |D'|) Σ_{d ∈ D'} Pearson(ẑ_·d, z_·d)     (D' = dimensions where both series vary)
 
 Corpus figures (deena2010 §5): AMSE = mean over utterances of MSE; ACC = mean over
@@ -21,7 +21,7 @@ utterances of CORR. A dimension that is constant in the truth or in the predicti
 undefined Pearson correlation: it is skipped (not counted as 0); an utterance with no
 usable dimension has CORR = nan and is skipped by ACC (with a warning).
 
-Calibration of Gaussian predictive bands (DESIGN §6), pooled over every scalar entry of
+Calibration of Gaussian predictive bands (docs/uncertainty.md), pooled over every scalar entry of
 every utterance: :func:`coverage`, :func:`crps_gaussian` (closed form),
 :func:`crps_ensemble` (samples), :func:`nlpd_gaussian`. Entry-wise forms
 (:func:`crps_gaussian_entries`, :func:`crps_sample_entries`) feed the per-parameter

@@ -1,4 +1,4 @@
-"""The three published evaluation protocols (issue #5; DESIGN.md §9).
+"""The three published evaluation protocols (docs/evaluation.md).
 
 ==================  ====================================  =====  ==========================
 protocol            split                                 d      headline metrics
@@ -9,7 +9,8 @@ englebienne2008     10-fold cross-validation               6      L1, RMS, L∞,
 ==================  ====================================  =====  ==========================
 
 ``quick=True`` gives a labelled *quick* variant of each protocol (fewer utterances,
-repeats and folds, smaller per-state caps and iteration counts; see ``_QUICK``) meant to
+repeats and folds, smaller per-state caps and iteration counts of the models it runs by
+default; see ``_QUICK``) meant to
 finish ``deena2010`` within 10 minutes on a 2-core machine. Its numbers are not the
 protocol's numbers: the JSON says ``"quick": true``.
 
@@ -18,7 +19,7 @@ The train/test splits are drawn by :mod:`bayes_talk.evaluation.splits`; the prot
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -109,49 +110,70 @@ PROTOCOLS: dict[str, Protocol] = {
         n_folds=10),
 }
 
-#: what ``quick=True`` changes: protocol fields and SystemConfig fields
+# the quick variants' settings of the models (SystemConfig.models / .synthesis)
+_SSGPDM_QUICK = {"max_frames_per_state": 150, "min_frames_per_state": 30, "min_count": 10, "max_iter": 40,
+                 "fallback_frames": 300}
+_SGPLVM_QUICK = {"max_frames": 400, "max_iter": 40}
+_VP_QUICK = {"n_states": 12, "n_iter": 20}
+
+#: what ``quick=True`` changes: protocol fields and SystemConfig fields (``models`` and
+#: ``synthesis`` merged per model into the protocol's)
 _QUICK: dict[str, tuple[dict, dict]] = {
     "deena2009": (
         {"n_train": 20, "n_test": 8, "n_repeats": 3},
-        {"sgplvm_max_frames": 400, "sgplvm_max_iter": 40, "sgplvm_synth_max_iter": 30,
-         "vp_n_states": 12, "vp_n_iter": 20}),
+        {"models": {"sgplvm": _SGPLVM_QUICK, "voice-puppetry": _VP_QUICK},
+         "synthesis": {"sgplvm": {"max_iter": 30}}}),
     "deena2010": (
         {"n_train": 100, "n_test": 20},
-        {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
-         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300,
-         "vp_n_states": 12, "vp_n_iter": 20}),
+        {"models": {"ssgpdm": _SSGPDM_QUICK, "voice-puppetry": _VP_QUICK}}),
     "englebienne2008": (
         {"n_folds": 4, "n_use": 40},
-        {"ssgpdm_max_frames_per_state": 150, "ssgpdm_min_frames_per_state": 30, "ssgpdm_min_count": 10,
-         "ssgpdm_max_iter": 40, "ssgpdm_fallback_frames": 300,
-         "sgplvm_max_frames": 400, "sgplvm_max_iter": 40, "sgplvm_synth_max_iter": 30,
-         "vp_n_states": 12, "vp_n_iter": 20, "slds_n_iter": 30, "dpds_max_iter": 100}),
+        {"models": {"ssgpdm": _SSGPDM_QUICK, "sgplvm": _SGPLVM_QUICK, "voice-puppetry": _VP_QUICK,
+                    "slds": {"n_iter": 30}, "dpds": {"max_iter": 100}},
+         "synthesis": {"sgplvm": {"max_iter": 30}}}),
 }
+#: the SystemConfig fields merged per model rather than replaced
+_PER_MODEL = ("models", "synthesis")
+
+
+def _merge(system: SystemConfig, overrides: dict[str, Any]) -> dict[str, Any]:
+    """``overrides`` of ``system``'s fields, with ``models`` and ``synthesis`` merged per model
+    (a model's settings not overridden are kept)."""
+    out = dict(overrides)
+    for k in _PER_MODEL:
+        if k in overrides:
+            merged = {m: dict(v) for m, v in getattr(system, k).items()}
+            for model, params in overrides[k].items():
+                merged[model] = {**merged.get(model, {}), **params}
+            out[k] = merged
+    return out
 
 
 def get_protocol(name: str, quick: bool = False, seed: int | None = None, **system_overrides: Any) -> Protocol:
     """The protocol ``name`` (its quick variant if ``quick``); ``seed`` replaces the fixed
-    seed (0) of the split and of every model; ``system_overrides`` replace SystemConfig fields."""
+    seed (0) of the split and of every model; ``system_overrides`` replace SystemConfig fields,
+    except ``models`` and ``synthesis``, merged per model (e.g. ``models={"voice-puppetry":
+    {"n_states": 4}}`` changes that one constructor argument of the protocol's Voice Puppetry)."""
     if name not in PROTOCOLS:
         raise ValueError(f"unknown protocol {name!r}; valid protocols: {', '.join(PROTOCOLS)}")
     p = PROTOCOLS[name]
-    sys_kw: dict[str, Any] = {}
+    valid = {f.name for f in fields(SystemConfig)}
+    unknown = set(system_overrides) - valid
+    if unknown:
+        raise ValueError(f"unknown system setting(s) {sorted(unknown)}; valid: {sorted(valid)}")
+    system = p.system
     if quick:
         pk, sk = _QUICK[name]
         p = replace(p, quick=True, **pk)
-        sys_kw.update(sk)
+        system = replace(system, **_merge(system, sk))
     if seed is not None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         p = replace(p, seed=int(seed))
-        sys_kw["seed"] = int(seed)
-    unknown = set(system_overrides) - set(asdict(p.system))
-    if unknown:
-        raise ValueError(f"unknown system setting(s) {sorted(unknown)}; valid: {sorted(asdict(p.system))}")
-    sys_kw.update(system_overrides)
-    if sys_kw:
-        p = replace(p, system=replace(p.system, **sys_kw))
-    return p
+        system = replace(system, seed=int(seed))
+    if system_overrides:
+        system = replace(system, **_merge(system, system_overrides))
+    return p if system is p.system else replace(p, system=system)
 
 
 def scale_protocol(protocol: Protocol, n_items: int, min_utterances: int) -> tuple[Protocol, str | None]:

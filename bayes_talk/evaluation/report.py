@@ -72,7 +72,7 @@ def gain_table(result: dict[str, Any]) -> str:
     o = methods.get("oracle", {})
     note = ""
     if isinstance(o.get("mse_corrected"), dict):
-        note = (f" The oracle's figures are bias-corrected for its {result.get('settings', {}).get('oracle_draws')} "
+        note = (f" The oracle's figures are bias-corrected for its {((result.get('settings') or {}).get('families') or {}).get('oracle', {}).get('n_draws')} "
                 f"draws: AMSE {_fmt(o['mse_corrected'])}, NMSE {_fmt(o.get('nmse_corrected'))} (raw: "
                 f"{_fmt(o.get('mse'))}, {_fmt(o.get('nmse'))}).")
     lines = ["Fraction of the achievable gain, (zero − method) / (zero − oracle): 0 = a still face, "

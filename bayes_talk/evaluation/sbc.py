@@ -1,5 +1,5 @@
 """Simulation-based calibration (Talts, Betancourt, Simpson, Vehtari & Gelman 2018) of the
-synthesis posterior (DESIGN.md §6).
+synthesis posterior (docs/uncertainty.md).
 
 If θ̃ ~ p(θ), ỹ ~ p(y | θ̃) and θ_1..θ_L are draws of the posterior p(θ | ỹ), then the rank
 of θ̃ among the θ_l, r = #{l : θ_l < θ̃} ∈ {0, …, L}, is uniform on {0, …, L} for every
@@ -26,8 +26,7 @@ the middle (∩), biased on one side.
   as in synthesis) each smoothness factor is the density at u = 0 of a pseudo-observation
   u | X (:mod:`bayes_talk.synthesis.joint`, (S)); the simulation draws (X, audio, u) from
   that joint, and the sampler targets p(X | audio, u) (``sample_synthesis(...,
-  smooth_shift=u)``), the synthesis density with the simulated u in place of 0. (Before,
-  the factors were not simulated and SBC ran with smoothness off.)
+  smooth_shift=u)``), the synthesis density with the simulated u in place of 0.
 * :func:`scaled_laplace` - a deliberately wrong posterior: Laplace draws shrunk towards the
   MAP so that the variance is ``scale`` times Laplace's (0.5 in the tests) - the control
   that SBC must reject.
@@ -291,8 +290,8 @@ def synthesis_sbc(model: SwitchingSGPDM, labels, posterior: SynthesisPosterior |
     on the executor."""
     import time
 
-    from bayes_talk.synthesis.joint import make_plan
     from bayes_talk.posterior.predictive_checks import prior_predictive
+    from bayes_talk.synthesis.joint import make_plan
 
     labels = list(labels)
     check_bins(n_draws, n_sims, bins)

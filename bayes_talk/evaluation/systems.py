@@ -1,13 +1,12 @@
-"""How an evaluation protocol builds, trains and runs the systems it compares (issue #5,
-DESIGN.md §7, §9), every one through the estimator protocol and the registry (issue 26).
+"""How an evaluation protocol builds, trains and runs the systems it compares
+(docs/evaluation.md), every one through the estimator protocol and the registry.
 
 Every *method* is a way of producing visual features for a test utterance; every method
 belongs to a *family*, the model that must be trained for it. Both are declared once, in
 :mod:`bayes_talk.estimators.registry` (``ESTIMATORS``, ``METHODS``); this module adds the
-protocol's settings (:class:`SystemConfig`, :data:`FIT_SETTINGS`) and runs every method
-the same way: build, ``fit``, ``predict_dist(utt, **options)`` (``predict`` for a point
-method). Methods of one family share one trained model, so the harness trains each family
-once per split:
+protocol's settings (:class:`SystemConfig`) and runs every method the same way: build,
+``fit``, ``predict_dist(utt, **options)`` (``predict`` for a point method). Methods of one
+family share one trained model, so the harness trains each family once per split:
 
 ==========================  ==================  ==========================================
 method                      family              what it is
@@ -31,19 +30,19 @@ voice-puppetry              voice-puppetry      Brand (1999)
 slds                        slds                switching LDS with known labels
 dpds                        dpds                englebienne2008
 hmm-mean                    hmm-mean            per-phone mean face
-context-ridge               context-ridge       ridge on label/MFCC context windows (#15)
+context-ridge               context-ridge       ridge on label/MFCC context windows
 context-mlp                 context-mlp         one-hidden-layer MLP on the same windows
 zero                        zero                each utterance's mean (0 after mean removal)
 oracle                      oracle              generator average given the true timing
                                                 (built corpora only; the ceiling)
-sparse-sgpdm                sparse-sgpdm        ours (issue 14): one sparse SGPDM on every
+sparse-sgpdm                sparse-sgpdm        ours: one sparse SGPDM on every
                                                 training frame, sequence optimisation
 ==========================  ==================  ==========================================
 
 ``zero`` and ``oracle`` bracket every method: see :mod:`bayes_talk.evaluation.ceiling`
 (the oracle's finite-sample bias correction, the achievable-gain fraction).
 
-The ``*-posterior`` methods (our addition, DESIGN.md §6) replace Algorithm 1's path by the
+The ``*-posterior`` methods (our addition, docs/uncertainty.md) replace Algorithm 1's path by the
 posterior over the whole utterance's latents (:mod:`bayes_talk.synthesis.joint`; Laplace
 approximation at the joint MAP, :func:`~bayes_talk.posterior.sampling.sample_synthesis`,
 ``posterior_draws`` draws) and report the mean and variance of the resulting visual
@@ -59,38 +58,38 @@ trajectory, so it is comparable with the baselines only loosely).
 """
 from __future__ import annotations
 
+import copy
 import inspect
 import logging
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from bayes_talk.estimators.baselines import DPDS, SLDS, ContextMLP, VoicePuppetry
+from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
-from bayes_talk.estimators.ceiling import MSE_BIAS, OracleModel
+from bayes_talk.estimators.ceiling import MSE_BIAS
 from bayes_talk.estimators.registry import (
     ESTIMATORS,
-    FAMILY_DEFAULTS,
     Method,
     make_estimator,
     methods,
+    model_families,
+    model_name,
+    model_settings,
 )
-from bayes_talk.estimators.sgplvm import SGPLVM
-from bayes_talk.estimators.sparse_sgpdm import CorpusSparseSGPDM
 from bayes_talk.estimators.switching import SwitchingSGPDM
-from bayes_talk.models.switching import SwitchingConfig
-from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
 from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
+    "DEFAULT_MODELS",
     "FAMILIES",
-    "FIT_SETTINGS",
     "METHODS",
+    "SHARED_ARGUMENTS",
     "Method",
     "Prediction",
     "SystemConfig",
@@ -117,18 +116,27 @@ def _default(fn: Any, param: str) -> Any:
     return inspect.signature(fn).parameters[param].default
 
 
-_SWITCHING = SwitchingConfig()
+#: constructor argument -> the :class:`SystemConfig` field shared by every model that sets it,
+#: in every estimator whose constructor takes the argument (``random_state``: scikit-learn's
+#: name of a seed)
+SHARED_ARGUMENTS: dict[str, str] = {"latent_dim": "latent_dim", "seed": "seed", "random_state": "seed"}
+
+#: the evaluation's settings of a model where they are not its estimator's defaults
+#: (:attr:`SystemConfig.models`): the sparse SGPDM with fewer inducing inputs and iterations
+DEFAULT_MODELS: dict[str, dict[str, Any]] = {"sparse-sgpdm": {"n_inducing": 150, "max_iter": 200}}
 
 
 @dataclass
 class SystemConfig:
-    """Settings of every family, fixed by a protocol (see :mod:`bayes_talk.evaluation.protocols`).
-    Each default is read from the family's own defaults (one source).
+    """Settings of every method, fixed by a protocol (see :mod:`bayes_talk.evaluation.protocols`).
 
-    latent_dim: d of our GP models (8 in deena2009, 6 in deena2010).
-    seed: seeds every model (and the switching models' subsequence caps).
-    ssgpdm_*: :class:`~bayes_talk.models.switching.SwitchingConfig` settings.
-    synth_max_iter: optimiser iterations per segment / utterance at synthesis.
+    Shared by every model (each default is read from the models' own defaults: one source):
+
+    latent_dim: d of our GP models (8 in deena2009, 6 in deena2010), given to every estimator
+        whose constructor takes ``latent_dim``.
+    seed: seeds every model (the constructor argument ``seed``, or ``random_state``), the
+        posterior draws and the band calibration.
+    synth_max_iter: optimiser iterations per segment / utterance of deena2010's Algorithms 1-2.
     posterior_draws: posterior draws of the ``*-posterior`` methods.
     lowpass_hz: optional zero-phase low-pass (Hz) applied to every method's predicted mean,
         the post-filter of deena2010 §4.2.3 (None: off); variances are left as predicted.
@@ -136,70 +144,95 @@ class SystemConfig:
         finite-draw bias removed, and a filter would both change that bias and cut the
         generator's own motion above the cut-off (4 Hz took the oracle's AMSE on our
         held-out sentences from 3.28 to 4.30: a filtered "ceiling" is no ceiling).
-    sgplvm_*: :class:`~bayes_talk.estimators.sgplvm.SGPLVM` settings.
-    vp_*: Voice Puppetry settings (number of HMM states, Baum-Welch iterations).
-    slds_n_iter, dpds_max_iter: EM / gradient iterations of the LDS baselines.
     torch_threads: torch intra-op threads while fitting and synthesising (1: the GP
         problems here are small, and extra threads oversubscribe a shared machine; see
         :mod:`bayes_talk.gp.threads`).
+    band_calibration, calibrated_model: the band calibration of the ``*-posterior`` methods.
+
+    Per model (a family, or the families of one estimator class sharing its settings:
+    :func:`bayes_talk.estimators.registry.model_name`, e.g. "ssgpdm" for every switching
+    SGPDM), so that a family's settings are declared by its registration alone:
+
+    models: model -> constructor arguments of its estimator (``get_params`` names; those a
+        family fixes and the shared ones above are refused). An argument not given keeps the
+        family's default (registry ``FAMILY_DEFAULTS``), then the class's. Default
+        :data:`DEFAULT_MODELS`; a given mapping replaces it (``get_protocol`` merges).
+    synthesis: model -> keyword arguments of its estimator's ``predict_dist`` given to every
+        method of the model (e.g. ``{"sgplvm": {"max_iter": 30}}``, the SGPLVM's
+        sequence-optimisation iterations).
     """
 
-    latent_dim: int = _SWITCHING.latent_dim
+    latent_dim: int = _default(SwitchingSGPDM, "latent_dim")
     seed: int = 0
-    ssgpdm_max_frames_per_state: int = _SWITCHING.max_frames_per_state
-    ssgpdm_min_frames_per_state: int = _SWITCHING.min_frames_per_state
-    ssgpdm_min_count: int | None = _SWITCHING.min_count
-    ssgpdm_max_iter: int = _SWITCHING.max_iter
-    ssgpdm_fallback_frames: int = _SWITCHING.fallback_frames
     synth_max_iter: int = SEGMENT_MAX_ITER
     lowpass_hz: float | None = None
     posterior_draws: int = DEFAULT_DRAWS["laplace"]
-    sgplvm_max_frames: int = _default(SGPLVM, "max_frames")
-    sgplvm_max_iter: int = _default(SGPLVM, "max_iter")
-    sgplvm_synth_max_iter: int = _default(SGPLVM.synthesize, "max_iter")
-    sgplvm_validation_frames: int = _default(SGPLVM, "validation_frames")
-    vp_n_states: int = _default(VoicePuppetry, "n_states")
-    vp_n_iter: int = _default(VoicePuppetry, "n_iter")
-    slds_n_iter: int = _default(SLDS, "n_iter")
-    dpds_max_iter: int = _default(DPDS, "max_iter")
     torch_threads: int = 1
-    #: generator draws per utterance of method ``oracle`` (>= 2)
-    oracle_draws: int = 32
     #: fraction of the training utterances held out to fit the band calibration of the
     #: ``*-posterior`` methods (bayes_talk.calibration.bands); None: raw bands only
     band_calibration: float | None = HOLDOUT_FRACTION
     #: which model the calibration is scored with (CALIBRATED_MODELS, as ``train --calibrated-model``)
     calibrated_model: str = "refit"
-    #: method ``sparse-sgpdm``: inducing inputs, L-BFGS iterations, synthesis iterations
-    sparse_inducing: int = 150
-    sparse_max_iter: int = 200
-    sparse_synth_max_iter: int = 100
+    models: dict[str, dict[str, Any]] = field(default_factory=lambda: copy.deepcopy(DEFAULT_MODELS))
+    synthesis: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for k, v in vars(self).items():
-            if k == "band_calibration":
-                if v is not None and not 0 < v < 1:
-                    raise ValueError(f"band_calibration must be a fraction in (0, 1) or None, got {v!r}")
-                continue
-            if k == "calibrated_model":
-                if v not in CALIBRATED_MODELS:
-                    raise ValueError(f"calibrated_model must be one of {CALIBRATED_MODELS}, got {v!r}")
-                continue
-            if k == "lowpass_hz":
-                if v is not None and not v > 0:
-                    raise ValueError(f"lowpass_hz must be > 0 or None, got {v!r}")
-                continue
-            if k == "ssgpdm_min_count" and v is None:  # the library's size-scaled default
-                continue
-            if k == "seed":
-                if not isinstance(v, (int, np.integer)) or v < 0:
-                    raise ValueError(f"seed must be a non-negative integer, got {v!r}")
-                continue
+        if self.band_calibration is not None and not 0 < self.band_calibration < 1:
+            raise ValueError(f"band_calibration must be a fraction in (0, 1) or None, got {self.band_calibration!r}")
+        if self.calibrated_model not in CALIBRATED_MODELS:
+            raise ValueError(f"calibrated_model must be one of {CALIBRATED_MODELS}, got {self.calibrated_model!r}")
+        if self.lowpass_hz is not None and not self.lowpass_hz > 0:
+            raise ValueError(f"lowpass_hz must be > 0 or None, got {self.lowpass_hz!r}")
+        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        for k in ("latent_dim", "synth_max_iter", "posterior_draws", "torch_threads"):
+            v = getattr(self, k)
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{k} must be a positive integer, got {v!r}")
-        if self.oracle_draws < 2:
-            raise ValueError(f"oracle_draws must be >= 2 (the oracle's bias correction needs an "
-                             f"across-draw variance), got {self.oracle_draws!r}")
+        self._check_models()
+        self._check_synthesis()
+
+    def _check_models(self) -> None:
+        """Every ``models`` entry names a model and constructor arguments of its estimator,
+        and its families build with them (the estimator's own validation)."""
+        for model, params in _mapping(self.models, "models").items():
+            families = model_families(model)
+            given = set(_mapping(params, f"models[{model!r}]"))
+            shared = sorted(given & set(SHARED_ARGUMENTS))
+            if shared:
+                raise ValueError(f"models[{model!r}]: {shared} are shared by every model: set "
+                                 f"{sorted({SHARED_ARGUMENTS[k] for k in shared})} of SystemConfig instead")
+            allowed = model_settings(model)
+            unknown = sorted(given - set(allowed))
+            if unknown:
+                raise ValueError(f"models[{model!r}]: unknown setting(s) {unknown}; the constructor arguments "
+                                 f"{model} takes: {', '.join(allowed)}")
+            for family in families:
+                build_family(family, self)
+
+    def _check_synthesis(self) -> None:
+        """Every ``synthesis`` entry names a model and ``predict_dist`` keywords its methods
+        leave open."""
+        valid = methods()
+        for model, opts in _mapping(self.synthesis, "synthesis").items():
+            families = model_families(model)
+            given = set(_mapping(opts, f"synthesis[{model!r}]"))
+            taken = {k for m in valid.values() if m.family in families for k in (*m.options, *m.settings)}
+            if given & taken:
+                raise ValueError(f"synthesis[{model!r}]: {sorted(given & taken)} are set by the methods of "
+                                 f"{model} (their options, or a shared setting of SystemConfig)")
+            params = inspect.signature(ESTIMATORS[families[0]][0].predict_dist).parameters
+            if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+                unknown = sorted(given - set(params))
+                if unknown:
+                    raise ValueError(f"synthesis[{model!r}]: {unknown} are not keyword arguments of "
+                                     f"{ESTIMATORS[families[0]][0].__name__}.predict_dist")
+
+
+def _mapping(value: Any, what: str) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise TypeError(f"{what} must be a mapping, got {value!r}")
+    return value
 
 
 #: every method ``evaluate`` can run when this module was imported (the registry's
@@ -207,23 +240,6 @@ class SystemConfig:
 METHODS: dict[str, Method] = methods()
 
 FAMILIES: tuple[str, ...] = tuple(ESTIMATORS)
-
-#: estimator class -> {constructor argument: the SystemConfig field that sets it}: what a
-#: protocol fixes of each kind of model (a class not listed keeps its own defaults)
-FIT_SETTINGS: dict[type, dict[str, str]] = {
-    SwitchingSGPDM: {"latent_dim": "latent_dim", "max_frames_per_state": "ssgpdm_max_frames_per_state",
-                     "min_frames_per_state": "ssgpdm_min_frames_per_state", "min_count": "ssgpdm_min_count",
-                     "max_iter": "ssgpdm_max_iter", "fallback_frames": "ssgpdm_fallback_frames", "seed": "seed"},
-    SGPLVM: {"latent_dim": "latent_dim", "max_frames": "sgplvm_max_frames", "max_iter": "sgplvm_max_iter",
-             "seed": "seed", "validation_frames": "sgplvm_validation_frames"},
-    VoicePuppetry: {"n_states": "vp_n_states", "n_iter": "vp_n_iter", "random_state": "seed"},
-    SLDS: {"n_iter": "slds_n_iter"},
-    DPDS: {"max_iter": "dpds_max_iter"},
-    ContextMLP: {"seed": "seed"},
-    OracleModel: {"n_draws": "oracle_draws", "seed": "seed"},
-    CorpusSparseSGPDM: {"latent_dim": "latent_dim", "n_inducing": "sparse_inducing", "max_iter": "sparse_max_iter",
-                        "seed": "seed", "synth_max_iter": "sparse_synth_max_iter"},
-}
 
 
 @dataclass
@@ -295,21 +311,15 @@ def group_by_family(names: Iterable[str]) -> dict[str, list[str]]:
     return out
 
 
-def _settings(cls: type) -> dict[str, str]:
-    """The :data:`FIT_SETTINGS` of ``cls`` or of its nearest listed base class."""
-    return next((FIT_SETTINGS[k] for k in cls.__mro__ if k in FIT_SETTINGS), {})
-
-
 def build_family(family: str, cfg: SystemConfig) -> Estimator:
-    """The unfitted estimator of ``family`` with the protocol's settings (:data:`FIT_SETTINGS`).
-    A family's own default (registry.FAMILY_DEFAULTS) wins over a setting the protocol
-    leaves at the class's default."""
+    """The unfitted estimator of ``family`` with the protocol's settings: the shared ones its
+    constructor takes (:data:`SHARED_ARGUMENTS`) and its model's ``cfg.models`` entry; every
+    other argument keeps the family's default (registry ``FAMILY_DEFAULTS``), then the class's."""
     if family not in ESTIMATORS:
         raise ValueError(f"unknown family {family!r}; valid families: {', '.join(ESTIMATORS)}")
-    cls = ESTIMATORS[family][0]
-    own = FAMILY_DEFAULTS.get(family, {})
-    params = {k: getattr(cfg, f) for k, f in _settings(cls).items()}
-    return make_estimator(family, **{k: v for k, v in params.items() if k not in own or v != _default(cls, k)})
+    takes = set(make_estimator(family).get_params(deep=False)).difference(ESTIMATORS[family][1])
+    shared = {arg: getattr(cfg, f) for arg, f in SHARED_ARGUMENTS.items() if arg in takes}
+    return make_estimator(family, **shared, **cfg.models.get(model_name(family), {}))
 
 
 def fit_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, executor=None) -> Any:
@@ -363,9 +373,9 @@ def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConf
     K = round(1/``cfg.band_calibration``) extra fits). Returns ``model``
     wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
     ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
-    from bayes_talk.gp.threads import torch_threads
     from bayes_talk.calibration.bands import crossfit_band_calibration
     from bayes_talk.calibration.bands import fit_band_calibration as held_out_calibration
+    from bayes_talk.gp.threads import torch_threads
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")
@@ -382,8 +392,8 @@ def fit_calibrated_family(family: str, train: Sequence[Utterance], cfg: SystemCo
     ``train`` outside the calibration's held-out ``cfg.band_calibration`` fraction, wrapped
     with the calibration of its posterior ``method`` fitted on the held-out ones
     (:func:`bayes_talk.calibration.bands.holdout_calibrated_model`; one fit in all)."""
-    from bayes_talk.gp.threads import torch_threads
     from bayes_talk.calibration.bands import holdout_calibrated_model
+    from bayes_talk.gp.threads import torch_threads
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")
@@ -395,12 +405,13 @@ def fit_calibrated_family(family: str, train: Sequence[Utterance], cfg: SystemCo
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
-    """The method's predictive: ``model.predict_dist`` with the method's options and the
-    protocol's settings, band-calibrated where the model holds a calibration of that
-    inference method; a point method's ``predict``."""
+    """The method's predictive: ``model.predict_dist`` with the method's options, its model's
+    synthesis options (``cfg.synthesis``) and the shared settings it reads, band-calibrated
+    where the model holds a calibration of that inference method; a point method's ``predict``."""
     if not m.has_variance:
         return Prediction(np.asarray(model.predict(seq), np.float64), None)
-    options = {**m.options, **{k: getattr(cfg, f) for k, f in m.settings.items()}}
+    options = {**m.options, **cfg.synthesis.get(model_name(m.family), {}),
+               **{k: getattr(cfg, f) for k, f in m.settings.items()}}
     raw = control = None
     if isinstance(model, BandCalibrated):   # the raw predictive, and the control, scored beside it
         r = model.estimator_.predict_dist(seq, **options)

@@ -60,6 +60,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay
 
+from bayes_talk.base.files import check_format, write_bytes
 from bayes_talk.features.pca import PCAModel
 from bayes_talk.features.procrustes import (
     align_to,
@@ -68,7 +69,6 @@ from bayes_talk.features.procrustes import (
     procrustes_align,
 )
 from bayes_talk.features.warp import bilinear_sample, warp_piecewise_affine
-from bayes_talk.base.files import check_format, write_bytes
 
 __all__ = ["AAM", "FORMAT_VERSION", "remove_sequence_mean"]
 

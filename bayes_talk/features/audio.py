@@ -227,7 +227,7 @@ class AudioSettings:
     window_s: float = WINDOW_S
     n_mels: int = N_MELS
     cmvn: str = DEFAULT_CMVN
-    #: mel filterbank upper edge (Hz); None: sr/2, the front end before issue 12
+    #: mel filterbank upper edge (Hz); None: sr/2 (models that do not record it)
     fmax: float | None = FMAX_HZ
     #: absolute mel-power floor (dBFS, :data:`bayes_talk.features.frontend.FLOOR_DBFS`); None: none
     floor_dbfs: float | None = FLOOR_DBFS
@@ -250,5 +250,5 @@ class AudioSettings:
             return cls(sample_rate=int(fallback_rate), cmvn="off", fmax=None)
         known = {k: d[k] for k in ("sample_rate", "fps", "n_mfcc", "window_s", "n_mels", "cmvn", "fmax")
                  if k in d}
-        known["floor_dbfs"] = d.get("floor_dbfs")   # recorded since issue 27; older models had none
+        known["floor_dbfs"] = d.get("floor_dbfs")   # absent from older models: they had no floor
         return cls(**known)

@@ -5,7 +5,7 @@ The switching SGPDM's audio view (deena2010 §3.3) is the sound of one frame, or
 predicted of the face is in the *timing of the phones around the frame* — a ridge on a
 window of one-hot labels beats every audio-driven model here (docs/results.md). This
 module makes that context part of the observed view the shared latent space must explain
-(DESIGN.md §6, "phonetic context in the observed view"), so at synthesis the latent point
+(docs/model.md), so at synthesis the latent point
 of frame t is pulled towards training latents whose phonetic context agrees.
 
 The window is high-dimensional ((2L+1)·P one-hot columns plus (2M+1)·D_y MFCCs), and an
@@ -61,7 +61,7 @@ def ridge_out_of_fold(X: np.ndarray, Z: np.ndarray, tests: Sequence[np.ndarray],
     overall mean first, which changes nothing but the rounding), so two Gram matrices'
     worth of products serve every fold and penalty; the prediction is
     (x_t − m_k)ᵀB + μ_k. On the default family's 250 utterances: 4 penalties × 5 folds
-    were 20 Gram matrices (issue 29)."""
+    would be 20 Gram matrices."""
     from scipy.linalg import solve
 
     X = np.asarray(X, dtype=np.float64)

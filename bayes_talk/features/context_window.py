@@ -1,4 +1,4 @@
-"""The context-window features of the context regressions (issue #15): one-hot phone
+"""The context-window features of the context regressions: one-hot phone
 labels and standardised MFCCs in windows of ±L / ±M frames around each frame
 (:mod:`bayes_talk.estimators.baselines.context` describes the method)."""
 from __future__ import annotations

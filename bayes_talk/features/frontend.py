@@ -8,7 +8,7 @@ from __future__ import annotations
 
 __all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MELS", "N_MFCC", "WINDOW_S"]
 
-#: cepstral coefficients per frame (D_y = 20, DESIGN.md §2)
+#: cepstral coefficients per frame (D_y = 20, deena2010 §3.3)
 N_MFCC = 20
 #: analysis window (s), centred on each 40 ms video frame
 WINDOW_S = 0.060
@@ -16,15 +16,15 @@ WINDOW_S = 0.060
 N_MELS = 40
 #: upper edge of the mel filterbank (Hz): 7.6 kHz, inside the pass band of a 16 kHz
 #: recording (soxr keeps ~0.95 of its 8 kHz Nyquist), so that a model's features do not
-#: change with the recording's rate (issue 12; before, sr/2 -- and 8 kHz still moved the
-#: synthesised trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
-#: ``fmax=None`` gives the old sr/2 (what models trained before it was recorded used).
+#: change with the recording's rate (with the edge at sr/2, 8 kHz audio moved the synthesised
+#: trajectory by 0.23 of what silence does at 16 kHz, benchmarks/robustness.py).
+#: ``fmax=None`` gives sr/2 (what models that do not record it were trained with).
 FMAX_HZ = 7600.0
-#: absolute floor of the mel power spectrum (issue 27): every band's power is raised to at
+#: absolute floor of the mel power spectrum: every band's power is raised to at
 #: least the expected power of white noise at this level (dB relative to full scale, rms),
 #: so that digital silence and inaudible noise (−60 dBFS) give the same features. Without
 #: it the features of silence are set by ``power_to_db``'s floor 80 dB below the
 #: utterance's loudest frame, and −60 dBFS of noise in a digitally silent stretch moved
 #: the synthesised face by up to 1.5 sd (benchmarks/synth_stability.py). ``None``: no
-#: floor (what models trained before it was recorded used).
+#: floor (what models that do not record it were trained with).
 FLOOR_DBFS = -50.0

@@ -1,4 +1,4 @@
-"""The RBF matrix-normal term in one fused pass, with a closed-form backward (issue 14).
+"""The RBF matrix-normal term in one fused pass, with a closed-form backward.
 
     ℓ(X, α, γ, β, V) = −(N·D/2) ln 2π − (D/2) ln|K| − ½ tr(K⁻¹ V Vᵀ),
     K = α E + β⁻¹ I,   E_ij = exp(−(γ/2) ‖x_i − x_j‖²)
@@ -302,7 +302,7 @@ def _factor_solve(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
 
 
 def rbf_matrix_normal_grad(X: np.ndarray, a: float, gm: float, b: float, V: np.ndarray):
-    """ℓ above and its whole gradient in NumPy, without autograd (issue 29: the direct
+    """ℓ above and its whole gradient in NumPy, without autograd (for the direct
     objective of :mod:`bayes_talk.models.sgpdm_objective`): ``(ℓ, ∂ℓ/∂X, ∂ℓ/∂α, ∂ℓ/∂γ,
     ∂ℓ/∂β, ∂ℓ/∂V)`` by the same passes and formulas as :func:`rbf_matrix_normal` and its
     backward (so the same numbers), or None when K cannot be factorised without jitter.

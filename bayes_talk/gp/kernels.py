@@ -1,4 +1,4 @@
-"""Kernels in the papers' parametrisation (deena2010 eq. 6, DESIGN.md §3).
+"""Kernels in the papers' parametrisation (deena2010 eq. 6; docs/model.md).
 
     k(x, x') = α · exp(−(γ/2) · ‖x − x'‖²)  [+ α_lin · xᵀx']
 

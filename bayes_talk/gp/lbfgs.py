@@ -1,4 +1,4 @@
-"""torch's L-BFGS with the strong-Wolfe line search, on one flat NumPy vector (issue 29).
+"""torch's L-BFGS with the strong-Wolfe line search, on one flat NumPy vector.
 
 A port of ``torch.optim.LBFGS`` (``line_search_fn="strong_wolfe"``; itself after
 minFunc, Schmidt 2005, and torch7's ``lbfgs.lua`` / ``lswolfe.lua``) operation for
@@ -18,7 +18,7 @@ switching state the optimiser's own work was a large part of each evaluation.
 
 Why not scipy's ``L-BFGS-B``: a different line search and update walk a different path,
 and the state fits stop at their iteration budget, not at convergence, so the fitted
-models would change; this keeps them (tests/test_sgpdm_direct.py compares the two).
+models would change; this keeps them (tests/models/test_sgpdm_direct.py compares the two).
 """
 from __future__ import annotations
 

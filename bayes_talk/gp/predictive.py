@@ -1,4 +1,4 @@
-"""GP predictive distributions at new latent points (DESIGN.md §4, deena2009 §4.1).
+"""GP predictive distributions at new latent points (deena2009 §4.1, deena2010 §4.2.2).
 
 For a view with training latents X, centred outputs Y, kernel k and noise precision β,
 after training (everything fixed):

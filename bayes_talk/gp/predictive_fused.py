@@ -1,10 +1,10 @@
-"""The GP predictive log-likelihood of a few rows and its gradient in one compiled pass (issue 9, speed).
+"""The GP predictive log-likelihood of a few rows and its gradient in one compiled pass (for speed).
 
 The synthesis density (:mod:`bayes_talk.synthesis.joint`) and the segment objective of
 Algorithms 1-2 (:mod:`bayes_talk.synthesis.segment_objective`) evaluate, thousands of times
 per utterance, the predictive log-likelihood of 1-5 rows under a state's GP with N ≈ 30-300
 training points. For a GP with training inputs X (N×d), A = K⁻¹Y (N×D), the Cholesky
-factor L of K, and each input row x with target y (deena2009 eq. 9, DESIGN.md §2):
+factor L of K, and each input row x with target y (deena2009 eq. 9; docs/model.md):
 
     k_i = α exp(−γ/2 ‖x − X_i‖²),  μ = kᵀA + ȳ,  v = L⁻¹k,  u = L⁻ᵀv = K⁻¹k
     s = max(α − vᵀv + β⁻¹, β⁻¹),   var_m = s / w_m² + e_m
@@ -16,17 +16,20 @@ At these sizes the NumPy version spends most of its time in call overhead (a ker
 two LAPACK triangular solves and a dozen reductions per call, ~230 µs); this loop does the
 same arithmetic row by row (forward and back substitution through L, O(N²) per row) with no
 temporaries. Single-threaded and in a fixed order: the result does not depend on the thread
-count. :class:`~bayes_talk.synthesis.segment_objective._NumpyGP` uses it unless
+count. :class:`~bayes_talk.gp.numpy_gp.NumpyGP` uses it unless
 ``BAYES_TALK_FUSED=0`` (then the NumPy/LAPACK path, the reference a test compares with).
+The same loops give the predictive mean and variance alone (:func:`predictive_mean_var`) and
+the reverse pass of μ and s through their input (:func:`predictive_mean_var_vjp`, the
+gradient of the dynamics in the non-centred coordinates of :mod:`bayes_talk.posterior.noncentred`);
+:class:`PackedGPs` runs any of them over rows of several GPs in one call.
 
-Floating-point flags: the loops here, in :mod:`bayes_talk.gp.fused` and in
-:mod:`bayes_talk.posterior.noncentred` are compiled with ``fastmath={"reassoc"}`` (so the
+Floating-point flags: the loops here and in :mod:`bayes_talk.gp.fused` are compiled with ``fastmath={"reassoc"}`` (so the
 reductions vectorise), not with ``"contract"`` too: with both, the machine code numba
 compiled in a process and the code it loaded from its on-disk cache (``cache=True``) gave
-different last bits (session 16: the segment objective, the packed predictives), so a
+different last bits (seen in the segment objective and the packed predictives), so a
 synthesis or a chain run in a fresh worker process differed from the same run in the
 process that compiled first. Reassociation alone, or no flag, gives the same bits either
-way (tests/test_compiled_determinism.py) at the same speed (measured within ±20 % at
+way (tests/gp/test_compiled_determinism.py) at the same speed (measured within ±20 % at
 N = 40-300 on a loaded machine; no flags at all was 1.3-2× slower there).
 """
 from __future__ import annotations
@@ -60,7 +63,7 @@ def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
     """V = k L⁻ᵀ (T×N): each row solves L v = k_t. Row i of L is applied to every input
     while it is in cache, so L is read once per call, not once per input; four inputs at a
     time share each load of L[i, j] (each input's sum runs in the same order as one at a
-    time, so the bits are the same: tests/test_predictive_fused_blocking.py)."""
+    time, so the bits are the same: tests/gp/test_predictive_fused_blocking.py)."""
     T, N = k.shape
     v = np.empty((T, N))
     for i in range(N):
@@ -85,6 +88,43 @@ def forward_solve_rows(L: np.ndarray, k: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, fastmath={"reassoc"})
+def back_solve_rows(L: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """U = V L⁻¹ (T×N): each row solves Lᵀ u = v_t (u = K⁻¹k_t when v_t = L⁻¹k_t), in column
+    form, so row i of L is read once for all inputs."""
+    T, N = v.shape
+    w = v.copy()
+    for i in range(N - 1, -1, -1):
+        piv = L[i, i]
+        for t in range(T):
+            ui = w[t, i] / piv
+            w[t, i] = ui
+            for j in range(i):
+                w[t, j] -= L[i, j] * ui
+    return w
+
+
+@numba.njit(cache=True, fastmath={"reassoc"})
+def input_gradient_row(X: np.ndarray, A: np.ndarray, gamma: float, k: np.ndarray, u: np.ndarray, x: np.ndarray,
+                       g_mu: np.ndarray, g_s: float, out: np.ndarray) -> None:
+    """Σ_m (g_mu)_m ∂μ_m/∂x + g_s ∂s/∂x at one input x (into out, (d,)):
+    −γ Σ_i c_i (x − X_i), c = k ∘ (A g_mu − 2 g_s u), with k = k(x, X) and u = K⁻¹k (the
+    module docstring's ∂ℓ/∂x with ∂ℓ/∂μ = g_mu and ∂ℓ/∂s = g_s)."""
+    N, D = A.shape
+    d = x.shape[0]
+    for j in range(d):
+        out[j] = 0.0
+    for i in range(N):
+        ag = 0.0
+        for m in range(D):
+            ag += A[i, m] * g_mu[m]
+        c = k[i] * (ag - 2.0 * g_s * u[i])
+        for j in range(d):
+            out[j] += c * (x[j] - X[i, j])
+    for j in range(d):
+        out[j] *= -gamma
+
+
+@numba.njit(cache=True, fastmath={"reassoc"})
 def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndarray,
                       alpha: float, gamma: float, beta: float, w2: np.ndarray, Y: np.ndarray, Xs: np.ndarray,
                       extra: np.ndarray, ll: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
@@ -93,19 +133,12 @@ def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndar
     L: the lower Cholesky factor of K (C order). Both substitutions walk L row by row and
     apply each row to all T inputs while it is in cache (L is read twice per call, not
     twice per row); extra: (D,) added variances (zeros for none)."""
-    T, d = Xs.shape
+    T = Xs.shape[0]
     N, D = A.shape
     floor = 1.0 / beta
     k = kernel_rows(X, alpha, gamma, Xs)
     v = forward_solve_rows(L, k)                    # L v = k
-    w = v.copy()
-    for i in range(N - 1, -1, -1):        # Lᵀ u = v (u overwrites w), column form: row i of L again
-        piv = L[i, i]
-        for t in range(T):
-            ui = w[t, i] / piv
-            w[t, i] = ui
-            for j in range(i):
-                w[t, j] -= L[i, j] * ui
+    w = back_solve_rows(L, v)                       # Lᵀ u = v
     mu = np.empty(D)
     gmu = np.empty(D)
     for t in range(T):
@@ -133,17 +166,7 @@ def predictive_loglik(X: np.ndarray, A: np.ndarray, L: np.ndarray, mean: np.ndar
         ll[t] = -0.5 * lsum
         if not s_raw > floor:
             gs = 0.0
-        for j in range(d):
-            gx[t, j] = 0.0
-        for i in range(N):
-            ag = 0.0
-            for m in range(D):
-                ag += A[i, m] * gmu[m]
-            c = k[t, i] * (ag - 2.0 * gs * w[t, i])
-            for j in range(d):
-                gx[t, j] += c * (Xs[t, j] - X[i, j])
-        for j in range(d):
-            gx[t, j] *= -gamma
+        input_gradient_row(X, A, gamma, k[t], w[t], Xs[t], gmu, gs, gx[t])
 
 
 @numba.njit(cache=True, fastmath={"reassoc"})
@@ -190,6 +213,26 @@ def predictive_mean_vjp(X: np.ndarray, A: np.ndarray, alpha: float, gamma: float
             out[t, j] *= -gamma
 
 
+@numba.njit(cache=True, fastmath={"reassoc"})
+def predictive_mean_var_vjp(X: np.ndarray, A: np.ndarray, L: np.ndarray, alpha: float, gamma: float, beta: float,
+                            Xs: np.ndarray, G: np.ndarray, gs: np.ndarray, out: np.ndarray) -> None:
+    """Σ_m G_tm ∂μ_m/∂x_t + gs_t ∂s/∂x_t (into out, (T, d)): −γ Σ_i k_i ((A G_t)_i − 2 gs_t u_i)(x_t − X_i),
+    u = K⁻¹k (gs taken as 0 where s is floored at β⁻¹); the reverse pass of the dynamics
+    mean and variance of :mod:`bayes_talk.posterior.noncentred`."""
+    T = Xs.shape[0]
+    N = A.shape[0]
+    floor = 1.0 / beta
+    k = kernel_rows(X, alpha, gamma, Xs)
+    v = forward_solve_rows(L, k)
+    w = back_solve_rows(L, v)
+    for t in range(T):
+        vv = 0.0
+        for i in range(N):
+            vv += v[t, i] * v[t, i]
+        g = gs[t] if alpha - vv + floor > floor else 0.0
+        input_gradient_row(X, A, gamma, k[t], w[t], Xs[t], G[t], g, out[t])
+
+
 # ------------------------------------------------------------------ many GPs in one call
 @numba.njit(cache=True)
 def _packed_loglik(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, w2, mean,
@@ -212,6 +255,17 @@ def _packed_mean_var(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, ga
         L = Lflat[loffs[g]:loffs[g] + n * n].reshape((n, n))
         predictive_mean_var(X[o:o + n], A[o:o + n], L, mean[g], alpha[g], gamma[g], beta[g], Xs[lo:hi],
                             mu[lo:hi], s[lo:hi])
+
+
+@numba.njit(cache=True)
+def _packed_mean_var_vjp(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, Xs, G, gs, out):
+    """:func:`predictive_mean_var_vjp` over runs of rows that share a GP."""
+    for r in range(run_gp.shape[0]):
+        g, lo, hi = run_gp[r], run_lo[r], run_hi[r]
+        o, n = offs[g], offs[g + 1] - offs[g]
+        L = Lflat[loffs[g]:loffs[g] + n * n].reshape((n, n))
+        predictive_mean_var_vjp(X[o:o + n], A[o:o + n], L, alpha[g], gamma[g], beta[g], Xs[lo:hi], G[lo:hi],
+                                gs[lo:hi], out[lo:hi])
 
 
 @numba.njit(cache=True)
@@ -244,7 +298,7 @@ class PackedGPs:
     uses) packed into flat arrays, so one compiled call evaluates rows of all of them.
 
     Built from objects with the attributes of
-    :class:`~bayes_talk.synthesis.segment_objective._NumpyGP` (X, A, L, alpha, gamma, beta,
+    :class:`~bayes_talk.gp.numpy_gp.NumpyGP` (X, A, L, alpha, gamma, beta,
     w2, mean). Rows are described by :class:`Runs`: consecutive rows sharing a GP (each GP's
     Cholesky factor is read once per run)."""
 
@@ -261,7 +315,7 @@ class PackedGPs:
         self.loffs = np.concatenate([[0], np.cumsum(Ns * Ns)]).astype(np.int64)
         self.X = np.ascontiguousarray(np.concatenate([g.X for g in gps]))
         self.A = np.ascontiguousarray(np.concatenate([g.A for g in gps]))
-        # row-major factors: _NumpyGP keeps one (Lc); its column-major L is made only on demand
+        # row-major factors: NumpyGP keeps one (Lc); its column-major L is made only on demand
         self.L = np.concatenate([np.ascontiguousarray(g.Lc if hasattr(g, "Lc") else g.L).reshape(-1) for g in gps])
         self.alpha = np.array([g.alpha for g in gps])
         self.gamma = np.array([g.gamma for g in gps])
@@ -305,6 +359,17 @@ class PackedGPs:
         out = np.empty(Xs.shape)
         _packed_mean_vjp(runs.gp, runs.lo, runs.hi, self.X, self.A, self.offs, self.alpha, self.gamma,
                          np.ascontiguousarray(Xs, dtype=np.float64), np.ascontiguousarray(G, dtype=np.float64), out)
+        return pad_inputs(out, d)
+
+    def mean_var_vjp(self, runs: Runs, Xs: np.ndarray, G: np.ndarray, gs: np.ndarray) -> np.ndarray:
+        """Σ_m G_rm ∂μ_m(x_r)/∂x_r + gs_r ∂s(x_r)/∂x_r (R, d) for rows laid out as ``runs``
+        (gs_r taken as 0 where s is floored at β⁻¹)."""
+        d, Xs = Xs.shape[1], take_inputs(Xs, self.in_dims)
+        out = np.empty(Xs.shape)
+        _packed_mean_var_vjp(runs.gp, runs.lo, runs.hi, self.X, self.A, self.L, self.offs, self.loffs, self.alpha,
+                             self.gamma, self.beta, np.ascontiguousarray(Xs, dtype=np.float64),
+                             np.ascontiguousarray(G, dtype=np.float64), np.ascontiguousarray(gs, dtype=np.float64),
+                             out)
         return pad_inputs(out, d)
 
 

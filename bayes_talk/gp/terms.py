@@ -1,4 +1,4 @@
-"""The log-density terms of the shared GPDM (DESIGN.md §3, deena2010 eq. 5 and 7).
+"""The log-density terms of the shared GPDM (deena2010 eq. 5 and 7; docs/model.md).
 
 Every term is a differentiable torch function of float64 tensors. The common core is the
 matrix-normal log-density of an N×D matrix V with column covariance K,
@@ -9,7 +9,7 @@ evaluated through a Cholesky factor, with a closed-form backward pass
 
     ∂ℓ/∂K = ½ (A Aᵀ − D·K⁻¹),   ∂ℓ/∂V = −A,   A = K⁻¹ V,
 
-which is about twice as fast as differentiating through the Cholesky (FACTS.md).
+which is about twice as fast as differentiating through the Cholesky (float64, 2 CPU threads).
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ from bayes_talk.gp.linalg import cho_solve, cholesky, logdet
 
 LOG_2PI = math.log(2.0 * math.pi)
 
-#: variance κ² of the half-normal prior on each output scale w_m (DESIGN.md §3)
+#: variance κ² of the half-normal prior on each output scale w_m (the GPDM's prior, Wang,
+#: Fleet & Hertzmann 2008, which the papers build on; docs/model.md)
 W_PRIOR_VARIANCE = 1e6
 
 
@@ -73,7 +74,7 @@ def observation_loglik(
         ln p(Y | X) = N·Σ_m ln w_m − (N·D/2)·ln 2π − (D/2)·ln|K| − ½·tr(K⁻¹ Y W² Yᵀ),
         K = k(X, X) + β⁻¹ I.
 
-    The factor N on ln|W| is the paper's |W|^N (DESIGN.md §3). Evaluated by the fused
+    The factor N on ln|W| is the paper's |W|^N (some toolboxes drop it). Evaluated by the fused
     RBF pass of :mod:`bayes_talk.gp.fused` (closed-form backward), or through
     :func:`matrix_normal_loglik` with a linear kernel term or when K needs jitter.
     """
@@ -142,7 +143,7 @@ def dynamics_loglik(
 
 
 def log_hyperprior(thetas: Sequence[torch.Tensor]) -> torch.Tensor:
-    """Σ_θ ln p(θ) with the improper p(θ) ∝ 1/θ, in θ-space (no Jacobian; DESIGN.md §3)."""
+    """Σ_θ ln p(θ) with the improper p(θ) ∝ 1/θ, in θ-space (no Jacobian; docs/model.md)."""
     if not thetas:
         return torch.zeros((), dtype=torch.float64)
     return -sum(torch.log(t).sum() for t in thetas)

@@ -60,7 +60,7 @@ MKL_THREADS_FIXED = fix_mkl_thread_count()
 
 
 #: a GP problem of fewer points runs on one thread (:func:`problem_threads`; the terms of
-#: :mod:`bayes_talk.gp.fused` also follow it). Measured (docs/scaling.md, session 14): on a
+#: :mod:`bayes_talk.gp.fused` also follow it). Measured (docs/scaling.md): on a
 #: quiet 2-core machine two threads gain nothing on one observation term below about 800
 #: points (1.47× slower at 200, 0.97-1.12 at 300-600, 0.90 at 800, 0.83 at 1,000), and with
 #: the other core busy every parallel region of a small problem waits milliseconds for its

@@ -7,7 +7,8 @@ The module is above ~500 lines because persistence (:meth:`SGPDM.state` /
 restores; the direct fit's objective and optimiser are in
 :mod:`bayes_talk.models.sgpdm_objective` and :mod:`bayes_talk.gp.lbfgs`.
 
-deena2010 §2.1.1 (eq. 1–7), deena2009 §2; conventions pinned in DESIGN.md §3.
+deena2010 §2.1.1 (eq. 1–7), deena2009 §2; the conventions where they leave a choice are in
+docs/model.md.
 
 Generative model, for views v (audio MFCCs, visual AAM parameters) of N frames that come
 in sequences s of lengths T_s, sharing latent points X (N×d):
@@ -374,7 +375,7 @@ class SGPDM:
     def _optimise_direct(self, step_iter: int) -> None:
         """:meth:`_optimise` without a monitor through the hand-written gradient and the NumPy
         port of torch's L-BFGS (:func:`~bayes_talk.models.sgpdm_objective.fit_direct`; the
-        same path to rounding, issue 29)."""
+        same path to rounding)."""
         obj = SGPDMObjective({v: Y.numpy() for v, Y in self._Y.items()}, self.seq_lengths_, self.config,
                              {k: tuple(t.shape) for k, t in self._log.items()},
                              {k: t.detach().numpy() for k, t in self._fixed.items()}, self._learned_thetas())

@@ -1,11 +1,11 @@
-"""The SGPDM's MAP objective and its gradient in NumPy, without autograd (issue 29).
+"""The SGPDM's MAP objective and its gradient in NumPy, without autograd.
 
 :func:`~bayes_talk.models.sgpdm_program.sgpdm_log_joint` is the objective; this module
 evaluates the same sum
 
     L = λ·ln p(X) + Σ_v [ln HalfNormal(w_v) + N·Σ_m ln w_vm + ℓ(X; α_v, γ_v, β_v, Y_v W_v)] − Σ_θ ln θ
 
-(deena2010 eq. 7 and eq. 5, the w prior and the 1/θ factor of DESIGN.md §3) over the flat
+(deena2010 eq. 7 and eq. 5, the w prior and the 1/θ factor; docs/model.md) over the flat
 vector of free parameters that torch's L-BFGS sees — log θ and log w of each view in the
 order of ``SGPDM._log``, then the latents X row by row — and writes the gradient by hand:
 the RBF matrix-normal terms ℓ and their derivatives come from the compiled passes of

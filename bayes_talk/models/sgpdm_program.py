@@ -189,14 +189,14 @@ def sgpdm_log_joint(
     learned: Sequence[str],
 ) -> torch.Tensor:
     """The log joint of :func:`sgpdm_model`'s trace, ``trace.log_prob_sum()``, without
-    running the Pyro program (issue 29: the trace machinery cost more than the GP algebra
-    at the few hundred frames of a switching state):
+    running the Pyro program (the trace machinery costs more than the GP algebra at the few
+    hundred frames of a switching state):
 
         L = λ·ln p(X) + Σ_v [ln HalfNormal(w_v) + ln p(Y_v | X)] − Σ_θ ln θ,
 
     the same site log-densities (deena2010 eq. 7 and eq. 5, the w prior, the 1/θ factor),
     computed by the same functions and added in the trace's site order from 0.0, so the
-    value and its gradient equal the trace's bit for bit (tests/test_gp_core.py).
+    value and its gradient equal the trace's bit for bit (tests/gp/test_gp_core.py).
     """
     d = X.shape[1]
     total = 0.0
@@ -222,12 +222,12 @@ def trace_log_joint(views: Mapping[str, torch.Tensor], X: torch.Tensor, hyper: M
                     seq_lengths: Sequence[int], cfg: SGPDMConfig, learned: Sequence[str]) -> torch.Tensor:
     """The log joint of :func:`sgpdm_model` as its Pyro trace's ``log_prob_sum()``: the
     reference that :func:`sgpdm_log_joint` (the MAP objective, the same sites summed without
-    running the program; issue 29) equals bit for bit (tests/test_gp_core.py).
+    running the program) equals bit for bit (tests/gp/test_gp_core.py).
 
     Run with Pyro's validation off (``pyro.validation_enabled(False)``): the same program and
     the same numbers, without the argument and support checks of every distribution and the
     NaN/inf checks on every site's log-density and, through hooks, on its gradient (a third
-    of the trace's own cost at 200 frames; session 14)."""
+    of the trace's own cost at 200 frames)."""
     with pyro.validation_enabled(False):
         tr = poutine.trace(sgpdm_model).get_trace(views, X, hyper, seq_lengths, cfg, learned)
         tr.compute_log_prob()

@@ -1,4 +1,4 @@
-"""One sparse shared GPDM on a whole training corpus (issue 14; what deena2010 §4.1 found
+"""One sparse shared GPDM on a whole training corpus (what deena2010 §4.1 found
 "intractable": a single SGPDM on all 250 sequences costs O(N³) with N ≈ 15,000 frames).
 
 The model is the SGPDM of :mod:`bayes_talk.models.sgpdm` (same shared latent space X,

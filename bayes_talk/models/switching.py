@@ -1,4 +1,4 @@
-"""The switching shared GPDM (deena2010 §2.1.2, §4.1; DESIGN.md §5).
+"""The switching shared GPDM (deena2010 §2.1.2, §4.1; docs/model.md).
 
 One :class:`~bayes_talk.models.sgpdm.SGPDM` per switching state π. The states are either
 VLMM contexts over frame-level phone labels (the paper's model) or the current phone
@@ -40,12 +40,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base.errors import not_fitted
+from bayes_talk.base.files import check_format, read_model_files
 from bayes_talk.data.phones import replace_unseen
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.base.errors import not_fitted
 from bayes_talk.features.audio_context import AudioContext
 from bayes_talk.features.context_view import ContextView
-from bayes_talk.base.files import check_format, read_model_files
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.models.right_context import RightContextStates
 from bayes_talk.models.sgpdm import SGPDM, SGPDMConfig
@@ -138,7 +138,7 @@ class SwitchingConfig:
         t−L..t+L and the MFCCs t−4..t+4 to D_z columns, which the latent space must explain
         too; 0 (the default) is deena2010's audio-only view.
     context_mean: with ``context_view`` > 0, the view is also the *explicit mean function*
-        of every state's visual mapping (DESIGN.md §6; Rasmussen & Williams 2006 §2.7,
+        of every state's visual mapping (docs/model.md; Rasmussen & Williams 2006 §2.7,
         "explicit basis functions"): z_t = c_t + f_π(x_t) + ε, so the state SGPDMs model the
         residual face z_t − c_t (c_t out-of-fold on the training frames, as the view) and
         synthesis adds c_t back to every predictive component. The smoothness factor and
@@ -467,8 +467,8 @@ class SwitchingModel:
 
     @classmethod
     def read_legacy(cls, directory: str | Path) -> SwitchingModel:
-        """A model saved before issue 26's one layout: ``model.json`` + ``arrays.npz`` in
-        ``directory`` (a trained-model directory's top, up to session 11); errors name the file."""
+        """A model saved in the earlier per-family layout: ``model.json`` + ``arrays.npz`` in
+        ``directory`` (a trained-model directory's top); errors name the file."""
         directory = Path(directory)
         meta, arrays = read_model_files(directory / "model.json", directory / "arrays.npz")
         check_format(meta, FORMAT_NAME, FORMAT_VERSION, f"{directory / 'model.json'}")

@@ -1,7 +1,7 @@
 r"""Variable-length Markov model (VLMM) over frame-level phone labels.
 
 deena2010 §2.2, §4.1, §4.2.1; Ron, Singer & Tishby (1996), "The power of amnesia".
-The readings fixed in DESIGN.md §5 are followed throughout; ``docs/vlmm.md`` is the
+Where the paper leaves a choice, the reading taken is stated below; ``docs/vlmm.md`` is the
 long-form description with worked examples.
 
 Tokens and states

@@ -1,5 +1,5 @@
 """From a corpus to a trained model directory, and from WAV + labels to a talking face:
-the command line's workflow, split by idea (issue 26, item 4):
+the command line's workflow, split by idea:
 
 * :mod:`~bayes_talk.pipeline.training`: ``train`` (corpus -> model directory), the model
   kinds (every registered family with a predictive distribution) and their defaults;

@@ -1,4 +1,4 @@
-"""The audio front end of a trained model, built in one place (issue 26, item 4): the
+"""The audio front end of a trained model, built in one place: the
 settings ``train`` records in the model's bundle (:class:`bayes_talk.features.audio.AudioSettings`:
 sample rate, MFCC settings, cepstral normalisation, mel edge and floor, feature statistics)
 and the one computation of an utterance's features from a WAV with them, given its phone
@@ -10,11 +10,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from bayes_talk.features.audio import DEFAULT_CMVN, AudioSettings, feature_statistics
-from bayes_talk.features.audio import cmvn as apply_cmvn
 from bayes_talk.data.checks import check_audio_vs_labels
 from bayes_talk.data.labels import frame_labels, read_labels
 from bayes_talk.data.utterance import Utterance
+from bayes_talk.features.audio import DEFAULT_CMVN, AudioSettings, feature_statistics
+from bayes_talk.features.audio import cmvn as apply_cmvn
 from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ
 from bayes_talk.features.mfcc import frame_count, load_wav, mfcc
 

@@ -12,18 +12,18 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.audio import AudioSettings
 from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR, BundleError, read_descriptor
+from bayes_talk.calibration.bands import BandCalibration
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
 from bayes_talk.estimators.registry import ESTIMATORS, load_estimator
 from bayes_talk.features.aam import AAM
+from bayes_talk.features.audio import AudioSettings
 from bayes_talk.pipeline.training import model_kinds
-from bayes_talk.calibration.bands import BandCalibration
 
 __all__ = ["LEGACY_ESTIMATOR_PATHS", "TrainedModel", "load_trained"]
 
-#: where a directory trained before issue 26 kept its estimator besides ``estimator/``:
+#: where a directory trained by an earlier version kept its estimator instead of ``estimator/``:
 #: deena2009's SGPLVM as ``sgpdm.*``, the sparse SGPDM as ``sparse_sgpdm.*``; a switching
 #: model as ``model.json`` + ``arrays.npz`` at the top, with ``band_calibration.json`` beside
 LEGACY_ESTIMATOR_PATHS = ("sgpdm", "sparse_sgpdm")
@@ -68,7 +68,7 @@ class TrainedModel:
 
 def _estimator_path(d: Path) -> Path:
     """Where ``d`` keeps its estimator: ``estimator/``, or a place of :data:`LEGACY_ESTIMATOR_PATHS`,
-    or (a switching model trained before issue 26) ``d`` itself."""
+    or (a switching model trained by an earlier version) ``d`` itself."""
     for rel in (ESTIMATOR_DIR, *LEGACY_ESTIMATOR_PATHS):
         if (d / rel).is_dir() or (d / f"{rel}.json").is_file():
             return d / rel
@@ -86,7 +86,7 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
     where = _estimator_path(d)
     model = load_estimator(where)
     legacy_cal = BandCalibration.load(d) if where != d / ESTIMATOR_DIR else None
-    if legacy_cal is not None:   # trained before issue 26: the calibration beside the model
+    if legacy_cal is not None:   # the earlier layout: the calibration beside the model
         model = BandCalibrated.wrap(model, legacy_cal)
     cls = ESTIMATORS[kind][0]
     family = model.estimator_ if isinstance(model, BandCalibrated) else model

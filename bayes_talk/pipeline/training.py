@@ -1,4 +1,4 @@
-"""From a corpus to a trained model directory (``bayes-talk train``; issue 26, item 4).
+"""From a corpus to a trained model directory (``bayes-talk train``).
 
 The data flow::
 
@@ -22,18 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.base import bundle
-from bayes_talk.alignment import commands as alignment_commands
-from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR
 from bayes_talk import corpus as corpus_store
-from bayes_talk.data.utterance import Utterance
-from bayes_talk.estimators.calibrated import BandCalibrated
-from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
+from bayes_talk.alignment import commands as alignment_commands
+from bayes_talk.base import bundle
+from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR
 from bayes_talk.base.executor import executor_for
-from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
 from bayes_talk.base.progress import ProgressMapper
 from bayes_talk.calibration import bands as band_calibration
 from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
+from bayes_talk.data.utterance import Utterance
+from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
+from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
 
 __all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
            "model_kinds", "new_model", "select_holdout", "train"]
@@ -153,7 +153,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
         "held_out": held_out, "audio": audio,
     })
-    if aligner is not None:  # issue 13: labels for test audio without hand-made phone labels
+    if aligner is not None:  # labels for test audio without hand-made phone labels
         aligner.save(out)
     bundle.write_bundle_manifest(out)
     return out

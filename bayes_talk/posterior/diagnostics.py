@@ -1,7 +1,8 @@
-"""Sampler diagnostics through ArviZ (DESIGN.md §6) - the only synthesis module that imports arviz.
+"""Sampler diagnostics through ArviZ (docs/uncertainty.md, "Diagnostics and thresholds") - the only
+posterior module that imports arviz.
 
 Every ArviZ call goes through :mod:`bayes_talk.base.arviz_compat` (ArviZ 0.2x on Python 3.11,
-1.x on >= 3.12; DESIGN.md §6).
+1.x on >= 3.12).
 
 * :func:`chain_diagnostics` - draws (chains, draws, n): rank-normalised split R-hat
   (``arviz.rhat(method="rank")``, Vehtari et al. 2021), bulk and tail ESS
@@ -24,6 +25,9 @@ Every ArviZ call goes through :mod:`bayes_talk.base.arviz_compat` (ArviZ 0.2x on
 * :func:`convergence_problems` - the failed checks against :data:`THRESHOLDS`, in words;
   :func:`sampler_warning` - those checks as the one warning a synthesis result carries.
 * :func:`inference_data` - ``arviz.from_dict`` for the synthesis result type.
+* :func:`psis_diagnostics` - k̂ of an iid approximation's draws against the synthesis density
+  (Laplace, VI); :func:`sampler_diagnostics` - the summary of a NUTS or emcee run on the
+  latents the user receives (the posterior methods' diagnostics, ``diagnostics.json``).
 
 With a single chain (Laplace draws) the chain is split in two halves before ArviZ sees it
 (ArviZ returns nan R-hat for one chain); ``n_chains`` reports the chains given.
@@ -218,7 +222,104 @@ def inference_data(posterior: dict, sample_stats: dict | None = None, observed_d
                          observed_data=observed_data, coords=coords, dims=dims)
 
 
-__all__ = ["DIAGNOSTIC_KEYS", "EBFMI_MIN", "ESS_MIN", "KHAT_MAX", "RHAT_MAX", "THRESHOLDS", "chain_diagnostics",
-           "convergence_problems", "energy_bfmi", "frame_diagnostics", "frame_update_diagnostics", "frame_update_rate",
-           "inference_data", "is_sampler_warning", "psis",
-           "psis_khat", "sampler_warning"]
+#: draws per batched density call of the k̂ check
+KHAT_CHUNK = 50
+
+
+def psis_diagnostics(dens, X: np.ndarray, log_q: np.ndarray, n_keep: int | None = None,
+                      sample_stats: dict | None = None) -> dict:
+    """PSIS k̂ and ESS of an approximation q of p (Laplace, VI; ``dens`` the
+    :class:`~bayes_talk.synthesis.joint.UtteranceDensity` of p) from its draws X (S, T·d) and
+    their ln q (constants free): log weights ln p(x_s) − ln q(x_s) (Vehtari et al. 2024); ln p
+    in chunks through :meth:`UtteranceDensity.values` (value only, all draws' rows of a GP in
+    one run). With ``sample_stats`` (a dict), the first ``n_keep`` draws' ``lp`` and
+    ``log_weight`` (1, n_keep) are put in it (``InferenceData.sample_stats``)."""
+    lp = np.concatenate([dens.values(X[i:i + KHAT_CHUNK]) for i in range(0, len(X), KHAT_CHUNK)])
+    khat, ess = psis(lp - log_q)
+    if sample_stats is not None and n_keep:   # per kept draw (one chain): ln p and the log weight ln p − ln q
+        sample_stats["lp"] = lp[None, :n_keep]
+        sample_stats["log_weight"] = (lp - log_q)[None, :n_keep]
+    return {"khat": khat, "psis_ess": ess, "khat_draws": len(lp)}
+
+
+def sampler_diagnostics(draws, latents: np.ndarray) -> dict:
+    """Summary diagnostics of a NUTS or emcee run, ``draws`` its
+    :class:`~bayes_talk.posterior.samplers.Draws` (JSON-ready scalars and short lists).
+
+    R-hat, ESS and MCSE are those of the latent draws the user receives (``latents``,
+    (chains, draws, T, d): X = X_MAP + L z, or x(ε)), overall and per frame
+    (:func:`~bayes_talk.posterior.diagnostics.frame_diagnostics`), not of the coordinates
+    the sampler moved in (the maps are not the identity, and ESS and R-hat are per
+    coordinate). NUTS: divergences, step sizes, the acceptance statistic, tree depths,
+    gradients, E-BFMI per chain, mode jumps, per-chain seconds; with particle Gibbs sweeps
+    (``pg_frame_moved`` in the per-draw statistics) the per-frame update rate of the sweeps
+    after the warm-up (:func:`~bayes_talk.posterior.diagnostics.frame_update_diagnostics`).
+    emcee: acceptance and the autocorrelation time."""
+    out = frame_diagnostics(latents)
+    out.update(n_chains=int(latents.shape[0]), n_draws=int(latents.shape[1]))
+    st, ss = draws.stats, draws.sample_stats
+    if draws.method == "nuts":
+        out["divergences"] = int(sum(st["divergences"]))
+        out["step_size"] = [float(s) for s in st["step_size"]]
+        out["accept_stat_mean"] = float(np.mean(ss["acceptance_rate"]))
+        out["target_accept"] = st["target_accept"]
+        out["tree_depth_mean"] = float(np.mean(ss["tree_depth"]))
+        out["tree_depth_max"] = int(np.max(ss["tree_depth"]))
+        out["max_tree_depth"] = st["max_tree_depth"]
+        out["max_tree_depth_hits"] = st["max_tree_depth_hits"]
+        out["n_steps_mean"] = float(np.mean(ss["n_steps"]))
+        out["n_gradients"] = st["n_gradients"]
+        out["warmup"] = st["warmup"]
+        out["warmup_seconds"] = st["warmup_seconds"]
+        out["ebfmi"] = [float(b) for b in energy_bfmi(ss["energy"])]
+        out["ebfmi_min"] = min(out["ebfmi"])
+        out["mode_jumps"] = st["n_jumps"]
+        att, acc = sum(st["jump_attempts"]), sum(st["jumps_accepted"])
+        out["mode_jump_acceptance"] = acc / att if att else None
+        out["mode_jumps_accepted_per_chain"] = st["jumps_accepted"]
+        out["pilot"] = st.get("pilot", 0)
+        out["chain_seconds"] = st["chain_seconds"]
+        out["pilot_seconds"] = float(st.get("pilot_seconds", 0.0))
+        if "checks" in st:   # a stopping rule (stop_at_targets): when it was asked, whether it ended the draws
+            out.update(stopped_early=st["stopped_early"], max_draws_per_chain=st["max_draws_per_chain"])
+        if "pg_frame_moved" in ss:
+            out["pg_sweeps_per_chain"] = [int(n) for n in ss["pg_sweep"].sum(1)]
+            if "pg_seconds" in ss:   # the move's seconds over the kept draws (warm-up not recorded)
+                out["pg_seconds_per_chain"] = [float(v) for v in ss["pg_seconds"].sum(1)]
+            out.update(frame_update_diagnostics(frame_update_rate(ss["pg_frame_moved"], ss["pg_sweep"])))
+        if "pg_blocks_without_modes" in st:   # blocks whose tries fall back to the sweep's proposal
+            out["pg_blocks_without_modes"] = st["pg_blocks_without_modes"]
+        if "extra_move_adaptation" in st:     # pg_adapt_weights: the mode weights the chains' warm-ups taught
+            out["pg_adaptation"] = st["extra_move_adaptation"]
+    if "acceptance_fraction" in st:
+        out["acceptance_fraction"] = float(st["acceptance_fraction"])
+        out["acceptance_min"] = float(st["acceptance_min"])
+        for k in ("autocorr_time_max", "autocorr_time_mean", "autocorr_steps", "autocorr_tol", "autocorr_ok",
+                  "steps", "thin", "n_walkers", "warmup"):
+            out[k] = st[k]
+    out["sampler_seconds"] = float(draws.seconds)
+    return out
+
+
+__all__ = [
+    "DIAGNOSTIC_KEYS",
+    "EBFMI_MIN",
+    "ESS_MIN",
+    "KHAT_CHUNK",
+    "KHAT_MAX",
+    "RHAT_MAX",
+    "THRESHOLDS",
+    "chain_diagnostics",
+    "convergence_problems",
+    "energy_bfmi",
+    "frame_diagnostics",
+    "frame_update_diagnostics",
+    "frame_update_rate",
+    "inference_data",
+    "is_sampler_warning",
+    "psis",
+    "psis_diagnostics",
+    "psis_khat",
+    "sampler_diagnostics",
+    "sampler_warning",
+]

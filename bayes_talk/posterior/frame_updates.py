@@ -1,5 +1,5 @@
 """Multiple-try updates of single frames and short dynamics blocks given their neighbours
-(issue 24, after the sweep).
+(pg-nuts, after each particle Gibbs sweep).
 
 ``ff`` below is a :class:`~bayes_talk.posterior.particle_gibbs.FrameFactors` and a proposal
 anything with its ``sample_logq(t, Xprev, N, rng, X=None, ref=None) -> (X, ln q)``, e.g.
@@ -22,7 +22,7 @@ come from the sweep's own proposal or from :class:`BlockModeProposal`: the Lapla
 approximations at the local maxima of the block's own factor (:func:`block_factor`: audio
 and entry along the path the dynamics means continue; :func:`factor_modes`) — at an
 isolated frame the marginal is a mixture of narrow, separated bumps there
-(docs/uncertainty.md, "The isolated frames' own modes").
+(docs/uncertainty.md, "Which sampler").
 """
 from __future__ import annotations
 

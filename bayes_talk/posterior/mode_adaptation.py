@@ -1,12 +1,12 @@
 """What a block's multiple-try updates learn about its full conditional during a sampler's
-warm-up (issue 24): each own mode's mass and, optionally, its mean and covariance.
+warm-up: each own mode's mass and, optionally, its mean and covariance.
 
 A block's own-mode proposal (:class:`~bayes_talk.posterior.frame_updates.BlockModeProposal`)
 places its components at the Laplace approximations of the block's *own* factor, which leaves
 out the smoothness factors at the block's two ends. Where those decide, the full conditional
 weighs the modes differently (held-out ``utt0002``: the utterance-start block sits at a mode of
 own weight ≈ 0) and sits elsewhere within a mode (its frame 51: 3.7–5.7 own-factor sd away in
-two coordinates and up to 4× wider; docs/uncertainty.md "A shorter warm-up, more draws").
+two coordinates and up to 4× wider; docs/uncertainty.md "Which sampler").
 
 :class:`ModeTally` sums, over the warm-up's updates of one block, two estimates of the full
 conditional π restricted to each mode k, with r_k(y) the responsibility of mode k for y under

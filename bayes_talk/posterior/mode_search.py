@@ -1,4 +1,4 @@
-"""Modes of the whole-utterance synthesis posterior, for NUTS (DESIGN.md §6; issue 10).
+"""Modes of the whole-utterance synthesis posterior, for NUTS (docs/uncertainty.md).
 
 The synthesis density is multimodal. :func:`mode_jumps` turns the modes a search found into
 displacements for NUTS's mode-jumping Metropolis moves
@@ -14,9 +14,9 @@ import time
 import numpy as np
 
 from bayes_talk.posterior.methods import NUTS_DEFAULTS
+from bayes_talk.posterior.samplers import run_nuts
 from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.joint_map import MapResult, floored_precision, maximise_utterance
-from bayes_talk.posterior.samplers import run_nuts
 from bayes_talk.synthesis.whitening import Whitened, whitening
 
 #: frames whose latents differ between two modes by more than this (max over coordinates)

@@ -1,6 +1,7 @@
-"""The synthesis density in non-centred coordinates: standardised dynamics innovations (issue 24).
+"""The synthesis density in non-centred coordinates: standardised dynamics innovations.
 
-Inside a stretch of one state model's dynamics the latents follow (DESIGN.md §4, §6)
+Inside a stretch of one state model's dynamics the latents follow (deena2010, Eq. (7);
+docs/model.md)
 
     x_t = μ_x(x_{t−1}) + σ_x(x_{t−1}) ⊙ ε_t,   σ_x,m(x)² = s(x) / w_m²                  (1)
 
@@ -36,59 +37,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 
-from bayes_talk.gp.predictive_fused import Runs, forward_solve_rows, kernel_rows
+from bayes_talk.gp.predictive_fused import Runs
 from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.whitening import Potential
-
-
-@numba.njit(cache=True, fastmath={"reassoc"})
-def _mean_var_vjp(X, A, L, alpha, gamma, beta, Xs, G, gs, out):
-    """Σ_m G_tm ∂μ_m/∂x_t + gs_t ∂s/∂x_t (into out, (T, d)): −γ Σ_i k_i ((A G_t)_i − 2 gs_t u_i)(x_t − X_i),
-    u = K⁻¹k (gs taken as 0 where s is floored at β⁻¹)."""
-    T, d = Xs.shape
-    N, D = A.shape
-    floor = 1.0 / beta
-    k = kernel_rows(X, alpha, gamma, Xs)
-    v = forward_solve_rows(L, k)
-    w = v.copy()
-    for i in range(N - 1, -1, -1):
-        piv = L[i, i]
-        for t in range(T):
-            ui = w[t, i] / piv
-            w[t, i] = ui
-            for j in range(i):
-                w[t, j] -= L[i, j] * ui
-    for t in range(T):
-        vv = 0.0
-        for i in range(N):
-            vv += v[t, i] * v[t, i]
-        g = gs[t] if alpha - vv + floor > floor else 0.0
-        for j in range(d):
-            out[t, j] = 0.0
-        for i in range(N):
-            ag = 0.0
-            for m in range(D):
-                ag += A[i, m] * G[t, m]
-            c = k[t, i] * (ag - 2.0 * g * w[t, i])
-            for j in range(d):
-                out[t, j] += c * (Xs[t, j] - X[i, j])
-        for j in range(d):
-            out[t, j] *= -gamma
-
-
-@numba.njit(cache=True)
-def _packed_vjp(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, Xs, G, gs, out):
-    """:func:`_mean_var_vjp` over runs of rows that share a GP."""
-    for r in range(run_gp.shape[0]):
-        g, lo, hi = run_gp[r], run_lo[r], run_hi[r]
-        o, n = offs[g], offs[g + 1] - offs[g]
-        L = Lflat[loffs[g]:loffs[g] + n * n].reshape((n, n))
-        _mean_var_vjp(X[o:o + n], A[o:o + n], L, alpha[g], gamma[g], beta[g], Xs[lo:hi], G[lo:hi], gs[lo:hi],
-                      out[lo:hi])
 
 
 class NonCentred:
@@ -182,12 +136,7 @@ class NonCentred:
             xb = Xbar[rows]
             Ebar[rows] = xb * sig
             gs = (np.sum(xb * E[rows] * sig, axis=1) + self.d) / (2.0 * s)
-            src = np.ascontiguousarray(X[rows - 1])
-            out = np.empty_like(src)
-            p = self.gps
-            _packed_vjp(runs.gp, runs.lo, runs.hi, p.X, p.A, p.L, p.offs, p.loffs, p.alpha, p.gamma, p.beta,
-                        src, np.ascontiguousarray(xb), np.ascontiguousarray(gs), out)
-            Xbar[rows - 1] += out
+            Xbar[rows - 1] += self.gps.mean_var_vjp(runs, X[rows - 1], xb, gs)
         roots = np.ones(self.T, dtype=bool)
         for rows, _ in self.levels:
             roots[rows] = False

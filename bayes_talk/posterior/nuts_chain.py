@@ -1,4 +1,4 @@
-"""One NUTS chain run as two executor tasks, its warm-up and its kept draws (issue 24).
+"""One NUTS chain run as two executor tasks, its warm-up and its kept draws.
 
 Both run the recording Pyro NUTS kernel (:class:`RecordingNUTS`).
 
@@ -11,8 +11,8 @@ the numpy generator of its jumps and move) and what its copy of the move learnt.
 :func:`~bayes_talk.posterior.samplers.run_nuts` pools what the chains' moves learnt and freezes
 one move for all of them (:meth:`ParticleGibbsMove.end_adaptation
 <bayes_talk.posterior.particle_gibbs.ParticleGibbsMove.end_adaptation>`): a chain whose own
-warm-up never reached a mode still proposes it (held-out `utt0002`, seed 0, session 30: four
-chains' own proposals differed, and R-hat stayed at 1.06). The kept draws come from one fixed
+warm-up never reached a mode still proposes it (with each chain's own proposal, the four chains
+of held-out `utt0002` proposed different modes and R-hat stayed at 1.06; docs/uncertainty.md). The kept draws come from one fixed
 kernel, so each chain leaves the posterior invariant; only its warm-up depends on the others'.
 Without an adaptive move the split changes nothing: the generators continue where the warm-up
 left them, and the draws equal those of one uninterrupted run (tested).
@@ -34,9 +34,9 @@ log = logging.getLogger(__name__)
 
 #: the numpy generator of chain c's jumps and extra move: ``default_rng([seed, c, MOVE_STREAM])``
 MOVE_STREAM = 0x6A756D70
-#: how the chains share what an adaptive extra move learnt in their warm-ups — "pooled" since
-#: session 31 (each chain's own before); ``benchmarks/sbc.py`` records it so that SBC runs of
-#: the two schemes are never pooled together
+#: how the chains share what an adaptive extra move learnt in their warm-ups (pooled over the
+#: chains, not each chain's own); ``benchmarks/sbc.py`` records it so that SBC runs of
+#: different schemes are never pooled together
 WARMUP_ADAPTATION = "pooled over the chains"
 
 

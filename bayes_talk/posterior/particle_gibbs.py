@@ -1,6 +1,6 @@
-"""Particle Gibbs over the frames of an utterance (issue 24, items 2-3).
+"""Particle Gibbs over the frames of an utterance (pg-nuts).
 
-The synthesis density (DESIGN.md §6) is a Markov state-space model: it factorises exactly
+The synthesis density (docs/uncertainty.md) is a Markov state-space model: it factorises exactly
 over frames,
 
     ln p(X | Ŷ) = Σ_t f_t(x_{t−1}, x_t),
@@ -40,8 +40,8 @@ from bayes_talk.posterior.frame_updates import (
     block_mtm,
     dynamics_blocks,
 )
-from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.posterior.proposal_tables import kernel_mixture_logpdf, smoothness_weights
+from bayes_talk.synthesis.joint import UtteranceDensity
 from bayes_talk.synthesis.segment_objective import LOG_2PI
 
 

@@ -1,4 +1,4 @@
-"""Prior and posterior predictive checks of the synthesis model (DESIGN.md §6) through
+"""Prior and posterior predictive checks of the synthesis model (docs/uncertainty.md) through
 ``pyro.infer.Predictive`` on :func:`~bayes_talk.synthesis.joint.synthesis_model`.
 
 * :func:`prior_predictive` - latents X and audio frames simulated from the model with the

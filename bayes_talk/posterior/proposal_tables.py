@@ -1,4 +1,4 @@
-"""Compiled tables of the particle sweep's proposal (issue 24, speed).
+"""Compiled tables of the particle sweep's proposal (for speed).
 
 :class:`~bayes_talk.posterior.particle_gibbs.MixtureProposal` evaluates, at every frame of
 every sweep, two N × M tables (N particles, M ≈ 300 centres X_j): the smoothness weight of

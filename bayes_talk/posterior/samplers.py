@@ -1,4 +1,4 @@
-"""Samplers for an unnormalised log density on a flat vector (DESIGN.md §6).
+"""Samplers for an unnormalised log density on a flat vector (docs/uncertainty.md).
 
 Every sampler here takes ``log_prob(x: torch.Tensor[n]) -> scalar tensor`` (float64,
 differentiable), a starting point (the MAP point of the synthesis posterior) and a seed,
@@ -14,7 +14,7 @@ statistics for :mod:`bayes_talk.posterior.diagnostics`. Same seed -> same draws.
   modes, every iteration is followed by mode-jumping Metropolis moves (below).
 * :func:`run_emcee` - emcee's affine-invariant ensemble with a differential-evolution move
   mix (80 % ``DEMove``, 20 % ``DESnookerMove``: the default stretch move mixes badly on
-  correlated, higher-dimensional targets, FACTS.md "Samplers"); walkers start in a small
+  correlated, higher-dimensional targets); walkers start in a small
   Gaussian ball around the MAP point; the log density is evaluated for all walkers at
   once (``torch.func.vmap`` over the torch function; a Python loop when vmap fails).
   The chains reported are the walkers, thinned. The integrated autocorrelation time
@@ -44,8 +44,8 @@ import torch
 from bayes_talk.base import progress
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.posterior.methods import NUTS_DEFAULTS
-from bayes_talk.synthesis.joint_map import floored_precision
 from bayes_talk.posterior.nuts_chain import ChainState, draw_chain, warmup_chain
+from bayes_talk.synthesis.joint_map import floored_precision
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Variational inference for an unnormalised log density on a flat vector (DESIGN.md §6).
+"""Variational inference for an unnormalised log density on a flat vector (docs/uncertainty.md).
 
 :func:`run_vi` fits a full-rank Gaussian by the ELBO (Pyro SVI, ``AutoMultivariateNormal``)
 and returns iid draws of it as a :class:`~bayes_talk.posterior.samplers.Draws`, with their

@@ -1,4 +1,4 @@
-"""Initial latent trajectories for new audio (DESIGN.md §4), behind one interface.
+"""Initial latent trajectories for new audio (deena2010 §4.2; docs/switching.md), behind one interface.
 
 An initialiser is a callable ``(model, view, Y) -> X0`` with ``model`` a fitted
 :class:`~bayes_talk.models.sgpdm.SGPDM`, ``Y`` the (T, D) new observations of ``view``
@@ -104,7 +104,7 @@ class HMMViterbi:
             if dyn is not None:
                 # trans[i, j] = ln p(x_j | x_i): the dynamics predictive at the M states once,
                 # broadcast against every target (M x M x d; the M² (input, output) pairs
-                # took M² x N kernel rows, ~4 GB at M = 300, N = 1500: issue 14)
+                # would take M² x N kernel rows, ~4 GB at M = 300, N = 1500)
                 with torch.no_grad():
                     mu, var = dyn.mean_var(S)
                     trans = dyn.log_density(S[None, :, :], mu[:, None, :], var[:, None]).numpy()

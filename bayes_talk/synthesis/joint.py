@@ -1,4 +1,4 @@
-"""The synthesis model of a whole utterance, as one Pyro program (DESIGN.md §6).
+"""The synthesis model of a whole utterance, as one Pyro program (docs/uncertainty.md).
 
 Given a trained switching SGPDM (hyperparameters, training latents and entry
 distributions fixed at their MAP values) and an utterance's audio Ŷ (T×D_y) and frame
@@ -11,7 +11,7 @@ over the segmentation into blocks [a, b) with state model π (deena2010 §4.2.1,
 back-off to the longest suffix with a model):
 
 * p_π(x_t | x_{t−1}) = N(x_t; μ_x(x_{t−1}), σ²_x(x_{t−1}) I): π's dynamics GP predictive
-  (deena2010 eq. 11, DESIGN.md §4);
+  (deena2010 eq. 11; docs/model.md);
 * p_π(ŷ_t | x_t) = Π_m N(ŷ_tm; μ_Y,m(x_t), σ²_Y(x_t)/w_m²): π's audio GP predictive
   (deena2009 eq. 9's likelihood term);
 * the block's first point: the entry distribution N(μ_π, Σ_π) (deena2010 eq. 12) when the
@@ -19,7 +19,7 @@ back-off to the longest suffix with a model):
   (long phones give runs of one VLMM state; back-off maps several states to one model),
   the blocks are one stretch of π's dynamics: p(x_a | ·) = p_π(x_a | x_{a−1});
 * s: the smoothness factor across a change of state model (deena2010 §4.2.3, our reading
-  in DESIGN.md §5) — the new block's first point must explain the last frame of the
+  in docs/switching.md) — the new block's first point must explain the last frame of the
   previous one: s = N(μ_Z^{π'}(x_{a−1}); μ_Z^π(x_a), σ²_Z^π(x_a)/w² + s²_Δ), π' the previous
   block's model, s²_Δ the mean square frame-to-frame motion of the training visual features.
 
@@ -51,7 +51,7 @@ Two implementations of the same log density:
 * :class:`UtteranceDensity` — the closed-form numpy twin with its gradient, a value-only
   variant and its Hessian, used by the optimiser and the samplers for speed: every GP
   predictive through the compiled, packed predictives of :mod:`bayes_talk.gp.predictive_fused`.
-  A test checks it equals the Pyro log joint to 1e-8 relative (``tests/test_posterior.py``).
+  A test checks it equals the Pyro log joint to 1e-8 relative (``tests/posterior/test_posterior.py``).
 
 The two live in one module because they are one density: a change to a term of the program
 must be made to its twin in the same edit.
@@ -71,9 +71,9 @@ from pyro.distributions import TorchDistribution
 from torch.distributions import constraints
 
 from bayes_talk.gp.distributions import NO_SHAPE
-from bayes_talk.gp.predictive_fused import PackedGPs, Runs
+from bayes_talk.gp.numpy_gp import numpy_gp
+from bayes_talk.gp.predictive_fused import LOG_2PI, PackedGPs, Runs
 from bayes_talk.models.vlmm import Segment
-from bayes_talk.synthesis.segment_objective import LOG_2PI, numpy_gp
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingModel

@@ -1,5 +1,5 @@
 """The joint MAP of the whole-utterance synthesis density (the first step of every
-posterior method of :mod:`bayes_talk.posterior.sampling`; issue 9).
+posterior method of :mod:`bayes_talk.posterior.sampling`).
 
 :func:`maximise_utterance` starts at deena2010's Algorithm 1 path (carried along the dynamics
 means when it is off them: :func:`along_dynamics`, :data:`CARRY_RMS_Z`) and maximises
@@ -33,7 +33,7 @@ MAP_DTOL = 1e-6
 #: units of its predictive sd (:func:`dynamics_rms_z`): a path of the model's
 #: dynamics has about 1; measured, Algorithm 1's paths have 0.07-0.6 on the default family
 #: (40 development utterances) and 0.1-2.7 on a small phone-state model, 66-95 on a VLMM model
-#: of 12 utterances (docs/experiments.md, "Where the joint MAP starts")
+#: of 12 utterances
 CARRY_RMS_Z = 10.0
 #: at most this many rounds of restarts of the joint MAP from draws of its Laplace
 #: approximation (the restarts per round are each method's ``map_restarts`` in
@@ -116,7 +116,7 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
        paths on a small corpus: 66–95 sds), and from it the MAP used to stop at its iteration
        cap; carried, it starts within a few hundred nats of a mode. A path on the dynamics
        (the default family's: 0.07–0.6 sds) is left as it is, so which of the
-       nearby modes the MAP finds is unchanged there (docs/uncertainty.md, session 18).
+       nearby modes the MAP finds is unchanged there (docs/uncertainty.md).
 
     1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
        Laplace precision at the start x₀, x = x₀ + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues

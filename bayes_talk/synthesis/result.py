@@ -1,6 +1,6 @@
-"""The one result type of every synthesis path (issue 10): :class:`SynthesisResult`.
+"""The one result type of every synthesis path: :class:`SynthesisResult`.
 
-MAP, Laplace, NUTS and emcee (:func:`bayes_talk.posterior.sampling.sample_synthesis`),
+The posterior methods (:func:`bayes_talk.posterior.sampling.sample_synthesis`),
 deena2010's Algorithms 1 and 2 (:func:`bayes_talk.synthesis.sequential.synthesize`),
 deena2009's SGPLVM (:meth:`bayes_talk.models.sgplvm.SGPLVM.synthesize`) and the baselines
 that have a predictive variance all describe the visual prediction of frame t the same
@@ -9,7 +9,7 @@ way: a mixture over K = C·S components (C chains of S draws) of Gaussians,
     p(z_td) = (1/K) Σ_k N(z_td; μ_td^k, v_td^k),                                   (1)
 
 with μ^k = μ_Z(x^k) and v^k = σ²_Z(x^k)/w² the visual GP's predictive mean and variance
-at latent draw x^k (deena2010 eq. 10 at each draw; DESIGN.md §6). A point method (MAP,
+at latent draw x^k (deena2010 eq. 10 at each draw; docs/uncertainty.md). A point method (MAP,
 Algorithms 1–2, SGPLVM, a baseline) is the one-component case K = 1: a single Gaussian.
 
 From (1):

@@ -10,7 +10,7 @@
      then run π's dynamics mean x_{t+1} = μ_x(x_t) for the rest of the segment.
 
    Both include the entry distribution ln N(x_a; μ_π, Σ_π) of eq. 12 on the first point.
-3. Smoothness across states (§4.2.3; our reading in DESIGN.md §5): for a segment that
+3. Smoothness across states (§4.2.3; our reading in docs/switching.md): for a segment that
    starts at a > 0 the first latent point must also explain the last frame already
    synthesised: the objective gains ln N(ẑ_{a−1}; μ_Z(x_a), σ²_Z(x_a)/w² + s²_Δ) under π's
    visual GP. s²_Δ (per dimension) is the mean square frame-to-frame motion of the
@@ -143,7 +143,7 @@ def maximise_state_segment(m, Y: np.ndarray, z_prev: np.ndarray | None, entry, s
 
     The objective is :func:`~bayes_talk.synthesis.optimise.sequence_log_density`
     (maximised by :func:`~bayes_talk.synthesis.optimise.maximise_sequence`). With
-    smoothness "frame" (DESIGN.md §5) x_a itself must explain the last synthesised
+    smoothness "frame" (docs/switching.md) x_a itself must explain the last synthesised
     frame, which differs from the current one by the frame-to-frame motion (variance
     ``motion_var``).
     """

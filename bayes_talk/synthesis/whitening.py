@@ -1,4 +1,4 @@
-"""The synthesis posterior in whitened coordinates (DESIGN.md §6).
+"""The synthesis posterior in whitened coordinates (docs/uncertainty.md).
 
 Every sampler of :mod:`bayes_talk.posterior.sampling` moves in z with X = X_MAP + L z, L Lᵀ
 the Laplace covariance (−∇² ln p)⁻¹ at a mode (:func:`whitening`): an affine map, so the

@@ -1,6 +1,6 @@
 """Synthetic 2-D landmark face driven by coarticulated articulatory parameters.
 
-This is the face side of the built-in talking-head corpus (DESIGN.md §8; parameter choices
+This is the face side of the built-in talking-head corpus (docs/data.md; parameter choices
 and their reasons are collected in ``docs/face.md``). One call,
 :func:`face_landmarks`, turns a phone segmentation into per-frame landmarks::
 

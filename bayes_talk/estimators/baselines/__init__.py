@@ -1,5 +1,5 @@
-"""Published baselines (DESIGN §7): Voice Puppetry, SLDS, DPDS, per-phone mean; and the
-context-window regressions a practitioner tries first (ridge and MLP, issue #15).
+"""Published baselines (englebienne2008; deena2009 §4.3): Voice Puppetry, SLDS, DPDS,
+per-phone mean; and the context-window regressions a practitioner tries first (ridge and MLP).
 
 ``REGISTRY`` maps each model's ``name`` to its class::
 

@@ -1,4 +1,4 @@
-"""Common interface of the published baselines (DESIGN §7).
+"""Common interface of the published baselines (englebienne2008; deena2009 §4.3).
 
 Every baseline is a small estimator with scikit-learn-like ergonomics:
 
@@ -22,8 +22,8 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.data.utterance import Utterance
 from bayes_talk.base.errors import not_fitted
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.features.phone_encoding import LabelEncoder
 

@@ -1,4 +1,4 @@
-"""Context-window regression: ridge on phone-label and MFCC windows (issue #15).
+"""Context-window regression: ridge on phone-label and MFCC windows.
 
 The baseline a practitioner tries first: a linear map from a window of context to the
 face. The context vector of frame t is
@@ -54,8 +54,8 @@ import scipy.sparse as sp
 from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 
-from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.features.context_window import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,

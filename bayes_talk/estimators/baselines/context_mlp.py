@@ -1,4 +1,4 @@
-"""Context-window MLP: one hidden layer on phone-label and MFCC windows (issue #15).
+"""Context-window MLP: one hidden layer on phone-label and MFCC windows.
 
 Same inputs x_t as :mod:`bayes_talk.estimators.baselines.context` (CTX): one-hot labels in a window of
 half-width L (padded with ``sil``) and standardised MFCCs in a window of half-width M
@@ -37,9 +37,9 @@ from typing import ClassVar, Self
 import numpy as np
 from sklearn.neural_network import MLPRegressor
 
+from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.baselines.base import check_train
 from bayes_talk.estimators.baselines.context import ContextBaseline, select_context
-from bayes_talk.data.utterance import Utterance
 from bayes_talk.features.context_window import (
     LABEL_WINDOWS,
     MFCC_WINDOWS,

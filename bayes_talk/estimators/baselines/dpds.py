@@ -9,6 +9,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from bayes_talk.data.utterance import Utterance, check_test
 from bayes_talk.estimators.baselines.lds import (
     LOG2PI,
     Batch,
@@ -17,7 +18,6 @@ from bayes_talk.estimators.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = ["DPDS", "dpds_forward", "dpds_grad_A", "dpds_loglik", "dpds_profile", "dpds_solve_mu_nu"]
 

@@ -3,7 +3,7 @@
 With the frame labels known, the HMM of englebienne2008 reduces to one Gaussian per
 phone, and its most likely observation sequence is the mean visual vector of each
 frame's phone -- the "obviously wrong model" that nevertheless scores well on error
-(englebienne2008 §4, DESIGN §7):
+(englebienne2008 §4):
 
     ẑ_t = m_{π_t},        m_π = mean{ z_t : π_t = π }  over the training frames.
 
@@ -25,9 +25,9 @@ from typing import ClassVar, Self
 
 import numpy as np
 
-from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.data.phones import check_phone, replace_unseen
 from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.estimators.baselines.base import Baseline, check_train
 
 __all__ = ["HMMMean"]
 

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.features.phone_encoding import LabelEncoder
 
 __all__ = [

@@ -6,6 +6,7 @@ from typing import ClassVar, Self
 
 import numpy as np
 
+from bayes_talk.data.utterance import Utterance, check_test
 from bayes_talk.estimators.baselines.lds import (
     LOG2PI,
     Batch,
@@ -15,7 +16,6 @@ from bayes_talk.estimators.baselines.lds import (
     label_means,
     prepare_fit,
 )
-from bayes_talk.data.utterance import Utterance, check_test
 
 __all__ = ["SLDS", "kalman_smoother"]
 

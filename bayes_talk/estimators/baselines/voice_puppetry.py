@@ -1,4 +1,4 @@
-"""Brand's Voice Puppetry (Brand 1999; englebienne2008 §3; deena2009 §4.3; DESIGN §7).
+"""Brand's Voice Puppetry (Brand 1999; englebienne2008 §3; deena2009 §4.3).
 
 Training
 --------
@@ -48,8 +48,8 @@ import scipy.sparse as sp
 from hmmlearn.hmm import GaussianHMM
 from sklearn.cluster import KMeans
 
-from bayes_talk.estimators.baselines.base import Baseline, check_train
 from bayes_talk.data.utterance import Utterance, check_test
+from bayes_talk.estimators.baselines.base import Baseline, check_train
 
 __all__ = [
     "VoicePuppetry",
