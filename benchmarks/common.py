@@ -47,7 +47,7 @@ def result_path(name: str, quick: bool = False, out: str | os.PathLike | None = 
 
 def scratch(name: str) -> Path:
     """A directory under the quick scratch directory (created), for what a quick run builds."""
-    d = QUICK / "work" / name
+    d = QUICK / "data" / name
     d.mkdir(parents=True, exist_ok=True)
     return d
 
@@ -121,7 +121,7 @@ def bench_corpus(name: str = "train", quick: bool = False) -> Path:
     where, n, seed, sentences = FULL_CORPORA[name]
     if quick:
         n = QUICK_TEST_UTTERANCES if name == "test" else QUICK_TRAIN_UTTERANCES
-        out = QUICK / "work" / f"corpus_{name}_n{n}_seed{seed}"
+        out = QUICK / "data" / f"corpus_{name}_n{n}_seed{seed}"
     else:
         out = ROOT / where
     if not (out / "manifest.json").is_file():
@@ -137,7 +137,7 @@ def bench_model(quick: bool = False) -> Path:
     :data:`FULL_MODEL` with the library defaults."""
     from bayes_talk import pipeline
 
-    out = QUICK / "work" / "model" if quick else ROOT / FULL_MODEL
+    out = QUICK / "data" / "model" if quick else ROOT / FULL_MODEL
     if not (out / "DONE" if quick else out / "bayes_talk_model.json").is_file():
         pipeline.train(bench_corpus("train", quick), pipeline.DEFAULT_MODEL, out, workers=1 if quick else 2,
                        force=True, calibrate_bands=pipeline.DEFAULT_CALIBRATION, **(QUICK_MODEL if quick else {}))

@@ -65,8 +65,8 @@ def main() -> None:
     eval_dir.mkdir(parents=True, exist_ok=True)
     out_json = eval_dir / "evaluate.json"
     cmd = [sys.executable, "-m", "bayes_talk.app.cli", "-q", "evaluate", "--protocol", args.protocol,
-           "--corpus", str(args.corpus), "--json", str(out_json), "--no-figures"]
-    cmd += ["--quick"] * args.protocol_quick + (["--test-corpus", str(args.test_corpus)] if args.test_corpus else [])
+           "--corpus", _rel(args.corpus), "--json", str(out_json), "--no-figures"]
+    cmd += ["--quick"] * args.protocol_quick + (["--test-corpus", _rel(args.test_corpus)] if args.test_corpus else [])
     cmd += ["--methods", args.methods] if args.methods else []
     load_start = [round(x, 2) for x in os.getloadavg()]
     t0 = time.perf_counter()
