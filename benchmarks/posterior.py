@@ -118,12 +118,15 @@ def efficiency(args) -> None:
         # the raw (uncalibrated) predictive against the held-out utterance's own AAM track
         raw = evaluate([s.aam[:T]], [p.mean], [p.var], [p.quantiles(DEFAULT_LEVELS)],
                        [p.sample(1000)])
+        # the predictive as synth ships it: with the model's observation term (every method alike)
+        shipped = _shipped_accuracy(model, p, s.aam[:T], s.labels[:T])
         if args.save_draws and p.latent_draws is not None:
             path = args.save_draws.with_name(f"{args.save_draws.stem}_{method}.npz")
             np.savez(path, latents=p.latent_draws, aam_mean=p.draw_mean, truth=s.aam[:T])
         if method in ("vi", "laplace"):
             res["samplers"][method] = row = _iid_efficiency(p, wall, load0, budget)
             row["raw_accuracy"] = raw
+            row.update(shipped)
             print(json.dumps({k: v for k, v in row.items() if k != "diagnostics"}, default=str), flush=True)
             _write_atomic(out_path, res)
             continue
@@ -156,9 +159,28 @@ def efficiency(args) -> None:
                    warnings=p.warnings, loadavg_start_end=[load0, os.getloadavg()[0]],
                    diagnostics={k: v for k, v in d.items() if np.ndim(v) == 0 or isinstance(v, list)})
         row["raw_accuracy"] = raw
+        row.update(shipped)
         res["samplers"][method] = row
         print(json.dumps({k: v for k, v in row.items() if k != "diagnostics"}, default=str), flush=True)
         _write_atomic(out_path, res)
+
+
+def _shipped_accuracy(model, p, truth, labels) -> dict:
+    """``accuracy`` (the predictive with the model's observation term, as ``synth`` ships it)
+    and ``raw_mixture_accuracy`` (without it), each scored as ``evaluate`` scores: coverage of the
+    exact bands, mixture NLPD, CRPS (bayes_talk.evaluation.calibration); empty for a model
+    without the term."""
+    from bayes_talk.evaluation.calibration import score_utterance, summarise_calibration
+
+    if getattr(model, "face_noise_", None) is None:
+        return {}
+
+    def scored(r) -> dict:
+        sm = summarise_calibration([score_utterance(r, truth)])
+        return {"coverage": {str(q): sm["coverage"][f"{q:g}"]["pooled"] for q in DEFAULT_LEVELS},
+                "width": {str(q): sm["width"][f"{q:g}"] for q in DEFAULT_LEVELS},
+                "crps": sm["crps"]["mean"], "nlpd": sm["nlpd"]["mean"], "amse": sm["mse"]["mean"]}
+    return {"accuracy": scored(model.observe(p, labels)), "raw_mixture_accuracy": scored(p)}
 
 
 def _write_atomic(path: Path, res: dict) -> None:
@@ -173,8 +195,9 @@ def _rel(path) -> str:
 SCALARS = ("crps", "nlpd", "amse")
 
 
-def pool(runs: list[tuple[str, dict]], dims: int) -> dict:
-    """The entry-weighted means of every sampler's ``raw_accuracy`` over ``runs`` (name, JSON)."""
+def pool(runs: list[tuple[str, dict]], dims: int, key: str = "raw_accuracy") -> dict:
+    """The entry-weighted means of every sampler's ``key`` (``raw_accuracy``, or ``accuracy``:
+    with the model's observation term) over ``runs`` (name, JSON)."""
     keys = {(r["model"], r["test_corpus"], r["aam"]) for _, r in runs}
     if len(keys) != 1:
         raise SystemExit(f"the runs differ in model / test corpus / AAM: {sorted(keys)}")
@@ -183,8 +206,8 @@ def pool(runs: list[tuple[str, dict]], dims: int) -> dict:
         raise SystemExit(f"an utterance appears twice: {names}")
     out = {}
     for method in sorted({m for _, r in runs for m in r["samplers"]}):
-        rows = [(r["utterance"], r["frames"] * dims, r["samplers"][method]["raw_accuracy"])
-                for path, r in runs if "raw_accuracy" in r["samplers"].get(method, {})]
+        rows = [(r["utterance"], r["frames"] * dims, r["samplers"][method][key])
+                for path, r in runs if key in r["samplers"].get(method, {})]
         if not rows:
             continue
         n = sum(w for _, w, _ in rows)
@@ -204,7 +227,8 @@ def pool_runs(paths: list[Path], dims: int | None, out: Path) -> dict:
     runs = [(str(p), json.loads(Path(p).read_text())) for p in paths]
     if dims is None:
         dims = _aam_dims(runs[0][1])
-    res = {"runs": [_rel(p) for p, _ in runs], "dims": dims, "samplers": pool(runs, dims)}
+    res = {"runs": [_rel(p) for p, _ in runs], "dims": dims, "samplers": pool(runs, dims),
+           "shipped": pool(runs, dims, "accuracy")}
     write_result(out, res)
     for m, acc in res["samplers"].items():
         print(f"{m}: {len(acc['utterances'])} utterances, coverage {acc['coverage']}", flush=True)

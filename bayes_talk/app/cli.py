@@ -124,7 +124,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     out = train(args.corpus_dir, args.model, args.out, workers=args.workers, force=args.force,
                 holdout=args.holdout, holdout_list=args.holdout_list, cmvn=args.cmvn,
                 alignment=not args.no_alignment, executor=args.executor, scheduler=args.scheduler,
-                calibrate_bands=cal, calibrated_model=args.calibrated_model)
+                calibrate_bands=cal, calibrated_model=args.calibrated_model, calibration=args.calibration)
     print(f"model written to {out}")
     return 0
 
@@ -160,7 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
-                      calibrated_model=args.calibrated_model,
+                      calibrated_model=args.calibrated_model, calibration=args.calibration,
                       min_utterances=args.min_utterances, cmvn=args.cmvn,
                       labels=args.labels, executor=args.executor, workers=args.workers,
                       scheduler=args.scheduler)
@@ -172,7 +172,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _add_evaluate_parser(sub) -> None:
-    from bayes_talk.calibration.bands import CALIBRATED_MODELS
+    from bayes_talk.calibration.bands import CALIBRATED_MODELS, CALIBRATIONS
     from bayes_talk.evaluation.protocols import PROTOCOLS
     from bayes_talk.evaluation.systems import METHODS
     from bayes_talk.features.audio import DEFAULT_CMVN
@@ -194,6 +194,9 @@ def _add_evaluate_parser(sub) -> None:
     e.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=None,
                    help="the model the band calibration of the *-posterior methods is scored with, as "
                         "train --calibrated-model (default: the protocol's, refit)")
+    e.add_argument("--calibration", choices=CALIBRATIONS, default=None,
+                   help="what the *-posterior methods fit on held-out training utterances, as train "
+                        "--calibration (default: the protocol's, noise)")
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
     e.add_argument("--labels", default="true",
@@ -400,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_track_parsers(csub)
 
     # --- train / synth -------------------------------------------------------------------
-    from bayes_talk.calibration.bands import CALIBRATED_MODELS
+    from bayes_talk.calibration.bands import CALIBRATED_MODELS, CALIBRATIONS
     from bayes_talk.features.audio import DEFAULT_CMVN
     from bayes_talk.pipeline import (
         DEFAULT_CALIBRATED_MODEL,
@@ -432,12 +435,15 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--calibrate-bands", type=float, nargs="?", const=DEFAULT_CALIBRATION, default=None,
                    metavar="FRACTION",
                    help=f"hold out FRACTION (default {DEFAULT_CALIBRATION:g}) of the training utterances, train once "
-                        "more on the "
-                        "rest and fit the per-parameter calibration of the Laplace posterior on them: mean "
-                        "shrinkage, band scale, level map (saved in the model, applied by synth; "
-                        f"docs/uncertainty.md). On by default ({DEFAULT_CALIBRATION:g}) for switching models")
+                        "more on the rest, synthesise them and fit --calibration on them (saved in the model, "
+                        f"applied by synth to every --posterior; docs/uncertainty.md). On by default "
+                        f"({DEFAULT_CALIBRATION:g}) for switching models")
     t.add_argument("--no-calibrate-bands", action="store_true",
-                   help="skip the calibration (half the training time; synth then gives the raw posterior)")
+                   help="skip the calibration (half the training time; synth then gives the GP predictive alone)")
+    t.add_argument("--calibration", choices=CALIBRATIONS, default="noise",
+                   help="what is fitted on the held-out utterances: noise = the face's observation term of the "
+                        "model (per AAM parameter a mean shrinkage and a Student-t scale per phone class, fitted by "
+                        "held-out log score); bands = the post-hoc four-stage band calibration")
     t.add_argument("--calibrated-model", choices=CALIBRATED_MODELS, default=DEFAULT_CALIBRATED_MODEL,
                    help="the model saved with the calibration: holdout = the one trained on the other "
                         "utterances, which the calibration was fitted for (one fit); refit = one more fit on "
@@ -495,12 +501,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
                         "drawn in bands.png and stored as observed_data in posterior.nc")
     s.add_argument("--no-video", action="store_true", help="skip the MP4s")
-    s.add_argument("--lowpass-hz", type=float, default=POST_FILTER_HZ, metavar="HZ",
-                   help="zero-phase low-pass (Hz) of a switching model's mean, bands moving with it "
-                        "(deena2010 §4.2.3; 0: off). The held-out figures in docs/results.md are unfiltered; "
-                        "on 40 new sentences a 4 Hz filter made AMSE, NLPD and CRPS worse")
+    s.add_argument("--lowpass-hz", type=float, default=0.0, metavar="HZ",
+                   help=f"zero-phase low-pass (Hz) of a switching model's mean, bands moving with it "
+                        f"(deena2010 §4.2.3 uses {POST_FILTER_HZ:g}; 0: off, as evaluate scores it: on "
+                        "sentences nobody tuned on the filter made AMSE, NLPD and CRPS worse, docs/results.md)")
     s.add_argument("--raw-bands", action="store_true",
-                   help="do not apply the model's band calibration (train --calibrate-bands)")
+                   help="the GP predictive alone: without the model's observation term or band calibration "
+                        "(train --calibrate-bands)")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

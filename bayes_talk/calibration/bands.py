@@ -608,12 +608,17 @@ def fit_band_calibration(model, train: Sequence, method: str = "laplace", holdou
 #: all the utterances, the calibration fitted on out-of-fold syntheses of every one of them
 #: (cross-fitted, K = round(1/holdout) folds: K + 1 fits)
 CALIBRATED_MODELS = ("holdout", "refit", "cv")
+#: what is fitted on the held-out training utterances (``train --calibration``): "noise", the
+#: face's observation term inside the model (bayes_talk.synthesis.face_noise, fitted by
+#: bayes_talk.calibration.noise_fit; the default); "bands", this module's post-hoc four-stage
+#: band calibration, wrapped around the model (bayes_talk.estimators.calibrated.BandCalibrated)
+CALIBRATIONS = ("noise", "bands")
 
 
 def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = "laplace",
                    holdout: float = HOLDOUT_FRACTION, n_draws: int = 64, seed: int = 0, executor=None,
                    progress: Callable[[str], None] | None = None,
-                   fit: Callable | None = None) -> tuple[Any, BandCalibration]:
+                   fit: Callable | None = None, fitter: Callable | None = None) -> tuple[Any, Any]:
     """(the model to ship, its calibration) by the scheme ``calibrated_model`` of
     :data:`CALIBRATED_MODELS`: "holdout", :func:`holdout_calibrated_model` (one fit); "refit",
     ``model`` fitted on all of ``train`` and :func:`fit_band_calibration` for it (two fits);
@@ -621,28 +626,31 @@ def calibrated_fit(model, train: Sequence, calibrated_model: str, method: str = 
     The other arguments as :func:`fit_band_calibration`'s. ``train`` and ``demo`` call this.
     With "refit" and no ``fit``, the two fits and the syntheses share the executor's queue
     (:func:`refit_beside_calibration`; without workers they run one after another in this
-    process, with the same results)."""
+    process, with the same results). ``fitter(results, held)``: what is fitted on the held-out
+    syntheses ``results`` of the utterances ``held`` (default: :meth:`BandCalibration.fit`;
+    the face's observation term: :func:`bayes_talk.calibration.noise_fit.held_out_fitter`)."""
     if calibrated_model not in CALIBRATED_MODELS:
         raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
     if calibrated_model == "refit" and fit is None:
-        return refit_beside_calibration(model, train, method, holdout, n_draws, seed, executor, progress)
+        return refit_beside_calibration(model, train, method, holdout, n_draws, seed, executor, progress, fitter)
     if fit is None:   # through the executor, with a progress bar of the states
         def fit(m, utterances):
             from bayes_talk.base.progress import ProgressMapper
             return m.fit(utterances, executor=ProgressMapper(executor, "training states", "state"))
     kw = {"method": method, "holdout": holdout, "n_draws": n_draws, "seed": seed, "executor": executor,
-          "progress": progress, "fit": fit}
+          "progress": progress, "fit": fit, "fitter": fitter}
     if calibrated_model == "holdout":
         return holdout_calibrated_model(model, train, **kw)
     fitted = fit(model, list(train))
-    calibrate = crossfit_band_calibration if calibrated_model == "cv" else fit_band_calibration
-    return fitted, calibrate(fitted, train, **kw)
+    if calibrated_model == "cv":
+        return fitted, crossfit_band_calibration(fitted, train, **kw)
+    return fitted, holdout_calibrated_model(fitted, train, **kw)[1]
 
 
 def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                              n_draws: int = 64, seed: int = 0, executor=None,
                              progress: Callable[[str], None] | None = None,
-                             fit: Callable | None = None) -> tuple[Any, BandCalibration]:
+                             fit: Callable | None = None, fitter: Callable | None = None) -> tuple[Any, Any]:
     """(the fitted model, its calibration): ``model``'s configuration trained on the
     utterances of ``train`` outside the seeded ``holdout`` fraction, and the calibration of
     its ``method`` posterior fitted on the held-out ones (see :func:`fit_band_calibration`
@@ -652,7 +660,7 @@ def holdout_calibrated_model(model, train: Sequence, method: str = "laplace", ho
     sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
     results = _held_out_syntheses(sub, [seqs[i] for i in held_idx], method, n_draws, seed, executor, say)
     return sub, _holdout_calibration(results, [seqs[i] for i in held_idx], method, holdout, n_draws, seed,
-                                     len(fit_idx), say)
+                                     len(fit_idx), say, fitter)
 
 
 def _calibration_split(model, train: Sequence, holdout: float, seed: int, progress: Callable[[str], None] | None,
@@ -672,11 +680,16 @@ def _calibration_split(model, train: Sequence, holdout: float, seed: int, progre
 
 
 def _holdout_calibration(results: Sequence[SynthesisResult], held: Sequence, method: str, holdout: float,
-                         n_draws: int, seed: int, n_fit: int, say: Callable[[str], None]) -> BandCalibration:
-    """The calibration fitted on the syntheses ``results`` of the held-out utterances ``held``,
-    with what it was fitted on recorded in its ``info``."""
-    cal = BandCalibration.fit(results, [s.aam for s in held], method=method, names=[s.name for s in held])
-    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=n_fit,
+                         n_draws: int, seed: int, n_fit: int, say: Callable[[str], None],
+                         fitter: Callable | None = None) -> Any:
+    """The calibration (``fitter``'s; default :meth:`BandCalibration.fit`) fitted on the
+    syntheses ``results`` of the held-out utterances ``held``, with what it was fitted on
+    recorded in its ``info``."""
+    if fitter is None:
+        cal = BandCalibration.fit(results, [s.aam for s in held], method=method, names=[s.name for s in held])
+    else:
+        cal = fitter(results, held)
+    cal.info.update(holdout=float(holdout), seed=int(seed), n_draws=int(n_draws), n_fit=n_fit, method=method,
                     held_out_diagnostics=_synthesis_record(results))
     _say_fitted(cal, say)
     return cal
@@ -684,7 +697,8 @@ def _holdout_calibration(results: Sequence[SynthesisResult], held: Sequence, met
 
 def refit_beside_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                              n_draws: int = 64, seed: int = 0, executor=None,
-                             progress: Callable[[str], None] | None = None) -> tuple[Any, BandCalibration]:
+                             progress: Callable[[str], None] | None = None,
+                             fitter: Callable | None = None) -> tuple[Any, Any]:
     """The "refit" scheme of :func:`calibrated_fit` (``model`` fitted on all of ``train``, and
     :func:`fit_band_calibration` for it) with the executor's workers kept busy.
 
@@ -715,10 +729,13 @@ def refit_beside_calibration(model, train: Sequence, method: str = "laplace", ho
     held = [seqs[i] for i in held_idx]
     syntheses = _start_held_out_syntheses(sub, held, method, n_draws, seed, executor, say)
     model.finish_fit(plan, [p.result() for p in bar(states, len(states), "training states", "state")])
-    return model, _holdout_calibration(syntheses(), held, method, holdout, n_draws, seed, len(fit_idx), say)
+    return model, _holdout_calibration(syntheses(), held, method, holdout, n_draws, seed, len(fit_idx), say, fitter)
 
 
-def _say_fitted(cal: BandCalibration, say: Callable[[str], None]) -> None:
+def _say_fitted(cal: Any, say: Callable[[str], None]) -> None:
+    if not isinstance(cal, BandCalibration):
+        say(f"{cal.describe()}")
+        return
     say("band calibration: 90 % coverage on the held-out utterances {:.3f} raw -> {:.3f} calibrated; "
         "factors {:.2f}-{:.2f} (median {:.2f})".format(cal.coverage_raw.get("0.9", float("nan")),
                                                       cal.coverage_calibrated.get("0.9", float("nan")),
@@ -741,7 +758,7 @@ def crossfit_folds(n: int, holdout: float = HOLDOUT_FRACTION, seed: int = 0) -> 
 def crossfit_band_calibration(model, train: Sequence, method: str = "laplace", holdout: float = HOLDOUT_FRACTION,
                               n_draws: int = 64, seed: int = 0, executor=None,
                               progress: Callable[[str], None] | None = None,
-                              fit: Callable | None = None) -> BandCalibration:
+                              fit: Callable | None = None, fitter: Callable | None = None) -> Any:
     """The calibration of ``method`` posteriors fitted on out-of-fold syntheses of every
     training utterance (module docstring, "Cross-fitted"): for each fold of
     :func:`crossfit_folds`, a model of ``model``'s configuration trained on the other folds
@@ -764,8 +781,9 @@ def crossfit_band_calibration(model, train: Sequence, method: str = "laplace", h
         sub = fit(sub, rest) if fit is not None else sub.fit(rest, executor=executor)
         results += _held_out_syntheses(sub, [seqs[i] for i in held], method, n_draws, seed, executor, say)
         order += held
-    cal = BandCalibration.fit(results, [seqs[i].aam for i in order], method=method,
-                              names=[seqs[i].name for i in order])
+    held_all = [seqs[i] for i in order]
+    cal = (BandCalibration.fit(results, [s.aam for s in held_all], method=method, names=[s.name for s in held_all])
+           if fitter is None else fitter(results, held_all))
     cal.info.update(holdout=float(holdout), folds=len(folds), seed=int(seed), n_draws=int(n_draws),
                     n_fit=[len(seqs) - len(f) for f in folds], held_out_diagnostics=_synthesis_record(results))
     _say_fitted(cal, say)

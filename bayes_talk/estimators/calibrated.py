@@ -6,9 +6,9 @@ switching SGPDM) and the :class:`~bayes_talk.calibration.bands.BandCalibration`
 of one of its inference methods (stages 0-3: mean shrinkage, band scale, level map, pool
 with the constant band; fitted on held-out *training* utterances by
 :func:`~bayes_talk.calibration.bands.fit_band_calibration`). Its ``predict_dist``
-is the wrapped estimator's, recalibrated when the result is of the calibrated method
-(``result.method == calibration.method``) and returned as it is otherwise (e.g. the
-sequential path, or another sampler). It saves and loads as every estimator
+is the wrapped estimator's, recalibrated whatever inference method made it (one wrapper for
+every method alike). It is the opt-in post-hoc alternative (``train --calibration bands``);
+the default calibration is the observation term inside the model (:func:`calibrate_model`). It saves and loads as every estimator
 (:meth:`Estimator.save <bayes_talk.estimators.base.Estimator.save>`): the calibration in its
 descriptor (:meth:`BandCalibration.to_dict`; every calibration format, versions 1-5, is
 read), the wrapped estimator in the sub-directory ``estimator``.
@@ -20,13 +20,41 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from bayes_talk.calibration import bands as band_calibration
-from bayes_talk.calibration.bands import HOLDOUT_FRACTION, BandCalibration
+from bayes_talk.calibration.bands import (
+    CALIBRATIONS,
+    HOLDOUT_FRACTION,
+    BandCalibration,
+    calibrated_fit,
+)
+from bayes_talk.calibration.noise_fit import held_out_fitter
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.result import SynthesisResult
 
-__all__ = ["BandCalibrated"]
+__all__ = ["CALIBRATIONS", "BandCalibrated", "calibrate_model"]
+
+
+def calibrate_model(model, train: list[Utterance], calibrated_model: str = "refit", calibration: str = "noise",
+                    holdout: float = HOLDOUT_FRACTION, n_draws: int = DEFAULT_DRAWS["laplace"], seed: int = 0,
+                    method: str = "laplace", executor=None, progress=None, fit=None,
+                    ablations: bool = False) -> Estimator:
+    """The model to ship, trained on ``train`` with what ``calibration`` fits on held-out
+    training utterances (:data:`CALIBRATIONS`) by the scheme ``calibrated_model``
+    (:data:`~bayes_talk.calibration.bands.CALIBRATED_MODELS`; the held-out syntheses by the
+    posterior ``method`` with ``n_draws`` draws): "noise", the switching model with its
+    observation term set (:meth:`SwitchingSGPDM.with_face_noise`; ``ablations``: the
+    term's ablations fitted too, for ``evaluate``); "bands", the model wrapped with its band
+    calibration (:class:`BandCalibrated`). ``train``, ``demo`` and ``evaluate`` call this."""
+    if calibration not in CALIBRATIONS:
+        raise ValueError(f"calibration: expected one of {', '.join(CALIBRATIONS)}, found {calibration!r}")
+    kw = {"method": method, "holdout": holdout, "n_draws": n_draws, "seed": seed, "executor": executor,
+          "progress": progress, "fit": fit}
+    if calibration == "noise":
+        shipped, noise = calibrated_fit(model, train, calibrated_model, fitter=held_out_fitter(ablations), **kw)
+        return shipped.with_face_noise(noise)
+    shipped, cal = calibrated_fit(model, train, calibrated_model, **kw)
+    return BandCalibrated.wrap(shipped, cal)
 
 
 class BandCalibrated(Estimator):
@@ -75,9 +103,10 @@ class BandCalibrated(Estimator):
         return self.estimator_.predict(utt)
 
     def calibrate(self, result: SynthesisResult) -> SynthesisResult:
-        """``result`` recalibrated when it is of the calibrated method, else unchanged."""
+        """``result`` recalibrated, whatever inference method made it (the calibration was
+        fitted on ``calibration_.method``'s held-out syntheses)."""
         self._require_fitted()
-        return self.calibration_.apply(result) if result.method == self.calibration_.method else result
+        return self.calibration_.apply(result)
 
     def predict_dist(self, utt: Utterance, **options: Any) -> SynthesisResult:
         """The wrapped estimator's ``predict_dist(utt, **options)``, recalibrated

@@ -63,10 +63,13 @@ __all__ = [
     "PIT_BINS",
     "UtteranceCalibration",
     "calibration_tags",
+    "ceiling_control",
     "control_verdict",
     "markdown_calibration",
+    "paired_difference_se",
     "plot_calibration",
     "ratio_se",
+    "resolution",
     "score_utterance",
     "summarise_calibration",
 ]
@@ -84,8 +87,12 @@ PARAM_RANGE_90 = (0.80, 0.97)
 MIN_STATE_ENTRIES = 180
 #: the predictives scored per method: as reported, before the band calibration, and the
 #: constant-band control (:func:`bayes_talk.evaluation.scoring.calibration_inputs`)
-CALIBRATION_KEYS: tuple[str, ...] = ("calibration", "calibration_raw", "calibration_control")
-_TAGS = {"calibration": "", "calibration_raw": " (raw)", "calibration_control": " (constant-band control)"}
+CALIBRATION_KEYS: tuple[str, ...] = ("calibration", "calibration_raw", "calibration_control",
+                                     "calibration_context_only", "calibration_unshrunk")
+_TAGS = {"calibration": "", "calibration_raw": " (raw)", "calibration_control": " (constant-band control)",
+         "calibration_context_only": " (c_t alone)", "calibration_unshrunk": " (unshrunk mean)"}
+#: quantiles of the predicted band width the resolution's RMS errors are binned by
+WIDTH_BINS = 5
 
 
 def calibration_tags() -> dict[str, str]:
@@ -106,9 +113,22 @@ def control_verdict(entry: Mapping[str, Any]) -> dict[str, Any] | None:
     for key in ("nlpd", "crps"):
         out[key] = {"method": c[key]["mean"], "control": k[key]["mean"],
                     "difference": c[key]["mean"] - k[key]["mean"], "method_se": c[key]["se"],
-                    "control_se": k[key]["se"]}
+                    "control_se": k[key]["se"], "difference_se": paired_difference_se(c[key], k[key])}
     out["beats"] = bool(out["nlpd"]["difference"] < 0 and out["crps"]["difference"] < 0)
+    out["beats_by_2se"] = bool(all(out[k]["difference_se"] is not None and
+                                   out[k]["difference"] < -2 * out[k]["difference_se"] for k in ("nlpd", "crps")))
     return out
+
+
+def paired_difference_se(a: Mapping[str, Any], b: Mapping[str, Any]) -> float | None:
+    """The cluster-robust standard error (utterances as clusters, :func:`ratio_se`) of the
+    difference of two per-entry mean scores of the same utterances (``a`` and ``b``:
+    summaries with ``per_utterance`` totals and ``entries``); None without them."""
+    ta, tb = a.get("per_utterance"), b.get("per_utterance")
+    if ta is None or tb is None or len(ta) != len(tb) or a.get("entries") != b.get("entries"):
+        return None
+    se = ratio_se(np.asarray(ta) - np.asarray(tb), np.asarray(a["entries"], np.float64))[1]
+    return None if not math.isfinite(se) else se
 
 
 @dataclass
@@ -118,7 +138,10 @@ class UtteranceCalibration:
     inside: (L, D) frames inside each level's band; width: (L, D) summed band widths;
     pit_counts: (PIT_BINS, D) PIT histogram counts; nlpd, crps: (D,) summed over frames;
     state_inside_90: {state model: [entries inside the 90 % band, entries]} over the frames
-    each switching state's model synthesised (empty for a prediction without states).
+    each switching state's model synthesised (empty for a prediction without states);
+    sq_err: (D,) summed squared error of the predictive mean; sd, abs_err: (T, D) the
+    predictive standard deviation and the absolute error of the mean, entry by entry (the
+    bands' resolution).
     """
 
     n_frames: int
@@ -129,6 +152,9 @@ class UtteranceCalibration:
     nlpd: np.ndarray
     crps: np.ndarray
     state_inside_90: dict[str, list[float]] | None = None
+    sq_err: np.ndarray | None = None
+    sd: np.ndarray | None = None
+    abs_err: np.ndarray | None = None
 
 
 def score_utterance(result: SynthesisResult, truth: np.ndarray, levels: Sequence[float] = LEVELS,
@@ -165,9 +191,11 @@ def score_utterance(result: SynthesisResult, truth: np.ndarray, levels: Sequence
         crps = crps_gaussian_entries(z, m, np.sqrt(np.maximum(v, 1e-300)))
     else:
         crps = crps_sample_entries(z, result.sample(int(crps_samples), seed=seed), fair=True)
+    err = z - result.mean
     return UtteranceCalibration(int(z.shape[0]), levels, np.asarray(inside, np.float64),
                                 np.asarray(width, np.float64), pit_counts.astype(np.int64),
-                                nlpd, np.sum(crps, axis=0), states)
+                                nlpd, np.sum(crps, axis=0), states, np.sum(err ** 2, axis=0),
+                                np.sqrt(np.maximum(result.var, 0.0)), np.abs(err))
 
 
 def ratio_se(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -223,8 +251,15 @@ def summarise_calibration(scores: Sequence[UtteranceCalibration],
     out["pit"] = {"edges": np.linspace(0.0, 1.0, PIT_BINS + 1).tolist(), "counts": pooled_counts.tolist(),
                   "ks": float(np.max(np.abs(cdf - np.arange(1, PIT_BINS + 1) / PIT_BINS)))}
     for key in ("nlpd", "crps"):
-        mean, se = ratio_se(np.array([getattr(s, key).sum() for s in scores]), T * D)
-        out[key] = {"mean": mean, "se": se}
+        totals = np.array([getattr(s, key).sum() for s in scores])
+        mean, se = ratio_se(totals, T * D)
+        out[key] = {"mean": mean, "se": se, "per_utterance": totals.tolist(), "entries": (T * D).tolist()}
+    if all(s.sq_err is not None for s in scores):
+        mse, mse_se = ratio_se(np.array([s.sq_err.sum() for s in scores]), T * D)
+        out["mse"] = {"mean": mse, "se": mse_se}
+    if all(s.sd is not None for s in scores):
+        out["resolution"] = resolution(np.concatenate([s.sd for s in scores]),
+                                       np.concatenate([s.abs_err for s in scores]))
     per_state: dict[str, list[float]] = {}
     for sc in scores:
         for k, (a, b) in (sc.state_inside_90 or {}).items():
@@ -237,6 +272,37 @@ def summarise_calibration(scores: Sequence[UtteranceCalibration],
                                "states_in_range_90": float(np.mean([param_range[0] <= c <= param_range[1]
                                                                     for c in big])) if big else None}
     return out
+
+
+def ceiling_control(means: Sequence[np.ndarray], truths: Sequence[np.ndarray]) -> list[UtteranceCalibration]:
+    """Scores of the best constant band around a reference's means (the oracle's): N(m_td, v_d)
+    with v_d the reference's own mean squared error on these utterances (in-sample, so as
+    generous to the constant band as it can be). Beside the reference's own band it measures
+    how much any band shape can win over a constant band here."""
+    v = np.mean(np.concatenate([(y - m) ** 2 for m, y in zip(means, truths, strict=True)]), axis=0)
+    v = np.maximum(v, 1e-12)
+    return [score_utterance(SynthesisResult.gaussian(m, np.broadcast_to(v, m.shape).copy(), method="constant-band"), y)
+            for m, y in zip(means, truths, strict=True)]
+
+
+def resolution(sd: np.ndarray, abs_err: np.ndarray, n_bins: int = WIDTH_BINS) -> dict[str, Any]:
+    """Whether the bands are wider where the errors are larger, per parameter d over the
+    entries (N, D): the Spearman correlation of the predicted s.d. with the absolute error
+    (0: no resolution, as a constant band), and the RMS error in each ``n_bins``-quantile bin
+    of the predicted s.d. (narrowest first), pooled as the mean over parameters."""
+    from scipy.stats import spearmanr
+
+    D = sd.shape[1]
+    rho, rms = [], []
+    for d in range(D):
+        s, e = sd[:, d], abs_err[:, d]
+        rho.append(float(spearmanr(s, e).statistic) if np.ptp(s) > 0 else 0.0)
+        order = np.argsort(s, kind="stable")
+        rms.append([float(np.sqrt(np.mean(e[b] ** 2))) for b in np.array_split(order, n_bins)])
+    rms_arr = np.asarray(rms)
+    return {"spearman_per_param": rho, "spearman_median": float(np.median(rho)),
+            "rms_by_width_bin_per_param": rms_arr.tolist(), "rms_by_width_bin": rms_arr.mean(0).tolist(),
+            "n_bins": int(n_bins)}
 
 
 def _cell(c: Mapping[str, Any] | None) -> str:
@@ -257,9 +323,14 @@ def markdown_calibration(methods: Mapping[str, Mapping[str, Any]]) -> str:
     for name, e in methods.items():
         v = e.get("uncertainty_beats_control")
         if isinstance(v, Mapping):
+            def diff(k: str, v: Mapping[str, Any] = v) -> str:
+                se = v[k].get("difference_se")
+                return f"{v[k]['difference']:+.4f}" + ("" if se is None else f" ± {se:.4f}")
+            by = " by more than 2 s.e." if v.get("beats_by_2se") else ""
             verdicts.append(f"- {name}: its uncertainty {'beats' if v['beats'] else 'does NOT beat'} the "
-                            f"constant-band control (NLPD {v['nlpd']['method']:.4g} vs {v['nlpd']['control']:.4g}, "
-                            f"CRPS {v['crps']['method']:.4g} vs {v['crps']['control']:.4g}).")
+                            f"constant-band control{by if v['beats'] else ''} (NLPD {v['nlpd']['method']:.4g} vs "
+                            f"{v['nlpd']['control']:.4g}, difference {diff('nlpd')}; CRPS {v['crps']['method']:.4g} "
+                            f"vs {v['crps']['control']:.4g}, difference {diff('crps')}; ± paired s.e. over utterances).")
         for key, tag in _TAGS.items():
             c = e.get(key)
             if isinstance(c, Mapping) and c.get("coverage"):

@@ -55,7 +55,6 @@ from bayes_talk.evaluation.splits import Split, check_test_set, feature_dims, ma
 from bayes_talk.evaluation.systems import (
     build_family,
     calibrated_method,
-    fit_band_calibration,
     fit_calibrated_family,
     fit_family,
     get_method,
@@ -142,7 +141,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
         calib_s[fam] = 0.0
         if model_cache is not None and (fam, split.index) in model_cache:
             model = model_cache[(fam, split.index)]
-        elif calibrates and cfg.calibrated_model == "holdout":   # one fit: the calibration's own model
+        elif calibrates:   # as train ships it: the calibration fitted on held-out training utterances
             model = fit_calibrated_family(fam, job.train, cfg, cal_method, executor=executor,
                                           progress=None if say is None else
                                           (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
@@ -150,19 +149,13 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
         else:
             model = fit_family(fam, job.train, cfg, executor=executor)
         train_s[fam] = time.perf_counter() - t0
-        if calibrates and not isinstance(model, BandCalibrated):
-            t0 = time.perf_counter()
-            model = fit_band_calibration(model, job.train, cfg, cal_method, executor=executor,
-                                         progress=None if say is None else
-                                         (lambda msg: say(f"split {split.index + 1}/{job.n_splits}: {msg}")))
-            calib_s[fam] = time.perf_counter() - t0
-            train_s[fam] += calib_s[fam]
         if model_cache is not None:   # with its calibration: label sources reuse both
             model_cache[(fam, split.index)] = model
         for name in fam_methods:
             rows = []
             cal_rows[name] = {k: [] for k in CAL.CALIBRATION_KEYS}
             synth_s[name], synth_frames[name] = 0.0, 0
+            ceiling_means = []   # a reference with bands (the oracle): its mean, for its constant band
             for j, seq in enumerate(test):
                 t0 = time.perf_counter()
                 pred = predict(name, model, seq, cfg)
@@ -175,10 +168,15 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                 rows.append(utterance_metrics(seq.aam, pred, variance, ll))
                 for key, res in calibration_inputs(name, pred).items():
                     cal_rows[name][key].append(CAL.score_utterance(res, seq.aam, seed=cfg.seed))
+                if getattr(model, "reference", False) and pred.result is not None:
+                    ceiling_means.append(pred.mean)
                 if traj is not None and j == 0:
                     traj.predictions[name] = pred
+            if ceiling_means:
+                cal_rows[name]["calibration_control"] = CAL.ceiling_control(ceiling_means, [s.aam for s in test])
             rows_all[name] = rows
-            cal = model.calibration_ if isinstance(model, BandCalibrated) else None
+            cal = (model.calibration_ if isinstance(model, BandCalibrated)
+                   else getattr(model, "face_noise_", None))
             if cal is not None and "posterior" in get_method(name).options:
                 band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
@@ -335,6 +333,7 @@ def evaluate(
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
     calibrated_model: str | None = None,
+    calibration: str | None = None,
     min_utterances: int | None = None,
     cmvn: str = DEFAULT_CMVN,
     labels: str | Sequence[str] | None = None,
@@ -349,7 +348,8 @@ def evaluate(
     oracle_draws: generator draws per utterance of method ``oracle`` (>= 2: its bias
     correction needs an across-draw variance; the ``oracle`` model's ``n_draws``); None: its default.
     calibrated_model: which model the band calibration is scored with (``SystemConfig``; None:
-    the protocol's, "refit").
+    the protocol's, "refit"). calibration: what is fitted on held-out training utterances
+    (``SystemConfig.calibration``, as ``train --calibration``; None: the protocol's, "noise").
     min_utterances: let a corpus smaller than the protocol needs (but with at least this
     many utterances) be evaluated with the split scaled down (:func:`scale_protocol`); the
     JSON and Markdown carry a warning saying so. cmvn: the per-utterance cepstral
@@ -378,7 +378,8 @@ def evaluate(
                          **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
                          **({"models": {"oracle": {"n_draws": int(oracle_draws)}}} if oracle_draws is not None
                             else {}),
-                         **({"calibrated_model": calibrated_model} if calibrated_model is not None else {}))
+                         **({"calibrated_model": calibrated_model} if calibrated_model is not None else {}),
+                         **({"calibration": calibration} if calibration is not None else {}))
     names = resolve_methods(methods, proto.default_methods)
     from bayes_talk.evaluation.label_sources import parse_label_sources, run_label_sources
 

@@ -71,10 +71,11 @@ def json_safe(obj: Any) -> Any:
 
 
 def calibration_inputs(name: str, pred) -> dict[str, Any]:
-    """{"calibration": predictive, "calibration_raw": uncalibrated predictive,
-    "calibration_control": the constant-band control} of a method with a variance (a
-    Gaussian SynthesisResult where the method gives mean and variance only); the last two
-    where the method has them."""
+    """{"calibration": predictive, "calibration_raw": the predictive before the calibration
+    (the GP predictive alone), "calibration_control": the plain constant-band control,
+    "calibration_<ablation>": the observation term's ablations} of a method with a variance
+    (a Gaussian SynthesisResult where the method gives mean and variance only); all but the
+    first where the method has them."""
     from bayes_talk.synthesis.result import SynthesisResult
 
     if pred.var is None:
@@ -86,4 +87,6 @@ def calibration_inputs(name: str, pred) -> dict[str, Any]:
         out["calibration_raw"] = pred.raw
     if getattr(pred, "control", None) is not None:
         out["calibration_control"] = pred.control
+    for ablation, r in (getattr(pred, "ablations", None) or {}).items():
+        out[f"calibration_{ablation.replace('-', '_')}"] = r
     return out

@@ -67,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
+from bayes_talk.calibration.bands import CALIBRATED_MODELS, CALIBRATIONS, HOLDOUT_FRACTION
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.estimators.calibrated import BandCalibrated
@@ -83,6 +83,8 @@ from bayes_talk.estimators.registry import (
 )
 from bayes_talk.estimators.switching import SwitchingSGPDM
 from bayes_talk.posterior.methods import DEFAULT_DRAWS
+from bayes_talk.synthesis.face_noise import FaceNoise
+from bayes_talk.synthesis.result import SynthesisResult
 from bayes_talk.synthesis.segment_objective import SEGMENT_MAX_ITER
 
 __all__ = [
@@ -95,7 +97,6 @@ __all__ = [
     "SystemConfig",
     "build_family",
     "calibrated_method",
-    "fit_band_calibration",
     "fit_calibrated_family",
     "fit_family",
     "get_method",
@@ -173,6 +174,8 @@ class SystemConfig:
     band_calibration: float | None = HOLDOUT_FRACTION
     #: which model the calibration is scored with (CALIBRATED_MODELS, as ``train --calibrated-model``)
     calibrated_model: str = "refit"
+    #: what is fitted on the held-out utterances (CALIBRATIONS, as ``train --calibration``)
+    calibration: str = "noise"
     models: dict[str, dict[str, Any]] = field(default_factory=lambda: copy.deepcopy(DEFAULT_MODELS))
     synthesis: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -181,6 +184,8 @@ class SystemConfig:
             raise ValueError(f"band_calibration must be a fraction in (0, 1) or None, got {self.band_calibration!r}")
         if self.calibrated_model not in CALIBRATED_MODELS:
             raise ValueError(f"calibrated_model must be one of {CALIBRATED_MODELS}, got {self.calibrated_model!r}")
+        if self.calibration not in CALIBRATIONS:
+            raise ValueError(f"calibration must be one of {CALIBRATIONS}, got {self.calibration!r}")
         if self.lowpass_hz is not None and not self.lowpass_hz > 0:
             raise ValueError(f"lowpass_hz must be > 0 or None, got {self.lowpass_hz!r}")
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -261,6 +266,8 @@ class Prediction:
     raw: Any = None
     #: the constant-band control of a band-calibrated predictive
     control: Any = None
+    #: the observation term's ablations (name -> predictive), where the model has them
+    ablations: dict = field(default_factory=dict)
 
     def band(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """The central ``level`` band (lower, upper) of the predictive: the result's exact
@@ -349,10 +356,12 @@ def predict(method: str, model: Any, seq: Utterance, cfg: SystemConfig) -> Predi
     if cfg.lowpass_hz is not None and not getattr(model, "reference", False):
         from bayes_talk.synthesis.sequential import lowpass
 
+        def filtered(r):   # every predictive of the method moves with its own filtered mean
+            return None if r is None else r.shift(lowpass(r.mean, cfg.lowpass_hz) - r.mean)
         smooth = lowpass(pred.mean, cfg.lowpass_hz)
         res = None if pred.result is None else pred.result.shift(smooth - pred.mean)
-        raw = None if pred.raw is None else pred.raw.shift(smooth - pred.mean)
-        pred = Prediction(smooth, pred.var, result=res, raw=raw)
+        pred = Prediction(smooth, pred.var, result=res, raw=filtered(pred.raw), control=filtered(pred.control),
+                          ablations={k: filtered(v) for k, v in pred.ablations.items()})
     return pred
 
 
@@ -364,44 +373,22 @@ def calibrated_method(names: Iterable[str]) -> str | None:
     return min(posterior) if posterior else None
 
 
-def fit_band_calibration(model: Any, train: Sequence[Utterance], cfg: SystemConfig, method: str,
-                         executor=None, progress=None) -> Any:
-    """Fit the band calibration of ``model``'s posterior ``method`` on held-out training
-    utterances (:func:`bayes_talk.calibration.bands.fit_band_calibration`; one
-    extra fit on the other ``1 - cfg.band_calibration`` of ``train``; with
-    ``cfg.calibrated_model`` "cv" :func:`~bayes_talk.calibration.bands.crossfit_band_calibration`,
-    K = round(1/``cfg.band_calibration``) extra fits). Returns ``model``
-    wrapped with it (:class:`~bayes_talk.estimators.calibrated.BandCalibrated`): its
-    ``*-posterior`` methods then return the calibrated predictive with the raw one beside it."""
-    from bayes_talk.calibration.bands import crossfit_band_calibration
-    from bayes_talk.calibration.bands import fit_band_calibration as held_out_calibration
-    from bayes_talk.gp.threads import torch_threads
-
-    if cfg.band_calibration is None:
-        raise ValueError("band_calibration is off: nothing to fit")
-    fit_calibration = crossfit_band_calibration if cfg.calibrated_model == "cv" else held_out_calibration
-    with torch_threads(cfg.torch_threads):
-        cal = fit_calibration(model, train, method=method, holdout=cfg.band_calibration,
-                              n_draws=cfg.posterior_draws, seed=cfg.seed, executor=executor, progress=progress)
-    return BandCalibrated.wrap(model, cal)
-
-
 def fit_calibrated_family(family: str, train: Sequence[Utterance], cfg: SystemConfig, method: str,
                           executor=None, progress=None) -> Any:
-    """``cfg.calibrated_model`` "holdout": the model of ``family`` trained on the utterances of
-    ``train`` outside the calibration's held-out ``cfg.band_calibration`` fraction, wrapped
-    with the calibration of its posterior ``method`` fitted on the held-out ones
-    (:func:`bayes_talk.calibration.bands.holdout_calibrated_model`; one fit in all)."""
-    from bayes_talk.calibration.bands import holdout_calibrated_model
+    """The model of ``family`` as ``train`` ships it, trained on ``train`` with
+    ``cfg.calibration`` fitted on held-out training utterances (a ``cfg.band_calibration``
+    fraction; by the scheme ``cfg.calibrated_model``; the held-out syntheses by the posterior
+    ``method``): :func:`bayes_talk.estimators.calibrated.calibrate_model`, the observation
+    term's ablations fitted too (scored beside it)."""
+    from bayes_talk.estimators.calibrated import calibrate_model
     from bayes_talk.gp.threads import torch_threads
 
     if cfg.band_calibration is None:
         raise ValueError("band_calibration is off: nothing to fit")
     with torch_threads(cfg.torch_threads):
-        model, cal = holdout_calibrated_model(build_family(family, cfg), train, method=method,
-                                              holdout=cfg.band_calibration, n_draws=cfg.posterior_draws,
-                                              seed=cfg.seed, executor=executor, progress=progress)
-    return BandCalibrated.wrap(model, cal)
+        return calibrate_model(build_family(family, cfg), list(train), cfg.calibrated_model, cfg.calibration,
+                               holdout=cfg.band_calibration, n_draws=cfg.posterior_draws, seed=cfg.seed,
+                               method=method, executor=executor, progress=progress, ablations=True)
 
 
 def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Prediction:
@@ -413,19 +400,28 @@ def _predict(m: Method, model: Any, seq: Utterance, cfg: SystemConfig) -> Predic
     options = {**m.options, **cfg.synthesis.get(model_name(m.family), {}),
                **{k: getattr(cfg, f) for k, f in m.settings.items()}}
     raw = control = None
+    ablations: dict[str, SynthesisResult] = {}
+    noise = getattr(model, "face_noise_", None)
     if isinstance(model, BandCalibrated):   # the raw predictive, and the control, scored beside it
-        r = model.estimator_.predict_dist(seq, **options)
-        if r.method == model.calibration_.method:
-            cal = model.calibration_
-            raw, r = r, model.calibrate(r)
-            control = cal.control_result(raw) if cal.control is not None else None
+        cal = model.calibration_
+        raw = model.estimator_.predict_dist(seq, **options)
+        r = model.calibrate(raw)
+        control = cal.control_result(raw) if cal.control is not None else None
+    elif noise is not None and "face_noise" in inspect.signature(model.predict_dist).parameters:
+        # the predictive with the model's observation term, the GP predictive alone, the plain
+        # constant band around the mean and the term's ablations, from one synthesis
+        raw = model.predict_dist(seq, face_noise=False, **options)
+        r = model.observe(raw, seq.labels)
+        control = noise.constant_band(r)
+        ablations = {k: FaceNoise.from_dict(d, where=f"face noise ablation {k}").apply(raw, seq.labels)
+                     for k, d in noise.info.get("ablations", {}).items()}
     else:
         r = model.predict_dist(seq, **options)
     for w in r.warnings:   # those of the predictive reported (calibrated: BandCalibration.domain)
         log.warning("%s: %s", seq.name, w)
     bias = r.diagnostics.get(MSE_BIAS) if isinstance(r.diagnostics, dict) else None
     return Prediction(np.asarray(r.mean, np.float64), np.asarray(r.var, np.float64), mse_bias=bias, result=r,
-                      raw=raw, control=control)
+                      raw=raw, control=control, ablations=ablations)
 
 
 def log_likelihood(method: str, model: Any, seq: Utterance, pred: Prediction) -> float | None:

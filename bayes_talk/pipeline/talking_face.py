@@ -33,7 +33,7 @@ from bayes_talk.pipeline.uncertainty_outputs import (
     write_posterior_netcdf,
 )
 from bayes_talk.posterior.methods import DEFAULT_METHOD, INFERENCE, check_method
-from bayes_talk.synthesis.sequential import POST_FILTER_HZ, lowpass
+from bayes_talk.synthesis.sequential import lowpass
 
 __all__ = ["SYNTH_OUTPUT_NAMES", "synth"]
 
@@ -56,12 +56,28 @@ def _calibration_factors(res, tm, attribute: str) -> list[float] | None:
     return [float(v) for v in values]
 
 
+def _face_noise_record(res, tm) -> dict | None:
+    """The observation term applied to ``res`` (its per-parameter shrinkage a_d, Student-t
+    scale τ_d and degrees of freedom ν_d), or None when none was."""
+    noise = getattr(tm.uncalibrated, "face_noise_", None)
+    if noise is None or not res.diagnostics.get("face_noise"):
+        return None
+    return {"shrink": noise.shrink.tolist(), "scale": noise.scale.tolist(),
+            "dof": [min(float(v), 1e6) for v in noise.dof], "gp_scale": noise.gp_scale.tolist()}
+
+
 def _trajectory_description(res, lowpass_hz) -> str:
     """What ``trajectory.npy`` holds, in words (written to ``diagnostics.json``)."""
     calibrated = isinstance(res.diagnostics, dict) and "band_calibration" in res.diagnostics
     has_c = getattr(res, "mean_function", None) is not None
     toward = ("the model's explicit mean function c_t (its phonetic-context view)" if has_c
               else "0 (the parameter's training mean)")
+    if isinstance(res.diagnostics, dict) and res.diagnostics.get("face_noise"):
+        filt = f", low-passed at {lowpass_hz:g} Hz (zero phase)" if lowpass_hz is not None else ""
+        return (f"the mean of the {res.method} predictive with the model's observation term: the posterior "
+                f"mean with each AAM parameter's part beyond {toward} multiplied by the term's shrinkage a_d "
+                f"(face_noise.shrink; 1 = unchanged, 0 = that mean function){filt}; mean-removed AAM "
+                "parameters (add the model's offset)")
     what = (f"the mean of the band-calibrated {res.method} predictive: the posterior mean with each AAM "
             f"parameter's part beyond {toward} multiplied by the calibration's mean factor a_d "
             "(mean_shrinkage; 1 = unchanged, 0 = the parameter is predicted as that mean function); "
@@ -76,7 +92,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
           seed: int = 0, tier: str | None = None, text: str | None = None,
           transcript: str | os.PathLike | None = None, align_method: str | None = None,
           truth: str | os.PathLike | None = None, calibrated: bool = True,
-          sampler_options: dict | None = None, lowpass_hz: float | None = POST_FILTER_HZ) -> dict[str, Path]:
+          sampler_options: dict | None = None, lowpass_hz: float | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -108,16 +124,17 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     a video, ``uncertainty.mp4`` (the mean face beside the per-pixel standard deviation of
     rendered predictive draws; bayes_talk.pipeline.uncertainty_outputs).
 
-    ``calibrated``: apply the model's band calibration (the model is saved band-calibrated by
-    ``train --calibrate-bands``, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`) when ``posterior`` is the method it was fitted on; False:
-    the raw posterior bands. Whether it was applied is recorded in ``diagnostics.json``.
+    ``calibrated``: the predictive as ``train`` calibrated it, whatever the ``posterior``:
+    with the model's observation term (:class:`~bayes_talk.synthesis.face_noise.FaceNoise`,
+    fitted on held-out training utterances; the default ``train --calibration noise``) or its
+    post-hoc band calibration (``train --calibration bands``); False: the GP predictive
+    alone. What was applied is recorded in ``diagnostics.json``.
 
-    ``lowpass_hz``: the zero-phase low-pass of deena2010 §4.2.3 applied to the mean of a
-    model that takes it (its ``post_filter``: the switching models), the bands moving with it (default
-    :data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz; None: off). Recorded in
-    ``segments.json``. The held-out figures in docs/results.md are of the unfiltered mean;
-    measured on 40 new sentences, the 4 Hz filter makes every score worse (AMSE 5.81 -> 6.33,
-    NLPD 0.886 -> 0.911, CRPS 0.886 -> 0.920; docs/results.md, "The 4 Hz post-filter").
+    ``lowpass_hz``: the zero-phase low-pass of deena2010 §4.2.3
+    (:data:`~bayes_talk.synthesis.sequential.POST_FILTER_HZ`, 4 Hz, in the paper) applied to
+    the mean of a model that takes it (its ``post_filter``: the switching models), the bands
+    moving with it; None (the default): off, as ``evaluate`` scores the output. Recorded in
+    ``segments.json``; docs/results.md measures what the filter does to the scores.
     """
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
     for key, flag in (("pg_particles", "--pg-particles"), ("stop_at_targets", "--all-draws")):
@@ -164,7 +181,9 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
     out.mkdir(parents=True, exist_ok=True)
-    model = tm.model if calibrated else tm.uncalibrated   # the wrapper calibrates its own method's results only
+    model = tm.model if calibrated else tm.uncalibrated
+    if not calibrated and getattr(model, "face_noise_", None) is not None:
+        options = {**options, "face_noise": False}
     res = model.predict_dist(utt, **options)
     post_filter_hz = lowpass_hz if tm.model.post_filter else None
     if post_filter_hz is not None:
@@ -187,6 +206,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                                 "converged": not problems, "problems": problems,
                                                 "trajectory_holds": _trajectory_description(res, post_filter_hz),
                                                 "mean_shrinkage": _calibration_factors(res, tm, "mean_scale"),
+                                                "face_noise": _face_noise_record(res, tm),
                                                 "pool_weight": _calibration_factors(res, tm, "pool_weight"),
                                                 "diagnostics": res.diagnostics})
         written.update(diagnostics=out / names["diagnostics"])

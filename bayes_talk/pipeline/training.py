@@ -28,10 +28,9 @@ from bayes_talk.base import bundle
 from bayes_talk.base.bundle import DESCRIPTOR, ESTIMATOR_DIR
 from bayes_talk.base.executor import executor_for
 from bayes_talk.base.progress import ProgressMapper
-from bayes_talk.calibration import bands as band_calibration
-from bayes_talk.calibration.bands import CALIBRATED_MODELS, HOLDOUT_FRACTION
+from bayes_talk.calibration.bands import CALIBRATED_MODELS, CALIBRATIONS, HOLDOUT_FRACTION
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.estimators.calibrated import BandCalibrated
+from bayes_talk.estimators.calibrated import calibrate_model
 from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
 from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
 
@@ -78,7 +77,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
           floor_dbfs: float | None = FLOOR_DBFS,
           alignment: bool = True, executor=None, scheduler: str | None = None,
           calibrate_bands: float | None = None, calibrated_model: str = DEFAULT_CALIBRATED_MODEL,
-          **overrides) -> Path:
+          calibration: str = "noise", **overrides) -> Path:
     """Train a model of ``kind`` on a corpus and save it to ``out_dir``.
 
     Every utterance is used unless some are held out: ``holdout`` = N, the corpus's last N
@@ -98,11 +97,14 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     ``executor`` / ``scheduler``: what runs the featurisation and the per-state models
     (:func:`fit_model`; docs/scaling.md); the model does not depend on it. ``workers``:
     processes when no executor is given (default 1: this process; ``bayes-talk train``: 2).
-    ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out for
-    the band calibration of the Laplace posterior (switching models;
-    bayes_talk.calibration.bands: one extra fit on the rest; the model is saved
-    wrapped with it, :class:`~bayes_talk.estimators.calibrated.BandCalibrated`, and ``synth``
-    applies it); None: no calibration. ``calibrated_model``: which model is saved with it
+    ``calibrate_bands``: a fraction (e.g. 0.2) of the training utterances to hold out; a
+    model trained on the rest synthesises them (Laplace posterior) and ``calibration`` is
+    fitted on them (switching models; :func:`~bayes_talk.estimators.calibrated.calibrate_model`):
+    "noise", the face's observation term of the model (bayes_talk.synthesis.face_noise: mean
+    shrinkage, Student-t scale per phone class, fitted by held-out log score; every inference
+    method's predictive ends with it), "bands", the post-hoc four-stage band calibration
+    (bayes_talk.calibration.bands; the model saved wrapped with it); None: neither, the GP
+    predictive alone. ``calibrated_model``: which model is saved with it
     (:data:`~bayes_talk.calibration.bands.CALIBRATED_MODELS`): "holdout", the model
     trained on the other utterances, the one the calibration was fitted for (one fit);
     "refit", a second model trained on all of them, the factors carried over (two fits);
@@ -119,6 +121,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
                          f"posterior (a switching model), found {calibrate_bands!r} for {kind}")
     if calibrated_model not in CALIBRATED_MODELS:
         raise ValueError(f"calibrated_model: expected one of {', '.join(CALIBRATED_MODELS)}, found {calibrated_model!r}")
+    if calibration not in CALIBRATIONS:
+        raise ValueError(f"calibration: expected one of {', '.join(CALIBRATIONS)}, found {calibration!r}")
     with executor_for(executor, workers, scheduler) as ex:
         corpus = corpus_store.load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs,
                              executor=ex if executor is not None or ex.parallel else None)
@@ -127,29 +131,32 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         # the aligner is independent of the model: on an engine with workers it is fitted
         # in one of them beside the state models (a plain executor fits it at .result())
         aligner = ex.submit(alignment_commands.fit_alignment, list(corpus.sequences)) if alignment else None
-        model, band_cal = new_model(kind, **overrides), None
+        model = new_model(kind, **overrides)
         if calibrate_bands is not None:
-            model, band_cal = band_calibration.calibrated_fit(
-                model, corpus.sequences, calibrated_model, holdout=calibrate_bands,
-                seed=model.get_params()["seed"], executor=ex)
+            model = calibrate_model(model, list(corpus.sequences), calibrated_model, calibration,
+                                    holdout=calibrate_bands, seed=model.get_params()["seed"], executor=ex)
         else:
             model = fit_model(model, list(corpus.sequences), workers=workers, executor=ex)
         aligner = aligner.result() if aligner is not None else None
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
     audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
-    if band_cal is not None:   # saved as the wrapper: the model with its calibration
-        model = BandCalibrated.wrap(model, band_cal)
+    cal_info, cal_names = None, []
+    if calibrate_bands is not None:
+        fitted = model.face_noise_ if calibration == "noise" else model.calibration_
+        cal_info = fitted.info
+        cal_names = list(cal_info["names"] if calibration == "noise" else fitted.held_out)
     model.save(out / ESTIMATOR_DIR, overwrite=True)
     offset = aam_offset(corpus)
     if corpus.aam is not None:
         corpus.aam.save(out / "aam.npz")
     bundle.write_descriptor(out, {
         "kind": kind, "corpus": str(corpus_dir),   # as given: no machine's directory in a shared model
-        "n_train": band_cal.info["n_fit"] if calibrated_model == "holdout" and band_cal is not None
+        "n_train": cal_info["n_fit"] if calibrated_model == "holdout" and cal_info is not None
         else len(corpus.sequences),
-        "calibration": None if band_cal is None else {"model": calibrated_model, "holdout": calibrate_bands,
-                                                      "held_out": list(band_cal.held_out)},
+        "calibration": None if cal_info is None else {
+            "kind": calibration, "model": calibrated_model, "holdout": calibrate_bands,
+            "held_out": cal_names},
         "fps": corpus.fps, "aam_offset": offset.tolist(), "has_aam": corpus.aam is not None,
         "held_out": held_out, "audio": audio,
     })

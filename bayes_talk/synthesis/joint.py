@@ -53,8 +53,9 @@ Two implementations of the same log density:
   predictive through the compiled, packed predictives of :mod:`bayes_talk.gp.predictive_fused`.
   A test checks it equals the Pyro log joint to 1e-8 relative (``tests/posterior/test_posterior.py``).
 
-The two live in one module because they are one density: a change to a term of the program
-must be made to its twin in the same edit.
+This module stays above ~500 lines because the two are one density and live in one module: a
+change to a term of the program must be made to its twin in the same edit. The program's face
+sites (:func:`face_model`) are the observation term of :mod:`bayes_talk.synthesis.face_noise`.
 
 Every GP predictive goes through Cholesky factors and triangular solves, float64.
 """
@@ -258,6 +259,30 @@ def synthesis_model(plan: UtterancePlan, audio: torch.Tensor | None = None) -> t
     return X
 
 
+def face_model(plan: UtterancePlan, X: torch.Tensor, noise, labels) -> torch.Tensor:
+    """The face given the latent path X: the visual GP predictive of each block's state
+    model followed by the observation term ``noise`` (a
+    :class:`~bayes_talk.synthesis.face_noise.FaceNoise`; (N1) of that module), as Pyro
+    sites ``face_gp_{i}`` and ``face_{i}`` per block; returns the face (T, D_z). Nothing
+    here is observed at synthesis (the audio is), so these sites leave the posterior of X
+    unchanged; run after :func:`synthesis_model`, they draw the face that every inference
+    method's predictive describes (:meth:`FaceNoise.apply`)."""
+    shrink, gp_scale = torch.as_tensor(noise.shrink), torch.as_tensor(noise.gp_scale)
+    tau = torch.as_tensor(noise.class_scale(labels))
+    dof = torch.as_tensor(np.minimum(noise.dof, 1e6))
+    faces = []
+    for i, b in enumerate(plan.blocks):
+        a, e = b.start, b.stop
+        vis = b.model.predictors_["visual"]
+        mu, var = vis.mean_var(X[a:e])
+        c = (torch.zeros_like(mu) if plan.visual_offset is None
+             else torch.as_tensor(plan.visual_offset[a:e]))
+        f = pyro.sample(f"face_gp_{i}", dist.Normal(c + shrink * mu, (gp_scale * vis.dim_var(var)).sqrt()
+                                                    .clamp_min(1e-150)).to_event(2))
+        faces.append(pyro.sample(f"face_{i}", dist.StudentT(dof.expand_as(f), f, tau[a:e]).to_event(2)))
+    return torch.cat(faces)
+
+
 def pyro_log_density(plan: UtterancePlan, X: torch.Tensor | np.ndarray) -> torch.Tensor:
     """ln p(X, Ŷ) of :func:`synthesis_model`'s trace at X (the unnormalised log posterior)."""
     X = torch.as_tensor(np.asarray(X, dtype=np.float64)) if not torch.is_tensor(X) else X
@@ -266,8 +291,8 @@ def pyro_log_density(plan: UtterancePlan, X: torch.Tensor | np.ndarray) -> torch
     return tr.log_prob_sum()
 
 
-__all__ = ["Block", "SwitchingLatents", "UtteranceDensity", "UtterancePlan", "make_plan", "pyro_log_density",
-           "synthesis_model"]
+__all__ = ["Block", "SwitchingLatents", "UtteranceDensity", "UtterancePlan", "face_model", "make_plan",
+           "pyro_log_density", "synthesis_model"]
 
 
 # ---------------------------------------------------------------------------------------

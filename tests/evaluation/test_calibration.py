@@ -219,3 +219,40 @@ def test_per_state_coverage_pools_each_state_models_frames():
     plain = summarise_calibration([score_utterance(_gauss(np.zeros((T, D)), np.ones((T, D))), truth)])
     assert "per_state_90" not in plain
     assert "states in [0.80, 0.97]" in markdown_calibration({"m": {"calibration": summ}})
+
+
+def test_paired_difference_se_and_the_verdict_by_two_se():
+    """difference_se is ratio_se of the per-utterance differences: by hand, and a method that
+    is better on every utterance by a constant beats its control by more than 2 s.e."""
+    from bayes_talk.evaluation.calibration import control_verdict, paired_difference_se
+
+    rng = np.random.default_rng(0)
+    truths = [rng.normal(size=(30 + 5 * i, 2)) for i in range(6)]
+    good = [score_utterance(_gauss(np.zeros_like(t), np.ones_like(t)), t) for t in truths]
+    wide = [score_utterance(_gauss(np.zeros_like(t), np.full_like(t, 9.0)), t) for t in truths]
+    a, b = summarise_calibration(good), summarise_calibration(wide)
+    d = np.array(a["nlpd"]["per_utterance"]) - np.array(b["nlpd"]["per_utterance"])
+    n = np.array(a["nlpd"]["entries"], float)
+    assert paired_difference_se(a["nlpd"], b["nlpd"]) == pytest.approx(ratio_se(d, n)[1], rel=1e-12)
+    v = control_verdict({"calibration": a, "calibration_control": b})
+    assert v["beats"] and v["beats_by_2se"]
+    assert v["nlpd"]["difference"] < -2 * v["nlpd"]["difference_se"]
+    same = control_verdict({"calibration": a, "calibration_control": a})
+    assert not same["beats"] and not same["beats_by_2se"]
+
+
+def test_resolution_sees_bands_that_widen_with_the_error():
+    """A predictive whose s.d. tracks the error's scale has a positive Spearman correlation
+    and RMS errors rising across width bins; a constant band has neither."""
+    from bayes_talk.evaluation.calibration import resolution
+
+    rng = np.random.default_rng(1)
+    sd = rng.uniform(0.1, 3.0, size=(4000, 2))
+    err = np.abs(rng.normal(size=sd.shape) * sd)
+    r = resolution(sd, err)
+    assert r["spearman_median"] > 0.4
+    assert np.all(np.diff(r["rms_by_width_bin"]) > 0)
+    flat = resolution(np.ones_like(sd), err)
+    assert flat["spearman_median"] == 0.0
+    s = summarise_calibration([score_utterance(_gauss(np.zeros((50, 2)), np.ones((50, 2))), rng.normal(size=(50, 2)))])
+    assert s["resolution"]["spearman_median"] == 0.0 and s["mse"]["mean"] > 0

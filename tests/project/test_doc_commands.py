@@ -445,6 +445,10 @@ PYTHON_BLOCKS: dict[tuple[str, str], PyBlock] = {
         subs=(('method="laplace" | "nuts" | "emcee" | "map"', 'method="laplace"'), ("n_draws=64", "n_draws=16"),
               ("post.sample(2000)", "post.sample(200)"))),
     ("docs/uncertainty.md", "from bayes_talk.synthesis.joint import make_plan"): PyBlock(setup=USES_TOY),
+    ("docs/uncertainty.md", "from bayes_talk.estimators.registry import load_estimator"): PyBlock(
+        mapped="tests/estimators/test_face_noise_model.py::test_every_method_ends_with_the_term",
+        reason="needs a trained model directory; that test fits the term on held-out toy utterances and checks "
+               "predict_dist with and without it, observe and the saved values"),
     ("docs/uncertainty.md", ("from bayes_talk.evaluation.calibration import score_utterance, summarise_calibration, "
                             "plot_calibration")): PyBlock(
         setup=USES_TOY),

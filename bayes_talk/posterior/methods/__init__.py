@@ -199,8 +199,9 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
     InferenceMethod(
         "laplace", "iid draws of the Gaussian at the joint MAP (closed-form Hessian, floored eigenvalues)",
         "bayes_talk.posterior.methods.laplace", draws=64, map_restarts=0, diagnostics=("khat",),
-        advice="the Gaussian approximation is poor here (the posterior is multimodal); its calibrated bands "
-               "are calibrated empirically (train --calibrate-bands), not by the approximation; "
+        advice="the Gaussian approximation is poor here (the posterior is multimodal); the bands include "
+               "the model's observation term, fitted on held-out training utterances, beside the "
+               "approximation's spread; "
                "--posterior pg-nuts samples the posterior itself (25–45 min for 3–4 s of speech on 2 cores "
                "with --workers 2)"),
     InferenceMethod(
