@@ -257,19 +257,27 @@ def test_lowpass_filters_every_methods_mean(utts):
 
 @pytest.fixture(scope="module")
 def gp_run(utts):
-    """All six GP methods (three families) on one tiny holdout split, counting trainings."""
+    """All six GP methods (three families) on one tiny holdout split, counting trainings (a
+    family with a posterior method trains once with its calibration, here the post-hoc band
+    calibration whose stages the tests below check)."""
     calls = []
-    orig = H.fit_family
+    orig, orig_cal = H.fit_family, H.fit_calibrated_family
 
     def counting(family, train, cfg, executor=None):
         calls.append(family)
         return orig(family, train, cfg, executor=executor)
 
+    def counting_cal(family, train, cfg, method, executor=None, progress=None):
+        calls.append(family)
+        return orig_cal(family, train, cfg, method, executor=executor, progress=progress)
+
     mp = pytest.MonkeyPatch()
     mp.setattr(H, "fit_family", counting)
+    mp.setattr(H, "fit_calibrated_family", counting_cal)
     try:
         methods = [m for m in S.METHODS if S.METHODS[m].has_variance and m not in CEILING]
-        res, traj = H.run_protocol(tiny("holdout", n_train=5, n_test=2), utts, methods)
+        res, traj = H.run_protocol(tiny("holdout", n_train=5, n_test=2,
+                                        system=dataclasses.replace(TINY_GP, calibration="bands")), utts, methods)
     finally:
         mp.undo()
     return res, traj, calls
@@ -445,7 +453,8 @@ def test_harness_reports_calibration_and_calibrated_and_raw_posterior(gp_run):
         assert len(c["coverage"]["0.9"]["per_param"]) == traj.truth.shape[1]
         assert sum(c["pit"]["counts"]) == c["n_entries"] and np.isfinite(c["nlpd"]["mean"])
         posterior = "posterior" in name
-        assert ("calibration_raw" in e) == posterior and ("band_calibration" in e) == posterior
+        calibrated = any("posterior" in n for n in [name, *e["train_shared_with"]])   # one wrapper, every method
+        assert ("calibration_raw" in e) == calibrated and ("band_calibration" in e) == posterior
     post = res["methods"]["ssgpdm-vlmm-posterior"]
     (bc,) = post["band_calibration"]
     assert bc["method"] == "laplace" and len(bc["scale"]) == traj.truth.shape[1] and len(bc["held_out"]) == 1
