@@ -356,8 +356,7 @@ class BandCalibration:
         """The largest PSIS k̂ among the held-out syntheses the calibration was fitted on
         (``info["held_out_diagnostics"]``), or None when none was recorded. Reported beside
         a new utterance's k̂; not a gate (:meth:`domain`)."""
-        ks = [k for k in self.info.get("held_out_diagnostics", {}).get("khat", []) if k is not None]
-        return max(ks) if ks else None
+        return held_out_khat_max(self.info)
 
     def domain(self, result: SynthesisResult) -> dict[str, Any]:
         """Whether the calibrated predictive of ``result`` can be trusted — the criterion of
@@ -379,13 +378,7 @@ class BandCalibration:
         R-hat, ESS, divergences, E-BFMI of the samplers) stands. The raw result
         (``calibrated=False``) keeps the k̂ ≤ 0.7 check. Returns the k̂, the calibration's
         largest k̂, whether the result is trusted, and the warning ([] when it is)."""
-        d = dict(result.diagnostics)
-        k = d.pop("khat", None)
-        fails = convergence_problems(d)
-        if k is not None and not np.isfinite(k):
-            fails.append(f"PSIS k̂ {k} is not finite (the importance weights broke down numerically)")
-        return {"khat": k, "khat_calibration_max": self.calibration_khat_max, **self.audio_fit(result),
-                "inside": not fails, "warning": sampler_warning(result.method, fails)}
+        return held_out_domain(result, self.info)
 
     def audio_fit(self, result: SynthesisResult) -> dict[str, Any]:
         """How well the model explains this utterance against the held-out utterances the
@@ -398,12 +391,7 @@ class BandCalibration:
         without it give None): small when the utterance is explained worse than (nearly) every
         utterance whose coverage the calibration measured; under exchangeable utterances
         P(p ≤ α) ≤ α. None where either is missing."""
-        lp = result.diagnostics.get("map_log_density")
-        ell = float(lp) / result.n_frames if isinstance(lp, (int, float)) and math.isfinite(lp) else None
-        ref = [v for v in self.info.get("held_out_diagnostics", {}).get("map_log_density_per_frame", [])
-               if v is not None]
-        p = None if ell is None or not ref else (1 + sum(v <= ell for v in ref)) / (len(ref) + 1)
-        return {"map_log_density_per_frame": ell, "audio_fit_p": p}
+        return held_out_audio_fit(result, self.info)
 
     def apply(self, result: SynthesisResult) -> SynthesisResult:
         """The calibrated result: (0) and (1) applied to every component, then the level map (a
@@ -490,6 +478,37 @@ class BandCalibration:
         except (OSError, ValueError) as exc:
             raise ValueError(f"{p}: unreadable band calibration ({exc})") from None
         return cls.from_dict(d, where=str(p))
+
+
+def held_out_khat_max(info: dict[str, Any]) -> float | None:
+    """The largest PSIS k̂ among the held-out syntheses a calibration (or the face's
+    observation term) was fitted on (``info["held_out_diagnostics"]["khat"]``), or None."""
+    ks = [k for k in info.get("held_out_diagnostics", {}).get("khat", []) if k is not None]
+    return max(ks) if ks else None
+
+
+def held_out_audio_fit(result: SynthesisResult, info: dict[str, Any]) -> dict[str, Any]:
+    """The MAP log density per frame of ``result`` and its conformal p-value among the
+    held-out syntheses recorded in ``info`` (:meth:`BandCalibration.audio_fit`)."""
+    lp = result.diagnostics.get("map_log_density")
+    ell = float(lp) / result.n_frames if isinstance(lp, (int, float)) and math.isfinite(lp) else None
+    ref = [v for v in info.get("held_out_diagnostics", {}).get("map_log_density_per_frame", []) if v is not None]
+    p = None if ell is None or not ref else (1 + sum(v <= ell for v in ref)) / (len(ref) + 1)
+    return {"map_log_density_per_frame": ell, "audio_fit_p": p}
+
+
+def held_out_domain(result: SynthesisResult, info: dict[str, Any]) -> dict[str, Any]:
+    """Whether a predictive whose width was fitted on held-out syntheses (``info``: the band
+    calibration's or the observation term's) can be trusted: the criterion of
+    :meth:`BandCalibration.domain` — the k̂ is recorded, not gated (the held-out syntheses had
+    such k̂ too), unless it is not finite; every other convergence check stands."""
+    d = dict(result.diagnostics)
+    k = d.pop("khat", None)
+    fails = convergence_problems(d)
+    if k is not None and not np.isfinite(k):
+        fails.append(f"PSIS k̂ {k} is not finite (the importance weights broke down numerically)")
+    return {"khat": k, "khat_calibration_max": held_out_khat_max(info), **held_out_audio_fit(result, info),
+            "inside": not fails, "warning": sampler_warning(result.method, fails)}
 
 
 def _fit_pool(calibrated: Sequence[SynthesisResult], truths: Sequence[np.ndarray], var: np.ndarray

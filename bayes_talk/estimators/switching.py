@@ -13,14 +13,17 @@ utterances), and every prediction, whatever its inference method, ends with it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import ClassVar
 
 import numpy as np
 
+from bayes_talk.calibration.bands import held_out_domain
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.base import Estimator
 from bayes_talk.models.switching import SwitchingModel
 from bayes_talk.posterior import sampling as synthesis_posterior
+from bayes_talk.posterior.diagnostics import is_sampler_warning
 from bayes_talk.posterior.methods import INFERENCE
 from bayes_talk.synthesis.face_noise import FaceNoise
 from bayes_talk.synthesis.result import SynthesisResult
@@ -106,5 +109,13 @@ class SwitchingSGPDM(SwitchingModel, Estimator):
     def observe(self, result: SynthesisResult, labels) -> SynthesisResult:
         """``result`` (a synthesis without the observation term) with it: the predictive of
         the face (:meth:`FaceNoise.apply <bayes_talk.synthesis.face_noise.FaceNoise.apply>`);
-        unchanged when the model has no term."""
-        return result if self.face_noise_ is None else self.face_noise_.apply(result, labels)
+        unchanged when the model has no term. Its warnings follow the held-out criterion
+        (:func:`bayes_talk.calibration.bands.held_out_domain`, recorded under
+        ``diagnostics["face_noise"]["domain"]``): the term was fitted on Laplace syntheses
+        whose k̂ was above 0.7 too, so the k̂ is recorded, not gated; every other check stands."""
+        if self.face_noise_ is None:
+            return result
+        out = self.face_noise_.apply(result, labels)
+        dom = held_out_domain(result, self.face_noise_.info)
+        warn = [w for w in result.warnings if not is_sampler_warning(result.method, w)] + dom["warning"]
+        return replace(out, warnings=warn, diagnostics={**out.diagnostics, "face_noise": {"domain": dom}})

@@ -84,3 +84,21 @@ def test_evaluate_scores_the_term_its_controls_and_ablations():
     assert post["band_calibration"][0]["format"] == "bayes_talk.face_noise"
     # the plain control is centred on the predictive's own mean
     assert post["calibration_control"]["mse"]["mean"] == pytest.approx(post["calibration"]["mse"]["mean"], rel=1e-9)
+
+
+def test_the_khat_is_recorded_not_gated_and_other_checks_stand(noisy_model):
+    """The term was fitted on Laplace syntheses whose k̂ exceeded 0.7 as well: a large finite
+    k̂ is recorded, not warned about; an infinite one, or a failed MAP, still warns."""
+    from dataclasses import replace
+
+    from bayes_talk.posterior.diagnostics import sampler_warning
+
+    utt = make_utterances(1, seed=9)[0]
+    raw = noisy_model.predict_dist(utt, posterior="laplace", n_draws=16, face_noise=False)
+    big = replace(raw, diagnostics={**raw.diagnostics, "khat": 2.0},
+                  warnings=sampler_warning("laplace", ["PSIS k̂ 2 > 0.7"]))
+    got = noisy_model.observe(big, utt.labels)
+    assert got.warnings == [] and got.diagnostics["face_noise"]["domain"]["khat"] == 2.0
+    assert got.diagnostics["face_noise"]["domain"]["khat_calibration_max"] is not None
+    inf = replace(big, diagnostics={**big.diagnostics, "khat": float("inf")})
+    assert any("not finite" in w for w in noisy_model.observe(inf, utt.labels).warnings)
