@@ -8,6 +8,11 @@ training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
   iterations, density evaluations, seconds (wall, one torch thread), ln p;
 * the PSIS k̂ of the Laplace approximation at that MAP (``--khat-draws`` draws; k̂ ≤ 0.7 is
   the threshold of a usable importance proposal);
+* ``--reference``: beside it, the dense reference of the same two stages (L-BFGS whitened by
+  the eigen-decomposition of the precision, eigenvalues floored; scipy's ``trust-exact`` on the
+  dense Hessian: cubic in the length), started from the same path: the difference of the two
+  MAPs' ln p, their largest |Δx|, the largest relative difference of the latents' Laplace
+  marginal sds (banded selected inverse against the dense inverse), and both wall times;
 * ``--restarts K``: the MAP restarted from K draws of that Laplace approximation, each
   restart's converged flag, ln p, and distance from the first MAP (Euclidean in the
   whitened coordinates, i.e. in Laplace standard deviations; largest |Δx|; frames moved
@@ -15,7 +20,7 @@ training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
 
     PYTHONPATH=. python benchmarks/joint_map.py --model MODEL_DIR \\
         --test-corpus data/dev40 --aam data/train250/aam.npz \\
-        [--n-test 8] [--utterances utt0001,utt0003] [--restarts 6] [--khat-draws 200] \\
+        [--n-test 8] [--utterances utt0001,utt0003] [--restarts 6] [--khat-draws 200] [--reference] \\
         [--out benchmarks/results/joint_map.json]
     PYTHONPATH=. python benchmarks/joint_map.py --quick   # -> benchmarks/results/quick/joint_map.json
 """
@@ -36,7 +41,13 @@ sys.path.insert(0, str(HERE.parent))
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.posterior.diagnostics import psis_diagnostics
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
-from bayes_talk.synthesis.joint_map import floored_precision, maximise_utterance
+from bayes_talk.synthesis.joint_map import (
+    MAP_DTOL,
+    MAP_GTOL,
+    MAP_LBFGS_ITER,
+    MAP_MAX_ITER,
+    maximise_utterance,
+)
 from bayes_talk.synthesis.sequential import synthesize
 from benchmarks.common import bench_corpus, bench_model, result_path, write_result
 
@@ -51,6 +62,52 @@ def _map_row(dens: UtteranceDensity, X0: np.ndarray) -> tuple[dict, object]:
     return row, mp
 
 
+def _dense_reference(dens: UtteranceDensity, X0: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """The same MAP by dense linear algebra (the reference the banded solver is measured
+    against): L-BFGS whitened by the floored eigen-decomposition of −∇² ln p at the start, then
+    scipy's ``trust-exact`` whitened at the L-BFGS point, stopped by the same convergence test.
+    Returns (x, ln p, the dense Laplace covariance at x)."""
+    from scipy.optimize import minimize
+
+    def whiten(x):
+        P = -dens.hessian(x).dense()
+        lam, U = np.linalg.eigh(0.5 * (P + P.T))
+        lam = np.maximum(np.abs(lam), 1e-8 * max(1.0, float(np.abs(lam).max())))
+        return U / np.sqrt(lam), (U / lam) @ U.T, bool(np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 0)
+
+    def done_at(x, g):
+        _, cov, pd = whiten(x)
+        return np.abs(g).max() <= MAP_GTOL or (pd and 0.5 * g @ cov @ g <= MAP_DTOL)
+
+    x = np.asarray(X0, dtype=np.float64).reshape(-1)
+    L, _, _ = whiten(x)
+    best = {"f": dens(x)[0], "x": x}
+
+    def neg(z, xs, L):
+        xz = xs + L @ z
+        f, g = dens(xz)
+        if np.isfinite(f) and f > best["f"]:
+            best.update(f=f, x=xz, g=g.reshape(-1))
+        return (-f, -(L.T @ g.reshape(-1))) if np.isfinite(f) else (np.inf, np.zeros_like(z))
+
+    minimize(neg, np.zeros_like(x), args=(x, L), jac=True, method="L-BFGS-B",
+             options={"maxiter": MAP_LBFGS_ITER, "gtol": 1e-12, "ftol": 1e-15, "maxcor": 30})
+    xs = best["x"]
+    if not done_at(xs, dens(xs)[1].reshape(-1)):
+        L, _, _ = whiten(xs)
+
+        def stop(intermediate_result):
+            xz = xs + L @ intermediate_result.x
+            if done_at(xz, dens(xz)[1].reshape(-1)):
+                raise StopIteration
+
+        minimize(neg, np.zeros_like(xs), args=(xs, L), jac=True, method="trust-exact", callback=stop,
+                 hess=lambda z, xs, L: -(L.T @ dens.hessian(xs + L @ z).dense() @ L),
+                 options={"maxiter": MAP_MAX_ITER, "gtol": 1e-300})
+    x = best["x"]
+    return x, float(dens(x)[0]), whiten(x)[1]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default=None)
@@ -61,6 +118,7 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=0)
     ap.add_argument("--khat-draws", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--reference", action="store_true", help="also the dense reference MAP and Laplace covariance")
     ap.add_argument("--quick", action="store_true", help="the quick model and held-out corpus: 1 utterance, "
                     "1 restart, 50 k-hat draws")
     ap.add_argument("--out", type=Path, default=None)
@@ -95,19 +153,27 @@ def main() -> None:
                    "blocks": len(plan.blocks), "algorithm1_seconds": time.perf_counter() - t0}
             m, mp = _map_row(dens, X0)
             row.update(m)
-            lam, U, _ = floored_precision(mp.hessian)
-            L = U / np.sqrt(lam)
+            fac = mp.laplace_factor()
             x = mp.latents.reshape(-1)
+            if args.reference:
+                t0 = time.perf_counter()
+                xr, fr, cov = _dense_reference(dens, X0)
+                sd_new = np.sqrt(np.einsum("tii->ti", fac.marginal_covariances()).reshape(-1))
+                row["reference"] = {"seconds": time.perf_counter() - t0, "log_density": fr,
+                                    "log_density_difference": mp.log_density - fr,
+                                    "latents_max_abs_difference": float(np.abs(xr - x).max()),
+                                    "marginal_sd_max_rel_difference": float(np.max(np.abs(sd_new / np.sqrt(np.diag(cov)) - 1)))}
             rng = np.random.default_rng(args.seed)
             Z = rng.standard_normal((max(args.khat_draws, args.restarts), x.size))
             if args.khat_draws:
                 Zk = Z[:args.khat_draws]
-                row["khat"] = psis_diagnostics(dens, x[None] + Zk @ L.T, -0.5 * np.sum(Zk * Zk, axis=1))["khat"]
+                row["khat"] = psis_diagnostics(dens, x[None] + fac.scale_matvec(Zk.T).T,
+                                               -0.5 * np.sum(Zk * Zk, axis=1))["khat"]
             restarts = []
             for k in range(args.restarts):
-                r, mk = _map_row(dens, (x + L @ Z[k]).reshape(plan.n_frames, -1))
+                r, mk = _map_row(dens, (x + fac.scale_matvec(Z[k])).reshape(plan.n_frames, -1))
                 dx = mk.latents - mp.latents
-                r.update(dz_norm=float(np.linalg.norm(np.linalg.solve(L, dx.reshape(-1)))),
+                r.update(dz_norm=float(np.linalg.norm(fac.unscale_matvec(dx.reshape(-1)))),
                          dx_max=float(np.abs(dx).max()),
                          frames_moved=[int(t) for t in np.where(np.abs(dx).max(1) > 1e-3)[0]])
                 restarts.append(r)
@@ -121,6 +187,12 @@ def main() -> None:
                       "grad_max_max": max(r["grad_max"] for r in u),
                       "seconds_mean": float(np.mean([r["seconds"] for r in u])),
                       "khat": [r.get("khat") for r in u],
+                      **({"reference_log_density_difference_max_abs":
+                          max(abs(r["reference"]["log_density_difference"]) for r in u),
+                          "reference_marginal_sd_max_rel_difference":
+                          max(r["reference"]["marginal_sd_max_rel_difference"] for r in u),
+                          "reference_seconds_mean": float(np.mean([r["reference"]["seconds"] for r in u]))}
+                         if args.reference else {}),
                       "loadavg_end": os.getloadavg()[0]}
     write_result(args.out, res)
     print(json.dumps(res["summary"]))

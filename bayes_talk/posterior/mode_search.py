@@ -16,7 +16,12 @@ import numpy as np
 from bayes_talk.posterior.methods import NUTS_DEFAULTS
 from bayes_talk.posterior.samplers import run_nuts
 from bayes_talk.synthesis.joint import UtteranceDensity
-from bayes_talk.synthesis.joint_map import MapResult, floored_precision, maximise_utterance
+from bayes_talk.synthesis.joint_map import (
+    MapResult,
+    as_block_hessian,
+    laplace_factor,
+    maximise_utterance,
+)
 from bayes_talk.synthesis.whitening import Whitened, whitening
 
 #: frames whose latents differ between two modes by more than this (max over coordinates)
@@ -50,8 +55,7 @@ def mode_jumps(best: MapResult, modes: list[MapResult], frame_tol: float = JUMP_
         raise ValueError("mode_jumps needs the best mode's Hessian (MapResult.hessian)")
     xb = best.latents
     T, d = xb.shape
-    lam, U, _ = floored_precision(best.hessian)
-    P = (U * lam) @ U.T
+    P = laplace_factor(as_block_hessian(best.hessian, d)).matrix.dense()   # short paths: dense
     out: list[np.ndarray] = []
     for m in sorted((m for m in modes if m.converged), key=lambda m: -m.log_density):
         diff = m.latents - xb

@@ -45,7 +45,6 @@ from bayes_talk.base import progress
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.posterior.methods import NUTS_DEFAULTS
 from bayes_talk.posterior.nuts_chain import ChainState, draw_chain, warmup_chain
-from bayes_talk.synthesis.joint_map import floored_precision
 
 log = logging.getLogger(__name__)
 
@@ -340,42 +339,61 @@ def run_emcee(log_prob: LogProb, x0, n_draws: int = 200, warmup: int = 500, n_wa
 # ---------------------------------------------------------------------------- Laplace
 def laplace_scale(hessian: np.ndarray) -> tuple[np.ndarray, dict]:
     """L with L Lᵀ = P⁻¹, P = −H the precision of the Laplace approximation at a mode whose
-    log-density Hessian is ``H``: L = U Λ^(−1/2) from P's eigen-decomposition, eigenvalues
-    floored at 1e-8·max|λ| and negative ones replaced by their modulus
-    (:func:`~bayes_talk.synthesis.joint_map.floored_precision`; the MAP may stop short of a
-    maximum). Also ``{"n_floored": number of eigenvalues modified}``."""
-    lam, U, n_mod = floored_precision(hessian)
+    log-density Hessian is the dense matrix ``H`` (a generic log density; the whole-utterance
+    synthesis density's block-tridiagonal Hessian has its banded factor,
+    :meth:`~bayes_talk.synthesis.joint_map.MapResult.laplace_factor`): L = U Λ^(−1/2) from P's
+    eigen-decomposition, eigenvalues floored at 1e-8·max|λ| and negative ones replaced by their
+    modulus (the mode may be approximate). Also ``{"n_floored": number of eigenvalues modified}``."""
+    P = -0.5 * (hessian + hessian.T)
+    lam, U = np.linalg.eigh(P)
+    lo = 1e-8 * max(1.0, float(np.max(np.abs(lam))))
+    n_mod = int(np.sum(lam < lo))
+    lam = np.maximum(np.abs(lam), lo)
     return U / np.sqrt(lam), {"n_floored": n_mod}
 
 
 def run_laplace(log_prob: LogProb | None, x_map, n_draws: int = 200, seed: int | np.random.Generator = 0, *,
-                hessian: np.ndarray | None = None, scale: np.ndarray | None = None) -> Draws:
+                hessian=None, scale: np.ndarray | None = None, factor=None) -> Draws:
     """``n_draws`` iid draws x = x_MAP + L z, z ~ N(0, I), of the Laplace approximation
     N(x_MAP, P⁻¹), P = −∇² ln p(x_MAP) (one chain; the one Laplace of the package: the
     synthesis posterior's ``method="laplace"`` runs it too).
 
-    The Hessian is ``hessian`` when given (the synthesis density's closed form), else torch
-    autograd of ``log_prob`` at ``x_map``; ``scale`` (L of :func:`laplace_scale`) skips its
-    eigen-decomposition when the caller has it. ``seed``: an int or a numpy Generator to draw
-    z from. ``stats``: ``mean``, ``cov`` (L Lᵀ), ``z`` (the standard-normal draws, for
-    importance weights), ``n_floored`` (eigenvalues of P floored or negated)."""
+    L comes from, in this order: ``factor``, a banded Cholesky factor R of P
+    (:class:`~bayes_talk.synthesis.banded.BandedFactor`; L = R⁻ᵀ applied by banded solves, time
+    and memory linear in the length: the synthesis posterior's); ``scale``, L itself (dense);
+    ``hessian``, ∇² ln p as a :class:`~bayes_talk.synthesis.banded.BlockTridiagonal` (factorised,
+    :func:`~bayes_talk.synthesis.joint_map.laplace_factor`) or a dense matrix
+    (:func:`laplace_scale`); else torch autograd of ``log_prob`` at ``x_map``. ``seed``: an int
+    or a numpy Generator to draw z from. ``stats``: ``mean``, ``z`` (the standard-normal draws,
+    for importance weights), and ``cov`` (L Lᵀ) and ``n_floored`` (eigenvalues of P floored or
+    negated) for a dense L, ``shift`` (the modified Cholesky's τ) for a banded one."""
+    from bayes_talk.synthesis.banded import BlockTridiagonal
+
     t0 = time.perf_counter()
     x = np.asarray(x_map, dtype=np.float64).reshape(-1)
-    if scale is None:
+    info: dict = {}
+    if factor is None and scale is None and isinstance(hessian, BlockTridiagonal):
+        from bayes_talk.synthesis.joint_map import laplace_factor
+
+        factor = laplace_factor(hessian)
+    if factor is None and scale is None:
         if hessian is None:
             if log_prob is None:
-                raise ValueError("run_laplace: give log_prob, hessian or scale")
+                raise ValueError("run_laplace: give log_prob, hessian, scale or factor")
             with torch_threads(1):
                 hessian = torch.autograd.functional.hessian(log_prob, _as_tensor(x)).detach().numpy()
-        scale, info = laplace_scale(hessian)
-    else:
-        info = {}
-    if scale.shape != (x.size, x.size):
-        raise ValueError(f"run_laplace: scale has shape {scale.shape}, expected ({x.size}, {x.size})")
+        scale, info = laplace_scale(np.asarray(hessian))
+    n = factor.n if factor is not None else scale.shape
+    if n != x.size and n != (x.size, x.size):
+        raise ValueError(f"run_laplace: the Laplace scale is for {n} coordinates, x_map has {x.size}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     z = rng.standard_normal((int(n_draws), x.size))
-    s = x[None] + z @ scale.T
-    info.update(mean=x.copy(), cov=scale @ scale.T, z=z)
+    if factor is not None:
+        s = x[None] + factor.scale_matvec(z.T).T
+        info.update(mean=x.copy(), z=z, shift=factor.shift)
+    else:
+        s = x[None] + z @ scale.T
+        info.update(mean=x.copy(), cov=scale @ scale.T, z=z)
     return Draws("laplace", s[None], info, time.perf_counter() - t0)
 
 

@@ -20,8 +20,9 @@ their interface: :mod:`bayes_talk.posterior.methods`):
    max |∂ ln p/∂x| ≤ ``gtol`` or the Hessian is negative definite and the Newton decrement is
    ≤ ``dtol`` nats. With ``map_restarts`` (the method's default), restarts from draws of its
    Laplace approximation keep the highest mode (:func:`~bayes_talk.synthesis.joint_map.restart_map`);
-2. the Laplace scale L at the MAP, L Lᵀ = (−∇² ln p)⁻¹ with floored eigenvalues
-   (:func:`~bayes_talk.posterior.samplers.laplace_scale`);
+2. the banded Cholesky factor R of the Laplace precision −∇² ln p at the MAP (block-tridiagonal:
+   time and memory linear in the length; :mod:`bayes_talk.synthesis.banded`), whose
+   L = R⁻ᵀ (L Lᵀ = (−∇² ln p)⁻¹) whitens the samplers' coordinates;
 3. the method's draws (:class:`~bayes_talk.posterior.methods.Context` →
    :class:`~bayes_talk.posterior.methods.Output`);
 4. the visual prediction at the draws: frame t's is the mixture over draws s of
@@ -56,7 +57,6 @@ from bayes_talk.posterior.methods import (
     Context,
     check_method,
 )
-from bayes_talk.posterior.samplers import laplace_scale
 from bayes_talk.synthesis.joint import SMOOTHNESS, UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import MAP_GTOL, MAP_MAX_ITER, maximise_utterance, restart_map
 from bayes_talk.synthesis.result import SynthesisResult
@@ -163,13 +163,13 @@ def _sample(model, mfcc, labels, method, options, n_draws, seed, smoothness, war
     modes: list = []
     if map_restarts:
         mp, modes = restart_map(dens, mp, map_restarts, seed, max_iter=map_iter)
-    L, floored = laplace_scale(mp.hessian)       # Laplace covariance = L Lᵀ
-    n_mod = floored["n_floored"]
+    factor = mp.laplace_factor()              # Laplace precision = R Rᵀ, covariance L Lᵀ with L = R⁻ᵀ
+    n_mod = mp.hessian_modified
     diag: dict = {"map_converged": mp.converged, "map_grad_norm": mp.grad_norm, "map_iter": mp.n_iter,
                   "map_decrement": mp.decrement,
                   "map_log_density": mp.log_density, "algorithm1_log_density": mp.start_log_density,
                   "algorithm1_dynamics_rms_z": start_rms_z, "map_start_carried": start_carried,
-                  "hessian_modified": n_mod, "dim": T * d, "n_segments": len(plan.blocks),
+                  "hessian_modified": n_mod, "laplace_shift": factor.shift, "dim": T * d, "n_segments": len(plan.blocks),
                   "map_restarts": map_restarts, "map_first_log_density": first_log_density,
                   "map_restart_log_densities": [r.log_density for r in modes]}
     warn: list[str] = []
@@ -177,7 +177,7 @@ def _sample(model, mfcc, labels, method, options, n_draws, seed, smoothness, war
         warn.append(f"synthesis MAP did not converge: max |gradient| {mp.grad_norm:.3g} > {MAP_GTOL}, "
                     f"Newton decrement {mp.decrement:.3g} nats, {n_mod} non-positive Hessian eigenvalues, "
                     f"after {mp.n_iter} iterations")
-    context = Context(plan=plan, density=dens, map=mp, modes=modes, scale=L, rng=np.random.default_rng(seed),
+    context = Context(plan=plan, density=dens, map=mp, modes=modes, factor=factor, rng=np.random.default_rng(seed),
                       seed=int(seed), n_draws=n_draws, chains=chains, warmup=warmup, map_iter=map_iter,
                       thin=emcee_thin)
     out = spec.run(context, options)

@@ -75,6 +75,7 @@ from bayes_talk.gp.distributions import NO_SHAPE
 from bayes_talk.gp.numpy_gp import numpy_gp
 from bayes_talk.gp.predictive_fused import LOG_2PI, PackedGPs, Runs
 from bayes_talk.models.vlmm import Segment
+from bayes_talk.synthesis.banded import BlockTridiagonal
 
 if TYPE_CHECKING:
     from bayes_talk.models.switching import SwitchingModel
@@ -310,7 +311,8 @@ class UtteranceDensity:
     per call. ``hessian(X)`` is exact-gradient central differences term by term: each term
     depends on one frame (audio) or one pair of neighbouring frames (dynamics, smoothness),
     so its d×d or 2d×2d Hessian block comes from 2·d or 2·2d perturbed copies of its own
-    rows; the entry densities' blocks are exact (−Σ_π⁻¹). The result is block-tridiagonal.
+    rows; the entry densities' blocks are exact (−Σ_π⁻¹). The result is block-tridiagonal
+    and is kept so (:class:`~bayes_talk.synthesis.banded.BlockTridiagonal`).
     """
 
     def __init__(self, plan: UtterancePlan):
@@ -388,25 +390,27 @@ class UtteranceDensity:
             lp += tm.smooth_grad(np.concatenate([rows(tm.s_idx - 1), rows(tm.s_idx)], 1), K)[0].reshape(-1, K).sum(0)
         return lp
 
-    def hessian(self, X: np.ndarray, h: float = 1e-6) -> np.ndarray:
-        """Dense (T·d)×(T·d) Hessian of ln p at X (block-tridiagonal, symmetrised), term by
-        term (class docstring)."""
+    def hessian(self, X: np.ndarray, h: float = 1e-6) -> BlockTridiagonal:
+        """The Hessian of ln p at X, block-tridiagonal (T blocks of d×d on the diagonal and the
+        first off-diagonals; :class:`~bayes_talk.synthesis.banded.BlockTridiagonal`), term by
+        term (class docstring), symmetrised: O(T·d²) memory, linear in the length."""
         X = np.asarray(X, dtype=np.float64).reshape(self.T, self.d)
-        T, d = self.T, self.d
-        H4 = np.zeros((T, d, T, d))
+        d = self.d
+        H = BlockTridiagonal.zeros(self.T, d)
         tm = self.terms
         if len(tm.a_idx):
-            H4[tm.a_idx, :, tm.a_idx, :] += _fd_blocks(lambda R, k: tm.audio_grad(R, k)[1], X[tm.a_idx], h)
+            H.diag[tm.a_idx] += _fd_blocks(lambda R, k: tm.audio_grad(R, k)[1], X[tm.a_idx], h)
         if len(tm.d_src):
             Hb = _fd_blocks(lambda R, k: tm.dynamics_grad(R, k)[1], np.concatenate([X[tm.d_src], X[tm.d_dst]], 1), h)
-            _add_pairs(H4, tm.d_src, tm.d_dst, Hb, d)
+            _add_pairs(H, tm.d_src, Hb, d)
         if len(tm.e_idx):                                              # −Σ⁻¹ = −L⁻ᵀL⁻¹
-            H4[tm.e_idx, :, tm.e_idx, :] -= np.einsum("eki,ekj->eij", tm.e_chol_inv, tm.e_chol_inv)
+            H.diag[tm.e_idx] -= np.einsum("eki,ekj->eij", tm.e_chol_inv, tm.e_chol_inv)
         if len(tm.s_idx):
             Hb = _fd_blocks(lambda R, k: tm.smooth_grad(R, k)[1], np.concatenate([X[tm.s_idx - 1], X[tm.s_idx]], 1), h)
-            _add_pairs(H4, tm.s_idx - 1, tm.s_idx, Hb, d)
-        H = H4.reshape(T * d, T * d)
-        return 0.5 * (H + H.T)
+            _add_pairs(H, tm.s_idx - 1, Hb, d)
+        # the off-diagonal blocks of a pair term are ∂²/∂x_src∂x_dst and the transpose of the
+        # other; their mean is the symmetric part, as ½(H + Hᵀ) of the dense matrix
+        return H.symmetrised()
 
 
 def _fd_blocks(grad, R: np.ndarray, h: float) -> np.ndarray:
@@ -419,12 +423,13 @@ def _fd_blocks(grad, R: np.ndarray, h: float) -> np.ndarray:
     return np.transpose((Gp[:, :m] - Gp[:, m:]) / (2 * h), (0, 2, 1))  # (n, i, j): ∂g_i/∂r_j
 
 
-def _add_pairs(H4: np.ndarray, src: np.ndarray, dst: np.ndarray, Hb: np.ndarray, d: int) -> None:
-    """Add 2d×2d blocks over (x_src, x_dst) pairs to the (T, d, T, d) Hessian."""
-    H4[src, :, src, :] += Hb[:, :d, :d]
-    H4[src, :, dst, :] += Hb[:, :d, d:]
-    H4[dst, :, src, :] += Hb[:, d:, :d]
-    H4[dst, :, dst, :] += Hb[:, d:, d:]
+def _add_pairs(H: BlockTridiagonal, src: np.ndarray, Hb: np.ndarray, d: int) -> None:
+    """Add 2d×2d blocks over the pairs (x_src, x_src+1) to the block-tridiagonal Hessian: the
+    off-diagonal block (src, src+1) is the mean of ∂²/∂x_src∂x_dst and the transpose of
+    ∂²/∂x_dst∂x_src (finite differences make them differ at round-off)."""
+    H.diag[src] += Hb[:, :d, :d]
+    H.diag[src + 1] += Hb[:, d:, d:]
+    H.upper[src] += 0.5 * (Hb[:, :d, d:] + np.transpose(Hb[:, d:, :d], (0, 2, 1)))
 
 
 class _Terms:

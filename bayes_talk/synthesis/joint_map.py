@@ -1,23 +1,30 @@
 """The joint MAP of the whole-utterance synthesis density (the first step of every
-posterior method of :mod:`bayes_talk.posterior.sampling`).
+posterior method of :mod:`bayes_talk.posterior.sampling`), in time and memory linear in the
+utterance's length.
 
 :func:`maximise_utterance` starts at deena2010's Algorithm 1 path (carried along the dynamics
 means when it is off them: :func:`along_dynamics`, :data:`CARRY_RMS_Z`) and maximises
 ln p(X | audio, states) of :class:`~bayes_talk.synthesis.joint.UtteranceDensity`: L-BFGS in
 coordinates whitened by the Laplace precision at the start (posterior scales span orders
-of magnitude), then scipy's ``trust-exact`` with the exact Hessian, which handles the
-negative curvature the density has away from its modes. Converged when max |∂ ln p/∂x| ≤
-``MAP_GTOL`` or when −∇² ln p is positive definite and the Newton decrement
-½ gᵀ(−∇² ln p)⁻¹ g is ≤ ``MAP_DTOL`` nats. :func:`restart_map` restarts it from draws of
-its own Laplace approximation and keeps the best mode (the density is multimodal).
+of magnitude), then a trust-region Newton method with the exact Hessian, which handles the
+negative curvature the density has away from its modes. The Hessian is block-tridiagonal
+(each term reads one frame or two neighbouring ones), and every solve, whitening and
+trust-region subproblem goes through its banded Cholesky factor
+(:mod:`bayes_talk.synthesis.banded`): O(T·d³) per iteration instead of the dense O((T·d)³).
+Converged when max |∂ ln p/∂x| ≤ ``MAP_GTOL`` or when −∇² ln p is positive definite and the
+Newton decrement ½ gᵀ(−∇² ln p)⁻¹ g is ≤ ``MAP_DTOL`` nats. :func:`restart_map` restarts it
+from draws of its own Laplace approximation and keeps the best mode (the density is
+multimodal).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from bayes_talk.gp.predictive_fused import Runs
+from bayes_talk.synthesis.banded import BandedFactor, BlockTridiagonal, modified_cholesky
 from bayes_talk.synthesis.joint import UtteranceDensity
 
 #: trust-region Newton iterations of the joint MAP (one default for the library, the CLI and the protocols)
@@ -35,6 +42,9 @@ MAP_DTOL = 1e-6
 #: (40 development utterances) and 0.1-2.7 on a small phone-state model, 66-95 on a VLMM model
 #: of 12 utterances
 CARRY_RMS_Z = 10.0
+#: the trust region's radius at the start and its largest, in the coordinates whitened at the
+#: point the Newton stage starts from (scipy's ``trust-exact`` defaults)
+TRUST_RADIUS = (1.0, 1000.0)
 #: at most this many rounds of restarts of the joint MAP from draws of its Laplace
 #: approximation (the restarts per round are each method's ``map_restarts`` in
 #: :data:`bayes_talk.posterior.methods.INFERENCE`): the joint density has several modes, and
@@ -52,21 +62,35 @@ class MapResult:
     n_iter: int
     converged: bool
     start_log_density: float  # at Algorithm 1's path (X0)
-    hessian: np.ndarray | None = None  # ∇² ln p at the result
+    hessian: BlockTridiagonal | None = None  # ∇² ln p at the result (block-tridiagonal)
     decrement: float = float("nan")  # ½ gᵀ(−∇² ln p)⁻¹ g at the result (nats)
-    hessian_modified: int = 0  # eigenvalues of −∇² ln p floored (not a strict maximum if > 0)
+    hessian_modified: int = 0  # eigenvalues of −∇² ln p that are ≤ 0 (not a strict maximum if > 0)
     carried: bool = False  # started from X0 carried along the dynamics means (CARRY_RMS_Z)
     start_rms_z: float = float("nan")  # dynamics_rms_z at X0 (NaN without dynamics steps)
+    _factor: BandedFactor | None = field(default=None, repr=False, compare=False)
+
+    def laplace_factor(self) -> BandedFactor:
+        """The banded Cholesky factor of the Laplace precision −∇² ln p at the result
+        (:func:`laplace_factor`; computed once)."""
+        if self._factor is None:
+            if self.hessian is None:
+                raise ValueError("this MapResult has no Hessian")
+            self._factor = laplace_factor(self.hessian)
+        return self._factor
 
 
-def floored_precision(H: np.ndarray, floor: float = 1e-8) -> tuple[np.ndarray, np.ndarray, int]:
-    """Eigen-decomposition of P = −H with eigenvalues floored at floor·max|λ| (and |λ| used
-    for negative ones): (eigenvalues, eigenvectors, number modified)."""
-    P = -0.5 * (H + H.T)
-    lam, U = np.linalg.eigh(P)
-    lo = floor * max(1.0, float(np.max(np.abs(lam))))
-    n_mod = int(np.sum(lam < lo))
-    return np.maximum(np.abs(lam), lo), U, n_mod
+def as_block_hessian(H, d: int) -> BlockTridiagonal:
+    """H as a :class:`~bayes_talk.synthesis.banded.BlockTridiagonal` of blocks d×d (a dense
+    array's block-tridiagonal part; the class itself as it is)."""
+    return H if isinstance(H, BlockTridiagonal) else BlockTridiagonal.from_dense(np.asarray(H), d)
+
+
+def laplace_factor(H: BlockTridiagonal) -> BandedFactor:
+    """The banded Cholesky factor of the precision P = −H of the Laplace approximation at a
+    point whose log-density Hessian is H; where P is not positive definite (the MAP stopped
+    short of a maximum), of P + τ·diag(|P_ii|) with the smallest τ that makes it so
+    (:func:`~bayes_talk.synthesis.banded.modified_cholesky`, τ in ``shift``)."""
+    return modified_cholesky(-H, "the Laplace precision -Hessian")
 
 
 def dynamics_rms_z(dens: UtteranceDensity, X: np.ndarray) -> float:
@@ -104,7 +128,8 @@ def along_dynamics(dens: UtteranceDensity, X: np.ndarray) -> np.ndarray:
 
 def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = MAP_MAX_ITER,
                        gtol: float = MAP_GTOL, dtol: float = MAP_DTOL,
-                       lbfgs_iter: int = MAP_LBFGS_ITER) -> MapResult:
+                       lbfgs_iter: int = MAP_LBFGS_ITER,
+                       progress: Callable[[str, int], None] | None = None) -> MapResult:
     """The joint MAP from X0 (Algorithm 1's path), in two stages.
 
     0. The start. When X0 is off the model's dynamics — its standardised dynamics residuals
@@ -119,26 +144,31 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
        nearby modes the MAP finds is unchanged there (docs/uncertainty.md).
 
     1. Up to ``lbfgs_iter`` L-BFGS iterations (scipy) in the coordinates whitened by the
-       Laplace precision at the start x₀, x = x₀ + L z with L Lᵀ = P⁻¹, P = −∇² ln p (eigenvalues
-       floored, negative ones by their modulus): cheap steps that bring the badly scaled
-       latent directions (posterior sds spanning orders of magnitude) to the mode's basin.
-    2. A trust-region Newton method with the exact Hessian (scipy's ``trust-exact``: the
-       trust-region subproblem solved nearly exactly, Moré & Sorensen 1983; Nocedal & Wright
-       2006 §4.3), again in coordinates whitened at the stage-1 point, so the trust region is
-       an ellipsoid of the local posterior's shape. Unlike a line search along the Newton
-       direction of a floored Hessian, it follows negative curvature out of saddle regions
-       (on held-out utterances the joint density has them, e.g. in 5-frame silence blocks),
-       and it takes full Newton steps, with quadratic convergence, near the mode. At most
-       ``max_iter`` iterations.
+       Laplace precision at the start x₀, x = x₀ + L z with L Lᵀ = P⁻¹, P = −∇² ln p (L = R⁻ᵀ
+       from P's banded Cholesky factor R, or that of P + τ·diag(|P_ii|) where P is not positive
+       definite: :func:`laplace_factor`): cheap steps that bring the badly scaled latent
+       directions (posterior sds spanning orders of magnitude) to the mode's basin.
+    2. A trust-region Newton method with the exact Hessian (:func:`_trust_region_stage`: the
+       subproblem solved nearly exactly, Moré & Sorensen 1983; Nocedal & Wright 2006 §4.3, as
+       scipy's ``trust-exact`` does), its region an ellipsoid of the local posterior's shape:
+       ‖s‖_M ≤ Δ in the metric M of the Laplace precision at the stage-1 point (the same as
+       a ball in the coordinates whitened there). Each subproblem (P + λM) s = g is a banded
+       Cholesky solve. Unlike a line search along the Newton direction of a modified Hessian,
+       it follows negative curvature out of saddle regions (on held-out utterances the joint
+       density has them, e.g. in 5-frame silence blocks): where P is indefinite the step
+       is the region's boundary solution with λ above P's most negative eigenvalue in M's
+       metric, and the radius shrinks until the model agrees with the density. Near the mode
+       it takes full Newton steps, with quadratic convergence. At most ``max_iter`` iterations.
 
     Converged when max |∂ ln p/∂x| ≤ ``gtol``, or when P is positive definite and the Newton
     decrement ½ gᵀP⁻¹g (the log density a Newton step would still gain) is at most ``dtol``
     nats: with dynamics noise variance 10⁻⁶ the curvature reaches 10⁸ and a gradient of 10² is
     then 10⁻⁶ away from the mode, so the gradient alone is not scale-free. The Hessian, the
     gradient norm and the decrement are those at the returned point (the Hessian is for
-    Laplace)."""
-    from scipy.optimize import minimize
+    Laplace). Time and memory are linear in the number of frames.
 
+    ``progress(stage, iterations)``: called after every iteration of each stage (``"lbfgs"``,
+    ``"newton"``) with the iterations done so far."""
     x0 = np.asarray(X0, dtype=np.float64).reshape(-1).copy()
     f0, g0 = dens(x0)
     n_iter = 0
@@ -150,74 +180,38 @@ def maximise_utterance(dens: UtteranceDensity, X0: np.ndarray, max_iter: int = M
         if np.isfinite(fr) and fr > f0:
             x, f, g, carried = xr, fr, gr.reshape(-1), True
     if lbfgs_iter > 0:
-        x, f, g, n_iter = _lbfgs_stage(dens, x, f, g, lbfgs_iter, gtol)
+        x, f, g, n_iter = _lbfgs_stage(dens, x, f, g, lbfgs_iter, gtol, progress)
     H = dens.hessian(x)
     state = _newton_state(H, g, gtol, dtol)
     if not state["converged"] and max_iter > 0:
-        lam, U, _ = floored_precision(H)
-        L = U / np.sqrt(lam)
-        xs = x.copy()
-        cache: dict = {}
-
-        def point(z: np.ndarray) -> dict:
-            key = z.tobytes()
-            if key not in cache:
-                cache.clear()
-                xz = xs + L @ z
-                fz, gz = dens(xz)
-                cache[key] = {"x": xz, "f": fz, "g": gz.reshape(-1)}
-            return cache[key]
-
-        def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
-            p = point(z)
-            if not np.isfinite(p["f"]):
-                return np.inf, np.zeros_like(z)
-            return -p["f"], -(L.T @ p["g"])
-
-        def neg_hess(z: np.ndarray) -> np.ndarray:
-            p = point(z)
-            if "H" not in p:
-                p["H"] = dens.hessian(p["x"])
-            return -(L.T @ p["H"] @ L)
-
-        def done(intermediate_result) -> None:
-            p = point(np.asarray(intermediate_result.x))
-            if "H" not in p:
-                p["H"] = dens.hessian(p["x"])
-            if _newton_state(p["H"], p["g"], gtol, dtol)["converged"]:
-                raise StopIteration
-
-        res = minimize(neg, np.zeros_like(x), jac=True, hess=neg_hess, method="trust-exact", callback=done,
-                       options={"maxiter": max_iter, "gtol": 1e-300})
-        p = point(np.asarray(res.x))
-        if np.isfinite(p["f"]) and p["f"] >= f:
-            x, f, g = p["x"], float(p["f"]), p["g"]
-            H = p["H"] if "H" in p else dens.hessian(x)
-            state = _newton_state(H, g, gtol, dtol)
-        n_iter += int(res.nit)
+        x, f, g, H, state, k = _trust_region_stage(dens, x, f, g, H, state, max_iter, gtol, dtol, progress)
+        n_iter += k
     return MapResult(x.reshape(dens.T, dens.d), float(f), state["grad_norm"], n_iter, state["converged"],
-                     float(f0), H, state["decrement"], state["n_mod"], carried, rms_z)
+                     float(f0), H, state["decrement"], state["n_mod"], carried, rms_z, _factor=state["factor"])
 
 
 def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarray, max_iter: int,
-                 gtol: float) -> tuple[np.ndarray, float, np.ndarray, int]:
-    """L-BFGS (scipy) on ln p in coordinates whitened at x0; the best point seen and its
-    gradient, and the iteration count."""
+                 gtol: float, progress=None) -> tuple[np.ndarray, float, np.ndarray, int]:
+    """L-BFGS (scipy) on ln p in coordinates whitened at x0 (x = x0 + L z, L = R⁻ᵀ of the
+    banded factor of the Laplace precision there); the best point seen and its gradient, and
+    the iteration count."""
     from scipy.optimize import minimize
 
-    lam, U, _ = floored_precision(dens.hessian(x0))
-    L = U / np.sqrt(lam)
-    best = {"f": f0, "x": x0, "g": g0}
+    fac = laplace_factor(dens.hessian(x0))
+    best = {"f": f0, "x": x0, "g": g0, "iter": 0}
 
     def neg(z: np.ndarray) -> tuple[float, np.ndarray]:
-        x = x0 + L @ z
+        x = x0 + fac.scale_matvec(z)
         f, g = dens(x)
         g = g.reshape(-1)
         if np.isfinite(f) and f > best["f"]:
             best.update(f=f, x=x, g=g)
-        return -f, -(L.T @ g)
+        return -f, -fac.scale_rmatvec(g)
 
     def done(z) -> None:
+        best["iter"] += 1
+        if progress is not None:
+            progress("lbfgs", best["iter"])
         if np.max(np.abs(best["g"])) <= gtol:
             raise StopIteration
 
@@ -226,13 +220,98 @@ def _lbfgs_stage(dens: UtteranceDensity, x0: np.ndarray, f0: float, g0: np.ndarr
     return best["x"], float(best["f"]), best["g"], int(res.nit)
 
 
-def _newton_state(H: np.ndarray, g: np.ndarray, gtol: float, dtol: float) -> dict:
+def _trust_region_stage(dens: UtteranceDensity, x: np.ndarray, f: float, g: np.ndarray, H: BlockTridiagonal,
+                        state: dict, max_iter: int, gtol: float, dtol: float, progress=None):
+    """Stage 2 of :func:`maximise_utterance`: at most ``max_iter`` trust-region Newton
+    iterations from x in the metric M of the Laplace precision at x (scipy ``trust-exact``'s
+    radius rules: shrink ×¼ when the step's gain is under ¼ of the model's, double it up to
+    ``TRUST_RADIUS[1]`` when over ¾ on the boundary, accept when over 0.15). Returns the
+    accepted point, its value, gradient, Hessian, convergence state and the iterations."""
+    M = state["factor"]
+    radius, max_radius = TRUST_RADIUS
+    n = 0
+    for n in range(1, max_iter + 1):
+        P = -H
+        s, on_boundary = _trust_region_step(P, M, g, radius)
+        predicted = float(g @ s - 0.5 * s @ P.matvec(s))
+        x_new = x + s
+        f_new, g_new = dens(x_new)
+        rho = (f_new - f) / predicted if np.isfinite(f_new) and predicted > 0 else -np.inf
+        if rho < 0.25:
+            radius *= 0.25
+        elif rho > 0.75 and on_boundary:
+            radius = min(2.0 * radius, max_radius)
+        if rho > 0.15:
+            x, f, g = x_new, float(f_new), g_new.reshape(-1)
+            H = dens.hessian(x)
+            state = _newton_state(H, g, gtol, dtol)
+        if progress is not None:
+            progress("newton", n)
+        if state["converged"] or radius < 1e-12:
+            break
+    return x, f, g, H, state, n
+
+
+def _trust_region_step(P: BlockTridiagonal, M: BandedFactor, g: np.ndarray, radius: float,
+                       tol: float = 0.1, max_iter: int = 60) -> tuple[np.ndarray, bool]:
+    """The step s maximising the model gᵀs − ½ sᵀPs over ‖s‖_M ≤ ``radius`` (‖s‖_M = ‖Rᵀs‖,
+    M = R Rᵀ), nearly exactly (Moré & Sorensen 1983): s(λ) = (P + λM)⁻¹ g with the λ ≥ 0 that
+    makes P + λM positive definite and ‖s(λ)‖_M within ``tol``·radius of the radius (or λ = 0
+    and s inside). λ by Newton's method on 1/radius − 1/‖s(λ)‖_M, safeguarded by bisection
+    between a λ known too small (P + λM indefinite, or ‖s‖_M too long) and one known too large;
+    each trial one banded Cholesky factorisation of P + λM. Returns (s, on the boundary)."""
+    Mmat = M.matrix
+
+    def norm(s: np.ndarray) -> float:
+        return float(np.linalg.norm(M.unscale_matvec(s)))
+
+    lo, hi, best = 0.0, None, None
+    lam = 0.0
+    g_white = float(np.linalg.norm(M.scale_rmatvec(g)))
+    for _ in range(max_iter):
+        try:
+            C = (P + Mmat.scaled(lam)).cholesky() if lam > 0 else P.cholesky()
+        except np.linalg.LinAlgError:
+            lo = max(lo, lam)
+            lam = 0.5 * (lo + hi) if hi is not None else max(4.0 * lam, g_white / radius, 1e-12)
+            continue
+        s = C.solve(g)
+        ns = norm(s)
+        if lam == 0.0 and ns <= radius:
+            return s, False
+        if abs(ns - radius) <= tol * radius:
+            return s, True
+        if ns > radius:
+            lo = lam
+        else:
+            hi, best = lam, s
+        Ms = Mmat.matvec(s)
+        q2 = float(Ms @ C.solve(Ms))
+        new = lam + (ns * ns / q2) * (ns - radius) / radius if q2 > 0 else np.inf
+        if hi is not None and not (lo < new < hi):
+            new = 0.5 * (lo + hi)
+        elif hi is None and not new > lo:
+            new = max(2.0 * lo, 1e-12)
+        if hi is not None and hi - lo <= 1e-12 * hi:
+            break                       # the hard case: no λ reaches the boundary; the inner solution at hi
+        lam = new
+    if best is not None:
+        return best, False
+    return s * (radius / ns), True
+
+
+def _newton_state(H: BlockTridiagonal, g: np.ndarray, gtol: float, dtol: float) -> dict:
     """The convergence test at a point with Hessian H and gradient g of ln p: max |g|, the
-    Newton decrement ½ gᵀP⁻¹g (P = −H, eigenvalues floored), eigenvalues floored, converged."""
-    lam, U, n_mod = floored_precision(H)
-    decrement = 0.5 * float(np.sum((U.T @ g) ** 2 / lam))
+    Newton decrement ½ gᵀP⁻¹g (P = −H; where P is not positive definite, with P's modified
+    Cholesky factor), the number of eigenvalues of P that are ≤ 0, converged, and the factor."""
+    P = -H
+    try:
+        fac, n_mod = P.cholesky(), 0
+    except np.linalg.LinAlgError:
+        fac, n_mod = laplace_factor(H), max(P.inertia(), 1)
+    decrement = 0.5 * float(g @ fac.solve(g))
     gnorm = float(np.max(np.abs(g)))
-    return {"grad_norm": gnorm, "decrement": decrement, "n_mod": n_mod,
+    return {"grad_norm": gnorm, "decrement": decrement, "n_mod": n_mod, "factor": fac,
             "converged": gnorm <= gtol or (n_mod == 0 and decrement <= dtol)}
 
 
@@ -249,12 +328,11 @@ def restart_map(dens: UtteranceDensity, mp: MapResult, n_restarts: int, seed: in
     rng = np.random.default_rng([seed, 0x6D6170])
     found: list[MapResult] = []
     for _ in range(rounds):
-        lam, U, _ = floored_precision(mp.hessian)
-        L = U / np.sqrt(lam)
+        fac = mp.laplace_factor()
         x = mp.latents.reshape(-1)
         best = mp
         for _ in range(n_restarts):
-            x0 = (x + L @ rng.standard_normal(x.size)).reshape(dens.T, dens.d)
+            x0 = (x + fac.scale_matvec(rng.standard_normal(x.size))).reshape(dens.T, dens.d)
             if not np.isfinite(dens(x0)[0]):
                 continue
             r = maximise_utterance(dens, x0, max_iter=max_iter)

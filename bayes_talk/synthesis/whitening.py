@@ -12,13 +12,13 @@ import numpy as np
 import torch
 
 from bayes_talk.synthesis.joint import UtteranceDensity
-from bayes_talk.synthesis.joint_map import MapResult, floored_precision
+from bayes_talk.synthesis.joint_map import MapResult
 
 
 def whitening(mp: MapResult) -> tuple[np.ndarray, np.ndarray]:
-    """L with L Lᵀ = (−∇² ln p)⁻¹ at the mode (eigenvalues floored) and its inverse L⁻¹."""
-    lam, U, _ = floored_precision(mp.hessian)
-    return U / np.sqrt(lam), (U * np.sqrt(lam)).T
+    """L with L Lᵀ = (−∇² ln p)⁻¹ at the mode and its inverse L⁻¹, dense: L = R⁻ᵀ from the
+    banded Cholesky factor R of the Laplace precision (:meth:`MapResult.laplace_factor`)."""
+    return mp.laplace_factor().dense_scale()
 
 
 class Potential(torch.autograd.Function):

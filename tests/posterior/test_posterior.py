@@ -387,7 +387,7 @@ def test_hessian_by_coloured_differences_matches_autograd(toys):
     plan = make_plan(model, s.mfcc[:9], s.labels[:9])
     dens = UtteranceDensity(plan)
     X = model.synthesize(s.mfcc[:9], s.labels[:9]).latents
-    H = dens.hessian(X)
+    H = dens.hessian(X).dense()
     Ht = torch.autograd.functional.hessian(lambda x: pyro_log_density(plan, x.reshape(X.shape)),
                                            torch.as_tensor(X.reshape(-1))).numpy()
     assert np.abs(H - Ht).max() <= 1e-5 * np.abs(Ht).max()
@@ -514,14 +514,14 @@ def test_a_converged_joint_map_has_its_gradient_or_decrement_within_tolerance(to
         X0 = model.synthesize(s.mfcc, s.labels).latents
         X0 = X0 + 0.1 * rng.standard_normal(X0.shape)
         with torch_threads(1):
-            assert np.linalg.eigvalsh(-dens.hessian(X0))[0] < 0
+            assert np.linalg.eigvalsh(-dens.hessian(X0).dense())[0] < 0
             r = maximise_utterance(dens, X0)
             f, g = dens(r.latents)
-            H = dens.hessian(r.latents)
+            H = dens.hessian(r.latents).dense()
         g = g.reshape(-1)
         assert r.converged and f > r.start_log_density and f == pytest.approx(r.log_density, rel=1e-12)
         assert r.grad_norm == pytest.approx(np.abs(g).max(), rel=1e-9)
-        np.testing.assert_allclose(r.hessian, H, rtol=0, atol=1e-9 * np.abs(H).max())
+        np.testing.assert_allclose(r.hessian.dense(), H, rtol=0, atol=1e-9 * np.abs(H).max())
         lam = np.linalg.eigvalsh(-H)
         decrement = 0.5 * g @ np.linalg.solve(-H, g)
         assert r.decrement == pytest.approx(decrement, rel=1e-6, abs=1e-12)
@@ -562,12 +562,14 @@ def test_map_restarts_from_laplace_draws_climb_out_of_a_lower_mode():
     """On a density with two known, separated modes, restarts from Laplace draws at the lower
     mode reach the higher one (the search's purpose), deterministically: the lower mode's
     Laplace spread covers the valley, so the draws fall on both sides."""
+    from bayes_talk.synthesis.banded import BlockTridiagonal
     from bayes_talk.synthesis.joint_map import restart_map
 
     class TwoModes:
-        """ln p(x) = ln(0.3 N(x; a, s²I) + 0.7 N(x; b, s²I)) on 3×2 latents, b − a = 2.8 s
-        along the first coordinate: two modes with a valley between them."""
-        T, d, s = 3, 2, 0.5
+        """ln p(x) = ln(0.3 N(x; a, s²I) + 0.7 N(x; b, s²I)) on one frame of 6 latents,
+        b − a = 2.8 s along the first coordinate: two modes with a valley between them (one
+        frame, so the dense Hessian is its one block-tridiagonal block)."""
+        T, d, s = 1, 6, 0.5
         a, b = np.zeros(6), np.r_[1.4, np.zeros(5)]
 
         def _parts(self, X):
@@ -588,11 +590,11 @@ def test_map_restarts_from_laplace_draws_climb_out_of_a_lower_mode():
         def hessian(self, X):
             _, r, gs = self._parts(X)
             g = r[0] * gs[0] + r[1] * gs[1]
-            return (-np.eye(6) / self.s ** 2 + r[0] * np.outer(gs[0], gs[0])
-                    + r[1] * np.outer(gs[1], gs[1]) - np.outer(g, g))
+            return BlockTridiagonal.from_dense(-np.eye(6) / self.s ** 2 + r[0] * np.outer(gs[0], gs[0])
+                                               + r[1] * np.outer(gs[1], gs[1]) - np.outer(g, g), 6)
 
     dens = TwoModes()
-    start = maximise_utterance(dens, np.full((3, 2), -0.3))
+    start = maximise_utterance(dens, np.full((1, 6), -0.3))
     assert start.converged and start.latents.reshape(-1)[0] < 0.5  # the lower mode, near a
     best, found = restart_map(dens, start, 16, seed=0, rounds=2)
     assert best.converged and np.abs(best.latents.reshape(-1) - dens.b).max() < 0.1  # the higher, near b
@@ -752,3 +754,40 @@ def test_synth_cli_sampler_options_reach_sample_synthesis(tmp_path):
         _sampler_args({"step": 1})
     with pytest.raises(SystemExit):
         build_parser().parse_args(["synth", "M", "--audio", "x.wav", "--out", "o", "--chains", "0"])
+
+
+def test_banded_map_and_laplace_equal_the_dense_ones(toy):
+    """The joint MAP's Newton stage by banded linear algebra reaches the mode that the dense
+    trust-region method (scipy's ``trust-exact`` on the dense Hessian, whitened by its
+    eigen-decomposition) reaches from the same L-BFGS point, to the optimiser's tolerance, and its
+    Laplace marginal covariances (banded selected inverse) equal the dense inverse of −∇² ln p
+    there."""
+    from scipy.optimize import minimize
+
+    model, test = toy
+    for s in test[:2]:
+        dens = UtteranceDensity(make_plan(model, s.mfcc, s.labels))
+        X0 = model.synthesize(s.mfcc, s.labels).latents
+        with torch_threads(1):
+            r = maximise_utterance(dens, X0)
+            x0 = maximise_utterance(dens, X0, max_iter=0).latents.reshape(-1)    # the L-BFGS stage's end
+            lam, U = np.linalg.eigh(-dens.hessian(x0).dense())
+            L = U / np.sqrt(np.maximum(np.abs(lam), 1e-8 * np.abs(lam).max()))
+
+            def neg(z, x0=x0, L=L, dens=dens):
+                f, g = dens(x0 + L @ z)
+                return -f, -(L.T @ g.reshape(-1))
+
+            ref = minimize(neg, np.zeros_like(x0), jac=True, method="trust-exact",
+                           hess=lambda z, x0=x0, L=L, dens=dens: -(L.T @ dens.hessian(x0 + L @ z).dense() @ L),
+                           options={"maxiter": 500, "gtol": 1e-8})
+            H = dens.hessian(r.latents).dense()
+        assert r.converged and r.hessian_modified == 0
+        assert r.log_density == pytest.approx(-ref.fun, abs=1e-5)
+        np.testing.assert_allclose(r.latents.reshape(-1), x0 + L @ ref.x, atol=1e-4)
+        cov = np.linalg.inv(-H)
+        S = r.laplace_factor().marginal_covariances()
+        d = dens.d
+        for t in range(dens.T):
+            np.testing.assert_allclose(S[t], cov[t * d:(t + 1) * d, t * d:(t + 1) * d], rtol=1e-7,
+                                       atol=1e-9 * np.abs(cov).max())

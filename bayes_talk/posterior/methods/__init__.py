@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import numpy as np
 
+    from bayes_talk.synthesis.banded import BandedFactor
     from bayes_talk.synthesis.joint import UtteranceDensity, UtterancePlan
     from bayes_talk.synthesis.joint_map import MapResult
 
@@ -101,8 +102,11 @@ class Context:
 
     plan, density: the whole-utterance synthesis model and its closed-form log density
     (:class:`~bayes_talk.synthesis.joint.UtteranceDensity`); map: the joint MAP (the highest
-    mode of its restarts) and modes: the restarts' modes; scale: L with L Lᵀ the Laplace
-    covariance at the MAP (eigenvalues floored; the whitening X = X_MAP + L z); rng: a generator
+    mode of its restarts) and modes: the restarts' modes; factor: the banded Cholesky factor R
+    of the Laplace precision at the MAP (:meth:`~bayes_talk.synthesis.joint_map.MapResult.laplace_factor`;
+    the whitening X = X_MAP + L z with L = R⁻ᵀ, applied in linear time by its
+    ``scale_matvec``; :attr:`scale` is L as a dense matrix, for the samplers that move in
+    whitened coordinates on short utterances); rng: a generator
     seeded by ``seed`` (the methods that draw with numpy take theirs from it); n_draws: draws
     to keep, pooled over chains; chains: chains of the MCMC methods; warmup: their warm-up
     (None: the method's default); map_iter: Newton iterations of a joint MAP the method runs
@@ -112,7 +116,7 @@ class Context:
     density: UtteranceDensity
     map: MapResult
     modes: list
-    scale: np.ndarray
+    factor: BandedFactor
     rng: np.random.Generator
     seed: int
     n_draws: int
@@ -120,6 +124,14 @@ class Context:
     warmup: int | None
     map_iter: int
     thin: int
+
+    @property
+    def scale(self) -> np.ndarray:
+        """L (T·d × T·d, dense) with L Lᵀ the Laplace covariance at the MAP: the whitening of
+        the samplers that move in whitened coordinates (quadratic memory: short utterances)."""
+        if "scale" not in self.__dict__.setdefault("_dense", {}):
+            self.__dict__["_dense"]["scale"] = self.factor.dense_scale()[0]
+        return self.__dict__["_dense"]["scale"]
 
     @property
     def x_map(self) -> np.ndarray:
@@ -197,7 +209,8 @@ INFERENCE: dict[str, InferenceMethod] = {m.name: m for m in (
                "the paper's sequential path (Algorithm 1/2) instead",
         "bayes_talk.posterior.methods.map", draws=1, map_restarts=0, diagnostics=()),
     InferenceMethod(
-        "laplace", "iid draws of the Gaussian at the joint MAP (closed-form Hessian, floored eigenvalues)",
+        "laplace", "iid draws of the Gaussian at the joint MAP (closed-form block-tridiagonal Hessian, banded "
+                   "Cholesky factor: linear in the length)",
         "bayes_talk.posterior.methods.laplace", draws=64, map_restarts=0, diagnostics=("khat",),
         advice="the Gaussian approximation is poor here (the posterior is multimodal); the bands include "
                "the model's observation term, fitted on held-out training utterances, beside the "

@@ -1,5 +1,6 @@
-"""``laplace``: iid draws of the Gaussian at the joint MAP, N(X_MAP, L Lᵀ), L Lᵀ the inverse of
-−∇² ln p at the MAP with floored eigenvalues (docs/uncertainty.md, "Inference"). Judged by the
+"""``laplace``: iid draws of the Gaussian at the joint MAP, N(X_MAP, P⁻¹), P = −∇² ln p at the
+MAP (P + τ·diag(|P_ii|) where P is not positive definite), drawn as X_MAP + R⁻ᵀ z from P's banded
+Cholesky factor R in time linear in the length (docs/uncertainty.md, "Inference"). Judged by the
 PSIS Pareto k̂ of the importance weights p/q (k̂ ≤ 0.7 wanted), not by R-hat on independent
 draws."""
 from __future__ import annotations
@@ -26,11 +27,11 @@ class Options:
 
 
 def run(context: Context, options: Options) -> Output:
-    """``n_draws`` draws x = X_MAP + L z, z ~ N(0, I) from ``context.rng``, and k̂ from
-    ``max(n_draws, khat_draws)`` of them."""
+    """``n_draws`` draws x = X_MAP + L z, z ~ N(0, I) from ``context.rng`` (L = R⁻ᵀ,
+    ``context.factor``), and k̂ from ``max(n_draws, khat_draws)`` of them."""
     T, d = context.shape
     n_k = max(context.n_draws, int(options.khat_draws))
-    draws = run_laplace(None, context.x_map, n_k, context.rng, scale=context.scale)
+    draws = run_laplace(None, context.x_map, n_k, context.rng, factor=context.factor)
     Xall, Z = draws.samples[0], draws.stats["z"]
     sample_stats: dict = {}
     diag = psis_diagnostics(context.density, Xall, -0.5 * np.sum(Z * Z, axis=1), context.n_draws, sample_stats)
