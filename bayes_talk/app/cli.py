@@ -160,6 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
+                      sample_draws=args.sample_draws,
                       calibrated_model=args.calibrated_model, calibration=args.calibration,
                       min_utterances=args.min_utterances, cmvn=args.cmvn,
                       labels=args.labels, executor=args.executor, workers=args.workers,
@@ -199,6 +200,10 @@ def _add_evaluate_parser(sub) -> None:
                         "--calibration (default: the protocol's, noise)")
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
+    e.add_argument("--sample-draws", type=int, default=None,
+                   help="predictive draws per utterance behind the landmark diversity, mean-of-samples and "
+                        "best-of-N lip errors of every method that samples its path (the *-posterior methods; "
+                        "default 16, >= 2; docs/evaluation.md)")
     e.add_argument("--labels", default="true",
                    help="test labels: comma-separated sources among true, aligned, recognised "
                         "(docs/alignment.md; models trained once, every method scored under each)")
