@@ -119,7 +119,7 @@ class _SplitOutcome:
     calibration_seconds: dict[str, float] = field(default_factory=dict)
 
 
-def _finite_mean(values: list[float]) -> float:
+def _mean_skipping_nan(values: list[float]) -> float:
     """Mean of ``values`` without the nan ones; nan (no warning) when every one is nan (a metric
     the method or the corpus does not define)."""
     v = np.asarray(values, dtype=np.float64)
@@ -199,7 +199,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
             if cal is not None and "posterior" in get_method(name).options:
                 band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
-                               **{k: _finite_mean([r[k] for r in rows]) for k in rows[0]}}
+                               **{k: _mean_skipping_nan([r[k] for r in rows]) for k in rows[0]}}
             if say is not None:
                 say(f"split {split.index + 1}/{job.n_splits}: {name} " + ", ".join(
                     f"{k}={per_split[name][k]:.4g}" for k in ("mse", "corr")))

@@ -28,9 +28,9 @@ every utterance: :func:`coverage`, :func:`crps_gaussian` (closed form),
 calibration report of :mod:`bayes_talk.evaluation.calibration` (mixture predictives:
 coverage of the exact bands, PIT, mixture NLPD, sample CRPS).
 
-The field's landmark metrics (FaceFormer, CodeTalker, ProbTalk3D), on 2-D landmarks: ``truth``
-and ``pred`` are lists of (T_i, P, 2) landmark tracks (pixels), ``samples`` lists of
-(N, T_i, P, 2) draws. With x̂_tv, x_tv the predicted and true position of landmark v at frame t:
+The field's landmark metrics (FaceFormer's LVE, CodeTalker's FDD, ProbTalk3D's sample metrics),
+on 2-D landmarks: ``truth`` and ``pred`` are lists of (T_i, P, 2) landmark tracks (pixels),
+``samples`` lists of (N, T_i, P, 2) draws. With x̂_tv, x_tv the predicted and true position of landmark v at frame t:
 
     LVE   = (1/T) Σ_t max_{v ∈ L} ‖x̂_tv − x_tv‖²            lips L; squared distance, as FaceFormer's
                                                            lip vertex error (:func:`lip_vertex_error`)
@@ -397,7 +397,7 @@ def mouth_opening_error(truth: ArrayList, pred: ArrayList, pair: tuple[int, int]
 
 
 def upper_face_dynamics_deviation(truth: ArrayList, pred: ArrayList, upper, reference: ArrayList) -> np.ndarray:
-    """Per-utterance upper-face dynamics deviation in FaceFormer's FDD form (n,):
+    """Per-utterance upper-face dynamics deviation in CodeTalker's FDD form (n,):
 
         m_tv = ‖x_tv − r_v‖²                                   motion of landmark v (squared
                                                                displacement from the reference r)
@@ -405,10 +405,10 @@ def upper_face_dynamics_deviation(truth: ArrayList, pred: ArrayList, upper, refe
 
     over the upper-face landmarks ``upper`` (indices U); sd_t is the population standard
     deviation over the T frames, ``reference`` one (P, 2) reference face per utterance (the
-    template: the same for prediction and truth). Units: pixels². FaceFormer's and CodeTalker's
-    code average the signed difference of the two region means, sd of the truth minus sd of the
-    prediction; here each landmark's difference counts in absolute value, so that a landmark
-    moving too much cannot cancel one moving too little.
+    template: the same for prediction and truth). Units: pixels². CodeTalker's code (and
+    ProbTalk3D's) takes the signed difference of the two region means, sd of the truth minus sd
+    of the prediction; here each landmark's difference counts in absolute value, so that a
+    landmark moving too much cannot cancel one moving too little.
     """
     pairs = _track_pairs(truth, pred)
     refs = _as_list(reference, "reference", ndim=2)
