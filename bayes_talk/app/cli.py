@@ -136,7 +136,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                     init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
                     n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
                     transcript=args.transcript, align_method=args.align_method, truth=args.truth,
-                    calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None,
+                    calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None, export=args.export,
                     sampler_options={"chains": args.chains, "warmup": args.warmup,
                                      "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
                                      "pg_particles": args.pg_particles, "workers": args.workers,
@@ -160,6 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       test_corpus=Path(args.test_corpus) if args.test_corpus else None,
                       methods=args.methods, quick=args.quick, seed=args.seed, figures=not args.no_figures,
                       lowpass_hz=args.lowpass_hz, oracle_draws=args.oracle_draws,
+                      sample_draws=args.sample_draws,
                       calibrated_model=args.calibrated_model, calibration=args.calibration,
                       min_utterances=args.min_utterances, cmvn=args.cmvn,
                       labels=args.labels, executor=args.executor, workers=args.workers,
@@ -199,6 +200,10 @@ def _add_evaluate_parser(sub) -> None:
                         "--calibration (default: the protocol's, noise)")
     e.add_argument("--oracle-draws", type=int, default=None,
                    help="generator draws per utterance of method oracle (default 32, >= 2)")
+    e.add_argument("--sample-draws", type=int, default=None,
+                   help="predictive draws per utterance behind the landmark diversity, mean-of-samples and "
+                        "best-of-N lip errors of every method that samples its path (the *-posterior methods; "
+                        "default 16, >= 2; docs/evaluation.md)")
     e.add_argument("--labels", default="true",
                    help="test labels: comma-separated sources among true, aligned, recognised "
                         "(docs/alignment.md; models trained once, every method scored under each)")
@@ -227,6 +232,9 @@ outputs in --out (docs/outputs.md):
   bands.png        the first AAM parameters over time: mean, 50 %/90 % bands (+ --truth)
   uncertainty.mp4  mean face | per-pixel standard deviation of rendered draws (unless --no-video)
   diagnostics.json with --posterior laplace|nuts|pg-nuts|emcee|vi
+  frames.json|csv  with --export: per frame time, parameter mean/sd/5-50-95 % quantiles,
+                   landmarks and their sd (schema in docs/outputs.md)
+  landmarks_track.json|csv  with --export: x, y of every landmark per frame (a 2-D tool's track)
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -508,6 +516,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--raw-bands", action="store_true",
                    help="the GP predictive alone: without the model's observation term or band calibration "
                         "(train --calibrate-bands)")
+    s.add_argument("--export", choices=("json", "csv"), default=None,
+                   help="also write frames.json|csv (per frame: time, the AAM parameters' mean, sd and 5/50/95 %% "
+                        "quantiles, the landmarks and their sd over seeded predictive draws) and "
+                        "landmarks_track.json|csv (x, y of every landmark per frame, for a 2-D tool); "
+                        "docs/outputs.md")
     s.add_argument("--force", action="store_true",
                    help="replace an earlier run's outputs in --out (its files this run does not write "
                         "are removed)")

@@ -14,6 +14,15 @@ Also ``train_seconds`` (total over splits; methods sharing a family report the s
 training time and name each other in ``train_shared_with``) and
 ``synth_frames_per_second``.
 
+Landmark metrics (the field's, :mod:`bayes_talk.evaluation.metrics`; every method, null where
+undefined): the landmarks of the predicted mean and of the truth, both reconstructed through the
+AAM the test frames were projected through with the utterance's own removed mean added
+(:func:`~bayes_talk.evaluation.scoring.landmark_space`), give ``lve``, ``mouth_opening_mae`` and
+``fdd``; a method whose predictive mixes over draws of the path also gets ``diversity``,
+``mean_of_samples_lve`` and ``best_of_n_lve`` from ``SystemConfig.sample_draws`` seeded draws of
+it. A corpus without an AAM (precomputed features) or a user corpus (its own landmark layout)
+gets null for all six.
+
 Calibration (:mod:`bayes_talk.evaluation.calibration`): every method with a predictive
 variance also gets ``calibration`` — coverage of the exact central 50/80/90/95 % bands
 pooled and per AAM parameter with standard errors over utterances, the PIT histogram,
@@ -48,6 +57,7 @@ from bayes_talk.evaluation.protocols import Protocol, get_protocol, scale_protoc
 from bayes_talk.evaluation.scoring import (
     calibration_inputs,
     json_safe,
+    landmark_space,
     summary_stats,
     utterance_metrics,
 )
@@ -109,6 +119,14 @@ class _SplitOutcome:
     calibration_seconds: dict[str, float] = field(default_factory=dict)
 
 
+def _mean_skipping_nan(values: list[float]) -> float:
+    """Mean of ``values`` without the nan ones; nan (no warning) when every one is nan (a metric
+    the method or the corpus does not define)."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
 def _say_split(say: Callable[[str], None], job: _SplitJob, out: _SplitOutcome) -> None:
     for name, row in out.per_split.items():
         say(f"split {job.split.index + 1}/{job.n_splits}: {name} "
@@ -124,6 +142,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
     split, test, cfg = job.split, job.test, job.cfg
     variance = np.concatenate([s.aam for s in test]).var(axis=0)
     traj = Trajectory(test[0].name, test[0].aam.copy()) if job.first else None
+    spaces = [landmark_space(seq, cfg.sample_draws, cfg.seed) for seq in test]
     rows_all: dict[str, list[dict[str, float]]] = {}
     per_split: dict[str, dict[str, Any]] = {}
     train_s: dict[str, float] = {}
@@ -165,7 +184,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
                     raise RuntimeError(f"{name} predicted shape {pred.mean.shape} for {seq.name}, "
                                        f"expected {seq.aam.shape}")
                 ll = log_likelihood(name, model, seq, pred)
-                rows.append(utterance_metrics(seq.aam, pred, variance, ll))
+                rows.append(utterance_metrics(seq.aam, pred, variance, ll, spaces[j]))
                 for key, res in calibration_inputs(name, pred).items():
                     cal_rows[name][key].append(CAL.score_utterance(res, seq.aam, seed=cfg.seed))
                 if getattr(model, "reference", False) and pred.result is not None:
@@ -180,7 +199,7 @@ def _run_split(job: _SplitJob, executor=None, say: Callable[[str], None] | None 
             if cal is not None and "posterior" in get_method(name).options:
                 band_cal[name] = {"split": split.index, **cal.to_dict()}
             per_split[name] = {"split": split.index, "n_test": len(rows),
-                               **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}}
+                               **{k: _mean_skipping_nan([r[k] for r in rows]) for k in rows[0]}}
             if say is not None:
                 say(f"split {split.index + 1}/{job.n_splits}: {name} " + ", ".join(
                     f"{k}={per_split[name][k]:.4g}" for k in ("mse", "corr")))
@@ -332,6 +351,7 @@ def evaluate(
     figures: bool = True,
     lowpass_hz: float | None = None,
     oracle_draws: int | None = None,
+    sample_draws: int | None = None,
     calibrated_model: str | None = None,
     calibration: str | None = None,
     min_utterances: int | None = None,
@@ -347,6 +367,8 @@ def evaluate(
     (recorded in the JSON under ``settings``); None: off, the protocols' default.
     oracle_draws: generator draws per utterance of method ``oracle`` (>= 2: its bias
     correction needs an across-draw variance; the ``oracle`` model's ``n_draws``); None: its default.
+    sample_draws: predictive draws of the sample-based landmark metrics (>= 2;
+    ``SystemConfig.sample_draws``); None: the protocol's, 16.
     calibrated_model: which model the band calibration is scored with (``SystemConfig``; None:
     the protocol's, "refit"). calibration: what is fitted on held-out training utterances
     (``SystemConfig.calibration``, as ``train --calibration``; None: the protocol's, "noise").
@@ -378,6 +400,7 @@ def evaluate(
                          **({"lowpass_hz": float(lowpass_hz)} if lowpass_hz is not None else {}),
                          **({"models": {"oracle": {"n_draws": int(oracle_draws)}}} if oracle_draws is not None
                             else {}),
+                         **({"sample_draws": sample_draws} if sample_draws is not None else {}),
                          **({"calibrated_model": calibrated_model} if calibrated_model is not None else {}),
                          **({"calibration": calibration} if calibration is not None else {}))
     names = resolve_methods(methods, proto.default_methods)

@@ -27,6 +27,25 @@ every utterance: :func:`coverage`, :func:`crps_gaussian` (closed form),
 (:func:`crps_gaussian_entries`, :func:`crps_sample_entries`) feed the per-parameter
 calibration report of :mod:`bayes_talk.evaluation.calibration` (mixture predictives:
 coverage of the exact bands, PIT, mixture NLPD, sample CRPS).
+
+The field's landmark metrics (FaceFormer's LVE, CodeTalker's FDD, ProbTalk3D's sample metrics),
+on 2-D landmarks: ``truth`` and ``pred`` are lists of (T_i, P, 2) landmark tracks (pixels),
+``samples`` lists of (N, T_i, P, 2) draws. With x̂_tv, x_tv the predicted and true position of landmark v at frame t:
+
+    LVE   = (1/T) Σ_t max_{v ∈ L} ‖x̂_tv − x_tv‖²            lips L; squared distance, as FaceFormer's
+                                                           lip vertex error (:func:`lip_vertex_error`)
+    MOE   = (1/T) Σ_t | ‖x̂_ta − x̂_tb‖ − ‖x_ta − x_tb‖ |    mouth opening (a, b) = upper and lower lip
+                                                           midpoints (:func:`mouth_opening_error`)
+    FDD   = (1/|U|) Σ_{v ∈ U} | sd_t(‖x̂_tv − r_v‖²) − sd_t(‖x_tv − r_v‖²) |
+                                                           upper face U, reference face r, sd the
+                                                           population std over frames
+                                                           (:func:`upper_face_dynamics_deviation`)
+    DIV   = 2 / (N(N−1)) Σ_{i<j} (1/(TP)) Σ_t Σ_v ‖x^i_tv − x^j_tv‖
+                                                           diversity of N draws (:func:`sample_diversity`)
+    MEE   = LVE of the draws' average (1/N) Σ_i x^i        (:func:`mean_of_samples_error`)
+    CE    = min_i LVE(x^i)                                 best of N (:func:`best_of_n_error`)
+
+Each is per utterance (an (n,) array); the corpus figure is its mean over utterances, as AMSE.
 """
 from __future__ import annotations
 
@@ -39,6 +58,7 @@ import scipy.stats
 __all__ = [
     "acc",
     "amse",
+    "best_of_n_error",
     "correlation",
     "coverage",
     "crps_ensemble",
@@ -47,11 +67,17 @@ __all__ = [
     "crps_sample_entries",
     "l1",
     "linf",
+    "lip_vertex_error",
+    "mean_of_samples_error",
+    "mouth_opening",
+    "mouth_opening_error",
     "mse",
     "nlpd_gaussian",
     "normalised_mse",
     "rms",
+    "sample_diversity",
     "summarise",
+    "upper_face_dynamics_deviation",
 ]
 
 ArrayList = Seq[np.ndarray] | np.ndarray
@@ -299,3 +325,151 @@ def nlpd_gaussian(truth: ArrayList, mean: ArrayList, var: ArrayList) -> float:
         tot += np.sum(0.5 * np.log(2 * np.pi * v) + (t - m) ** 2 / (2 * v))
         n += t.size
     return float(tot / n)
+
+
+# ------------------------------------------------------------------------------ landmarks
+def _tracks(x: ArrayList, what: str, ndim: int = 3) -> list[np.ndarray]:
+    """Landmark tracks (.., T, P, 2) of every utterance, checked (finite, last axis 2)."""
+    items = _as_list(x, what, ndim=ndim)
+    for i, a in enumerate(items):
+        if a.shape[-1] != 2:
+            raise ValueError(f"{what}[{i}]: expected 2-D landmarks (..., P, 2), got shape {a.shape}")
+    return items
+
+
+def _track_pairs(truth: ArrayList, pred: ArrayList, name: str = "pred") -> list[tuple[np.ndarray, np.ndarray]]:
+    t, p = _tracks(truth, "truth"), _tracks(pred, name)
+    if len(t) != len(p):
+        raise ValueError(f"{len(t)} truth utterances but {len(p)} {name} utterances")
+    for i, (a, b) in enumerate(zip(t, p)):
+        if a.shape != b.shape:
+            raise ValueError(f"utterance {i}: {name} has shape {b.shape}, expected {a.shape} (truth)")
+    return list(zip(t, p))
+
+
+def _indices(idx, n_points: int, what: str) -> np.ndarray:
+    ix = np.asarray(idx)
+    if ix.ndim != 1 or ix.size == 0 or not np.issubdtype(ix.dtype, np.integer):
+        raise ValueError(f"{what}: expected a non-empty 1-D array of landmark indices, got {idx!r}")
+    if ix.min() < 0 or ix.max() >= n_points:
+        raise ValueError(f"{what}: landmark indices must lie in [0, {n_points}), got {ix.min()}..{ix.max()}")
+    return ix
+
+
+def _lve_frames(truth: np.ndarray, pred: np.ndarray, lips) -> np.ndarray:
+    """Per frame (.., T): the largest squared distance over the lip landmarks."""
+    ix = _indices(lips, truth.shape[-2], "lips")
+    d2 = np.sum((pred[..., ix, :] - truth[..., ix, :]) ** 2, axis=-1)
+    return d2.max(axis=-1)
+
+
+def lip_vertex_error(truth: ArrayList, pred: ArrayList, lips) -> np.ndarray:
+    """Per-utterance lip error in FaceFormer's LVE form (n,):
+
+        LVE = (1/T) Σ_t max_{v ∈ L} ‖x̂_tv − x_tv‖²
+
+    the largest *squared* Euclidean error over the lip landmarks ``lips`` (indices L) in each
+    frame, averaged over the frames (units: pixels²).
+    """
+    return np.array([float(np.mean(_lve_frames(t, p, lips))) for t, p in _track_pairs(truth, pred)])
+
+
+def mouth_opening(landmarks: np.ndarray, pair: tuple[int, int]) -> np.ndarray:
+    """Mouth opening (T,) of a track (T, P, 2): the distance ‖x_ta − x_tb‖ between the two
+    landmarks of ``pair`` = (a, b), the upper and lower lip midpoints."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+    if lm.ndim != 3:
+        raise ValueError(f"landmarks: expected one track of shape (T, P, 2), got shape {lm.shape}")
+    lm = _tracks(lm, "landmarks")[0]
+    if len(pair) != 2 or pair[0] == pair[1]:
+        raise ValueError(f"pair: expected two different landmark indices, got {pair!r}")
+    a, b = _indices(list(pair), lm.shape[1], "pair")
+    return np.linalg.norm(lm[:, a] - lm[:, b], axis=-1)
+
+
+def mouth_opening_error(truth: ArrayList, pred: ArrayList, pair: tuple[int, int]) -> np.ndarray:
+    """Per-utterance mean absolute error of the mouth opening (n,):
+
+        MOE = (1/T) Σ_t | o(x̂)_t − o(x)_t |,   o(x)_t = ‖x_ta − x_tb‖   (:func:`mouth_opening`)
+    """
+    return np.array([float(np.mean(np.abs(mouth_opening(p, pair) - mouth_opening(t, pair))))
+                     for t, p in _track_pairs(truth, pred)])
+
+
+def upper_face_dynamics_deviation(truth: ArrayList, pred: ArrayList, upper, reference: ArrayList) -> np.ndarray:
+    """Per-utterance upper-face dynamics deviation in CodeTalker's FDD form (n,):
+
+        m_tv = ‖x_tv − r_v‖²                                   motion of landmark v (squared
+                                                               displacement from the reference r)
+        FDD  = (1/|U|) Σ_{v ∈ U} | sd_t(m̂_tv) − sd_t(m_tv) |
+
+    over the upper-face landmarks ``upper`` (indices U); sd_t is the population standard
+    deviation over the T frames, ``reference`` one (P, 2) reference face per utterance (the
+    template: the same for prediction and truth). Units: pixels². CodeTalker's code (and
+    ProbTalk3D's) takes the signed difference of the two region means, sd of the truth minus sd
+    of the prediction; here each landmark's difference counts in absolute value, so that a
+    landmark moving too much cannot cancel one moving too little.
+    """
+    pairs = _track_pairs(truth, pred)
+    refs = _as_list(reference, "reference", ndim=2)
+    if len(refs) != len(pairs):
+        raise ValueError(f"{len(pairs)} utterances but {len(refs)} reference faces")
+    out = []
+    for i, ((t, p), r) in enumerate(zip(pairs, refs)):
+        if r.shape != t.shape[1:]:
+            raise ValueError(f"reference[{i}]: expected shape {t.shape[1:]}, got {r.shape}")
+        ix = _indices(upper, t.shape[1], "upper")
+        sd_t = np.std(np.sum((t[:, ix] - r[ix]) ** 2, axis=-1), axis=0)
+        sd_p = np.std(np.sum((p[:, ix] - r[ix]) ** 2, axis=-1), axis=0)
+        out.append(float(np.mean(np.abs(sd_p - sd_t))))
+    return np.array(out)
+
+
+def _sample_sets(samples: ArrayList, min_draws: int) -> list[np.ndarray]:
+    sets = _tracks(samples, "samples", ndim=4)
+    for i, s in enumerate(sets):
+        if s.shape[0] < min_draws:
+            raise ValueError(f"samples[{i}]: need at least {min_draws} draws, got {s.shape[0]}")
+    return sets
+
+
+def sample_diversity(samples: ArrayList) -> np.ndarray:
+    """Per-utterance diversity of N ≥ 2 draws (N, T, P, 2) (n,): the mean landmark distance
+    between two different draws, over every pair of draws, frame and landmark,
+
+        DIV = 2 / (N(N−1)) Σ_{i<j} (1/(TP)) Σ_t Σ_v ‖x^i_tv − x^j_tv‖   (pixels).
+
+    ProbTalk3D averages the same distance over N/2 disjoint pairs of a shuffled set; every
+    pair estimates the same expectation with less noise.
+    """
+    out = []
+    for s in _sample_sets(samples, 2):
+        n = s.shape[0]
+        tot = 0.0
+        for i in range(n - 1):
+            tot += float(np.sum(np.mean(np.linalg.norm(s[i + 1:] - s[i], axis=-1), axis=(1, 2))))
+        out.append(tot / (n * (n - 1) / 2))
+    return np.array(out)
+
+
+def _truth_and_samples(truth: ArrayList, samples: ArrayList) -> list[tuple[np.ndarray, np.ndarray]]:
+    t, s = _tracks(truth, "truth"), _sample_sets(samples, 1)
+    if len(t) != len(s):
+        raise ValueError(f"{len(t)} truth utterances but {len(s)} sample sets")
+    for i, (a, b) in enumerate(zip(t, s)):
+        if b.shape[1:] != a.shape:
+            raise ValueError(f"utterance {i}: samples have shape {b.shape}, expected (N, *{a.shape})")
+    return list(zip(t, s))
+
+
+def mean_of_samples_error(truth: ArrayList, samples: ArrayList, lips) -> np.ndarray:
+    """Per-utterance lip error of the draws' average (ProbTalk3D's mean estimate error) (n,):
+    :func:`lip_vertex_error` of (1/N) Σ_i x^i against the truth (pixels²)."""
+    return np.array([float(np.mean(_lve_frames(t, s.mean(axis=0), lips))) for t, s in _truth_and_samples(truth, samples)])
+
+
+def best_of_n_error(truth: ArrayList, samples: ArrayList, lips) -> np.ndarray:
+    """Per-utterance best-of-N lip error (ProbTalk3D's closest error) (n,): the smallest
+    :func:`lip_vertex_error` of a single draw, min_i LVE(x^i) (pixels²)."""
+    return np.array([float(np.min(np.mean(_lve_frames(t[None], s, lips), axis=-1)))
+                     for t, s in _truth_and_samples(truth, samples)])

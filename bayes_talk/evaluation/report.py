@@ -17,7 +17,8 @@ import numpy as np
 
 from bayes_talk.base.files import write_figure, write_text
 
-__all__ = ["gain_table", "markdown_table", "plot_trajectories", "write_json", "write_markdown"]
+__all__ = ["gain_table", "landmark_table", "markdown_table", "plot_trajectories", "write_json",
+           "write_markdown"]
 
 _COLUMNS = (  # (metric key, column label)
     ("mse", "AMSE"), ("corr", "ACC"), ("rms", "RMS"), ("nmse", "NMSE"), ("l1", "L1"), ("linf", "L∞"),
@@ -58,6 +59,36 @@ def markdown_table(result: dict[str, Any]) -> str:
         row = [f"{name}"] + [_fmt(e.get(k)) for k, _ in cols] + [
             f"{e.get('train_seconds', float('nan')):.1f}{shared}", "–" if fps is None else f"{fps:.1f}"]
         lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+#: the field's landmark metrics (bayes_talk.evaluation.scoring.LANDMARK_KEYS): (key, column label)
+_LANDMARK_COLUMNS = (
+    ("lve", "LVE (px²)"), ("mouth_opening_mae", "mouth opening MAE (px)"), ("fdd", "FDD (px²)"),
+    ("diversity", "diversity (px)"), ("mean_of_samples_lve", "mean-of-N LVE (px²)"),
+    ("best_of_n_lve", "best-of-N LVE (px²)"),
+)
+
+
+def landmark_table(result: dict[str, Any]) -> str:
+    """Markdown table of every method's landmark metrics (mean ± std over test utterances; "–"
+    where undefined: the sample metrics of a method without draws of its path, every one on
+    a corpus without an AAM); "" when the result has none."""
+    methods = result.get("methods", {})
+    if not any(k in e for e in methods.values() for k, _ in _LANDMARK_COLUMNS):
+        return ""
+    n = (result.get("settings") or {}).get("sample_draws")
+    intro = ("Landmark metrics (the field's conventions, on the landmarks the AAM reconstructs from the "
+             "predicted mean and from the truth; docs/evaluation.md): LVE = mean over frames of the largest "
+             "squared lip-landmark error; mouth opening = distance of the inner-lip midpoints; FDD = mean over "
+             "upper-face landmarks of |sd over time of the squared displacement, predicted − true|; for a "
+             f"predictive mixed over draws of the path, {n if n is not None else 'N'} seeded draws give the "
+             "diversity (mean landmark distance between two draws), the LVE of their average and the best "
+             "draw's LVE.\n")
+    lines = [intro,
+             "| method | " + " | ".join(lab for _, lab in _LANDMARK_COLUMNS) + " |",
+             "|---|" + "|".join(["---:"] * len(_LANDMARK_COLUMNS)) + "|"]
+    for name, e in methods.items():
+        lines.append(f"| {name} | " + " | ".join(_fmt(e.get(k)) for k, _ in _LANDMARK_COLUMNS) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -111,6 +142,8 @@ def write_markdown(result: dict[str, Any], path: str | Path) -> Path:
                   "deena2010 §4.2.3) before scoring; variances are unfiltered.\n")
     parts = [f"# Evaluation: {result.get('protocol')}{quick}\n",
              f"{result.get('description', '')}.\n", intro, markdown_table(result)]
+    if landmark_table(result):
+        parts.append(landmark_table(result))
     if gain_table(result):
         parts.append(gain_table(result))
     for w in result.get("warnings", []) or []:

@@ -82,6 +82,7 @@ from bayes_talk.estimators.registry import (
     model_settings,
 )
 from bayes_talk.estimators.switching import SwitchingSGPDM
+from bayes_talk.evaluation.scoring import SAMPLE_DRAWS
 from bayes_talk.posterior.methods import DEFAULT_DRAWS
 from bayes_talk.synthesis.face_noise import FaceNoise
 from bayes_talk.synthesis.result import SynthesisResult
@@ -149,6 +150,9 @@ class SystemConfig:
         problems here are small, and extra threads oversubscribe a shared machine; see
         :mod:`bayes_talk.gp.threads`).
     band_calibration, calibrated_model: the band calibration of the ``*-posterior`` methods.
+    sample_draws: predictive draws (N >= 2, seeded by ``seed``) of the sample-based landmark
+        metrics of a method whose predictive mixes over draws of the path (diversity, mean-of-samples and
+        best-of-N lip error; :func:`bayes_talk.evaluation.scoring.landmark_metrics`).
 
     Per model (a family, or the families of one estimator class sharing its settings:
     :func:`bayes_talk.estimators.registry.model_name`, e.g. "ssgpdm" for every switching
@@ -176,6 +180,7 @@ class SystemConfig:
     calibrated_model: str = "refit"
     #: what is fitted on the held-out utterances (CALIBRATIONS, as ``train --calibration``)
     calibration: str = "noise"
+    sample_draws: int = SAMPLE_DRAWS
     models: dict[str, dict[str, Any]] = field(default_factory=lambda: copy.deepcopy(DEFAULT_MODELS))
     synthesis: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -194,6 +199,9 @@ class SystemConfig:
             v = getattr(self, k)
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{k} must be a positive integer, got {v!r}")
+        if not isinstance(self.sample_draws, (int, np.integer)) or self.sample_draws < 2:
+            raise ValueError(f"sample_draws must be an integer >= 2 (the diversity compares pairs of draws), "
+                             f"got {self.sample_draws!r}")
         self._check_models()
         self._check_synthesis()
 

@@ -374,6 +374,18 @@ class AAM:
         textures = photo[:, :1] + np.exp(photo[:, 1:2]) * g
         return landmarks, textures
 
+    def reconstruct_landmarks(self, params: np.ndarray) -> np.ndarray:
+        """Landmarks (N, P, 2) in image pixels from parameter vectors (N, n_params): the
+        shape half of :meth:`reconstruct` alone (the combined modes' shape rows, the shape
+        PCA, the pose), without the cost of the textures."""
+        p = self._check_params(params)
+        sl = self.param_slices
+        k_s = self.n_shape_modes
+        c = self.combined_pca
+        b_s = c.mean[:k_s] + p[:, sl["combined"]] @ c.components[:, :k_s]
+        x = self.shape_pca.reconstruct(b_s / self.shape_texture_weight)
+        return pose_apply(x.reshape(p.shape[0], -1, 2), p[:, sl["pose"]])
+
     def render(self, params: np.ndarray) -> np.ndarray:
         """Frames (N, H, W) uint8: reconstructed textures warped from the mean shape to the
         reconstructed landmarks; outside the face, the mean training image."""

@@ -23,6 +23,12 @@ from bayes_talk.base.files import write_json, write_npy, write_npz
 from bayes_talk.base.video import write_video
 from bayes_talk.data.labels import write_lab
 from bayes_talk.features.audio import load_audio, speech_problem
+from bayes_talk.pipeline.exports import (
+    EXPORT_FORMATS,
+    export_file_names,
+    frame_export,
+    write_landmark_track,
+)
 from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_from_intervals
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
 from bayes_talk.pipeline.uncertainty_outputs import (
@@ -42,7 +48,7 @@ log = logging.getLogger(__name__)
 #: every file name synth can write (docs/outputs.md)
 SYNTH_OUTPUT_NAMES = ("trajectory.npy", "variance.npy", "landmarks.npy", "segments.json", "face.mp4",
                       "bands.npz", "diagnostics.json", "labels.lab", "posterior.nc", "bands.png",
-                      "uncertainty.mp4")
+                      "uncertainty.mp4", *(n for f in EXPORT_FORMATS for n in export_file_names(f).values()))
 
 
 def _calibration_factors(res, tm, attribute: str) -> list[float] | None:
@@ -92,7 +98,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
           seed: int = 0, tier: str | None = None, text: str | None = None,
           transcript: str | os.PathLike | None = None, align_method: str | None = None,
           truth: str | os.PathLike | None = None, calibrated: bool = True,
-          sampler_options: dict | None = None, lowpass_hz: float | None = None) -> dict[str, Path]:
+          sampler_options: dict | None = None, lowpass_hz: float | None = None,
+          export: str | None = None) -> dict[str, Path]:
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
@@ -135,8 +142,14 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     the mean of a model that takes it (its ``post_filter``: the switching models), the bands
     moving with it; None (the default): off, as ``evaluate`` scores the output. Recorded in
     ``segments.json``; docs/results.md measures what the filter does to the scores.
+
+    ``export``: "json" or "csv" also writes ``frames.<export>`` (per frame: time, the AAM
+    parameters' mean, sd and exact 5/50/95 % quantiles, the landmarks and their sd over seeded
+    predictive draws) and, with an AAM, ``landmarks_track.<export>`` (the plain landmark track);
+    bayes_talk.pipeline.exports, docs/outputs.md. None (the default): neither.
     """
     check_output_dir(out_dir)   # a file or an unwritable place: refused before any work
+    exports = {} if export is None else export_file_names(export)
     for key, flag in (("pg_particles", "--pg-particles"), ("stop_at_targets", "--all-draws")):
         if (sampler_options or {}).get(key) is not None and posterior != "pg-nuts":
             raise ValueError(f"{flag} applies to --posterior pg-nuts, not {posterior!r}")
@@ -177,6 +190,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         names["uncertainty"] = "uncertainty.mp4"
     if posterior != "map":
         names.update(diagnostics="diagnostics.json")
+    if exports:
+        names["export"] = exports["frames"]
+        if tm.aam is not None:
+            names["track"] = exports["track"]
     existing = sorted({n for n in list(names.values()) + outputs.present() if (out / n).exists()})
     if existing and not force:
         raise FileExistsError(f"{out} already holds {existing}; choose another directory or pass --force")
@@ -224,6 +241,11 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         if video:
             write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
             written["video"] = out / names["video"]
+    if exports:
+        fx = frame_export(res, tm.fps, aam=tm.aam, offset=tm.offset if tm.aam is not None else None, seed=seed)
+        written["export"] = fx.write(out / names["export"])
+        if fx.landmarks is not None:
+            written["track"] = write_landmark_track(out / names["track"], fx.landmarks, tm.fps, tm.aam.image_shape)
     outputs.commit(list(written.values()))
     return written
 

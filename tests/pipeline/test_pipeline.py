@@ -56,6 +56,38 @@ def test_synth_writes_trajectory_landmarks_segments_and_video(model_dir, corpus_
     assert (out / "trajectory.npy").stat().st_mtime_ns == before
 
 
+def test_synth_exports_frames_and_a_landmark_track_that_read_back(model_dir, corpus_dir, tmp_path):
+    from bayes_talk.pipeline.exports import FrameExport, read_landmark_track
+
+    wav, lab = _first_utterance(corpus_dir)
+    out = tmp_path / "x"
+    args = ["synth", str(model_dir), "--audio", str(wav), "--labels", str(lab), "--out", str(out), "--no-video",
+            "--posterior", "map", "--algorithm", "predict"]
+    assert main(args + ["--export", "json"]) == 0
+    fx = FrameExport.read(out / "frames.json")
+    traj, lms = np.load(out / "trajectory.npy"), np.load(out / "landmarks.npy")
+    np.testing.assert_array_equal(fx.mean, traj)
+    np.testing.assert_array_equal(fx.sd, np.sqrt(np.load(out / "variance.npy")))
+    with np.load(out / "bands.npz") as b:             # the exact quantiles bands.npz holds
+        np.testing.assert_array_equal(fx.q05, b["lower90"])
+        np.testing.assert_array_equal(fx.q95, b["upper90"])
+    np.testing.assert_allclose(fx.landmarks, lms, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(fx.offset, load_trained(model_dir).offset)
+    assert fx.landmark_sd.shape == lms.shape and np.all(fx.landmark_sd >= 0) and fx.landmark_sd.max() > 0
+    track, fps = read_landmark_track(out / "landmarks_track.json")
+    np.testing.assert_array_equal(track, fx.landmarks)
+    assert fps == 25.0 and fx.n_frames == traj.shape[0]
+    # another export into the same directory: refused without --force; with it the CSV pair
+    # replaces the JSON pair
+    assert main(args + ["--export", "csv"]) == 2
+    assert main(args + ["--export", "csv", "--force"]) == 0
+    assert not (out / "frames.json").exists() and not (out / "landmarks_track.json").exists()
+    back = FrameExport.read(out / "frames.csv")
+    np.testing.assert_array_equal(back.mean, traj)
+    np.testing.assert_array_equal(back.landmarks, fx.landmarks)
+    np.testing.assert_array_equal(read_landmark_track(out / "landmarks_track.csv")[0], fx.landmarks)
+
+
 def test_synth_with_vi_writes_its_diagnostics_and_says_when_it_is_unreliable(model_dir, corpus_dir, tmp_path,
                                                                              monkeypatch, caplog):
     import dataclasses

@@ -461,6 +461,8 @@ TEXT_BLOCKS = {
     ("docs/evaluation.md", ('protocol, quick, description, paper, scheme ("repeats"|"holdout"|"kfold"|"test-corpus"), '
                            "seed,")): "the results JSON's fields (tests/evaluation/test_protocols.py checks the JSON)",
     ("docs/evaluation.md", "calibration: {"): "the calibration record's fields (tests/evaluation/test_calibration.py)",
+    ("docs/outputs.md", '{"format": "bayes_talk.synth_frames", "version": 1,'): (
+        "the frames.json schema (tests/pipeline/test_exports.py reads the fields back)"),
 }
 
 

@@ -12,8 +12,11 @@ from bayes_talk.data.phones import SILENCE
 __all__ = [
     "DESIGN_SIZE",
     "LANDMARK_GROUPS",
+    "LIP_LANDMARKS",
     "LOWER_TEETH_BELOW_CHIN",
+    "MOUTH_OPENING_PAIR",
     "N_LANDMARKS",
+    "UPPER_FACE_LANDMARKS",
     "UPPER_TEETH_Y",
     "check_image_size",
     "inner_lip_aperture",
@@ -47,6 +50,17 @@ for _name, _n in _GROUP_SIZES:
     _start += _n
 N_LANDMARKS = _start
 del _start, _name, _n
+
+#: The regions of the field's landmark metrics (bayes_talk.evaluation.metrics, docs/evaluation.md).
+#: Lips: the 12 outer- and 8 inner-lip points (indices 37-56), the region of the lip error.
+LIP_LANDMARKS = np.concatenate([LANDMARK_GROUPS["outer_lip"], LANDMARK_GROUPS["inner_lip"]])
+#: Mouth opening: the inner-lip midline pair (upper midpoint 51, lower midpoint 55), which share x
+#: and coincide when the lips touch; their distance is the inner-lip aperture at the midline.
+MOUTH_OPENING_PAIR = (int(LANDMARK_GROUPS["inner_lip"][2]), int(LANDMARK_GROUPS["inner_lip"][6]))
+#: Upper face: forehead, brows, eyes and nose (indices 9-36): every point that neither the lips nor
+#: the jaw move (the jaw line drops with the jaw, so it belongs to the mouth region).
+UPPER_FACE_LANDMARKS = np.concatenate([LANDMARK_GROUPS[g] for g in
+                                       ("forehead", "brow_left", "brow_right", "eye_left", "eye_right", "nose")])
 
 # Fractions of the half-widths at which lip points sit.
 _OUTER_U = np.array([-0.6, -0.25, 0.0, 0.25, 0.6])
