@@ -199,11 +199,12 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     model = tm.model if calibrated else tm.uncalibrated
     if not calibrated and getattr(model, "face_noise_", None) is not None:
         options = {**options, "face_noise": False}
-    with stage("synthesis", total=utt.mfcc.shape[0], unit="frames"):
+    with stage("synthesis", total=utt.mfcc.shape[0], unit="frames") as synthesis:
         res = model.predict_dist(utt, **options)
         post_filter_hz = lowpass_hz if tm.model.post_filter else None
         if post_filter_hz is not None:
             res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
+        synthesis.update(res.n_frames)
     segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
     written = {}
     to_render = video and tm.aam is not None
