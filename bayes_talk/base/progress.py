@@ -121,7 +121,7 @@ class Stage:
         self._t0 = time.monotonic()
         self._t_end: float | None = None
         self.path = self.name
-        #: heartbeat lines written (read by tests and by :meth:`close`'s end line)
+        #: the heartbeat lines this stage has written
         self.beats = 0
 
     # ---------------------------------------------------------------- reporting
