@@ -273,8 +273,10 @@ def _verbosity_parser(suppress: bool) -> argparse.ArgumentParser:
     """-v/-q, accepted before or after the sub-command (sub-parsers must not reset them)."""
     kw = {"default": argparse.SUPPRESS} if suppress else {"default": False}
     v = argparse.ArgumentParser(add_help=False)
-    v.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO level)", **kw)
-    v.add_argument("-q", "--quiet", action="store_true", help="errors only; no progress bars", **kw)
+    v.add_argument("-v", "--verbose", action="store_true", help="log details (INFO level): every stage's start and end "
+                   "with its wall time", **kw)
+    v.add_argument("-q", "--quiet", action="store_true", help="errors only; no progress (bars on a terminal, "
+                   "a line every few seconds elsewhere)", **kw)
     return v
 
 
@@ -590,9 +592,12 @@ def _main(argv: list[str] | None) -> int:
     import warnings
 
     warnings.formatwarning = lambda message, category, *a, **k: f"{category.__name__}: {message}"
-    from bayes_talk.base.progress import set_enabled
+    from bayes_talk.base.progress import HEARTBEAT_LOGGER, set_enabled
 
     set_enabled(not quiet)
+    # progress off a terminal (a heartbeat line every few seconds of a long stage) is shown
+    # by default, not only with -v; -q switches it off (set_enabled)
+    logging.getLogger(HEARTBEAT_LOGGER).setLevel(logging.INFO)
     from bayes_talk.base.memory import release_large_blocks
 
     release_large_blocks()  # freed N×N matrices go back to the system (bayes_talk.base.memory)

@@ -14,6 +14,10 @@ A view's GP may read only the first k of the d latent dimensions (``in_dims`` = 
 and private latent spaces, Ek, Rihan, Torr, Rogez & Lawrence 2008): then X and x above are
 their first k columns, and the other d − k dimensions are private to the views that read
 them (:class:`~bayes_talk.models.sgpdm_program.SGPDMConfig` ``view_dims``).
+
+The factors L and K⁻¹Y are computed on one thread (:func:`bayes_talk.gp.threads.one_thread`):
+a predictor built from the same arrays has the same bits whatever the thread count of the
+process that builds it (at training or at loading).
 """
 from __future__ import annotations
 
@@ -23,6 +27,7 @@ import torch
 
 from bayes_talk.gp.kernels import rbf, rbf_diag, train_cov
 from bayes_talk.gp.linalg import cho_solve, cholesky, solve_lower
+from bayes_talk.gp.threads import one_thread
 
 
 class GPPredictor:
@@ -50,8 +55,9 @@ class GPPredictor:
         D = Y.shape[1]
         self.w = (w.detach() if w is not None else torch.ones(D, dtype=torch.float64))
         self.mean = mean.detach() if mean is not None else torch.zeros(D, dtype=torch.float64)
-        self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin, fixed=True), what)
-        self.A = cho_solve(self.L, self.Y)
+        with one_thread():  # the same bits whatever the caller's thread count (bayes_talk.gp.threads)
+            self.L = cholesky(train_cov(self.X, alpha, gamma, beta, alpha_lin, fixed=True), what)
+            self.A = cho_solve(self.L, self.Y)
 
     @classmethod
     def from_factors(

@@ -49,6 +49,7 @@ import torch
 from bayes_talk.gp.kernels import rbf
 from bayes_talk.gp.linalg import cholesky, solve_lower
 from bayes_talk.gp.predictive import GPPredictor
+from bayes_talk.gp.threads import one_thread
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -117,7 +118,7 @@ def sparse_predictor(
     on the inducing inputs Z; ``Y`` (N×D, centred, unscaled) is kept for the nearest-neighbour
     initialiser, which looks up training frames. The W scaling cancels in the mean and is
     applied by the predictor's density, as for the exact model."""
-    with torch.no_grad():
+    with torch.no_grad(), one_thread():   # the same bits whatever the caller's thread count
         X, Y, Z = X.detach(), Y.detach(), Z.detach()
         Lm = cholesky(_kmm(Z, alpha, gamma, jitter), f"{what}: inducing kernel matrix")
         A = solve_lower(Lm, rbf(Z, X, alpha, gamma))

@@ -9,6 +9,13 @@ The model directory is read by :func:`bayes_talk.pipeline.trained.load_trained`;
 is featurised by the model's own front end (:mod:`bayes_talk.pipeline.front_end`); the
 model is run through the estimator protocol with the options it declares
 (``synthesis_options``), whatever its family.
+
+Every stage of :func:`synth` is a progress stage (:func:`bayes_talk.base.progress.stage`):
+loading the model, reading the audio, labelling it (alignment or recognition, without
+labels), featurising it, the synthesis (its total the number of frames; the inference
+reports through :func:`bayes_talk.base.progress.current`), writing the outputs (files) and
+rendering the videos (frames). A run shows a bar per stage on a terminal and a heartbeat
+line every few seconds elsewhere.
 """
 from __future__ import annotations
 
@@ -20,6 +27,7 @@ from pathlib import Path
 from bayes_talk.alignment.commands import DEFAULT_ALIGN_METHOD, label_audio
 from bayes_talk.base.bundle import OutputSet, check_output_dir
 from bayes_talk.base.files import write_json, write_npy, write_npz
+from bayes_talk.base.progress import stage
 from bayes_talk.base.video import write_video
 from bayes_talk.data.labels import write_lab
 from bayes_talk.features.audio import load_audio, speech_problem
@@ -33,8 +41,10 @@ from bayes_talk.pipeline.front_end import front_end, read_utterance, utterance_f
 from bayes_talk.pipeline.trained import TrainedModel, load_trained
 from bayes_talk.pipeline.uncertainty_outputs import (
     BAND_LEVELS,
+    VIDEO_DRAWS,
     plot_bands,
     read_truth,
+    render_frames,
     uncertainty_frames,
     write_posterior_netcdf,
 )
@@ -156,7 +166,8 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if (sampler_options or {}).get("workers") is not None and posterior not in ("nuts", "pg-nuts"):
         raise ValueError(f"--workers runs NUTS chains in parallel: it applies to --posterior nuts or pg-nuts, "
                          f"not {posterior!r}")
-    tm = load_trained(model_dir)
+    with stage("loading model", unit="files"):
+        tm = load_trained(model_dir)
     choices = tm.model.synthesis_options
     if posterior is None:
         posterior = DEFAULT_METHOD if "posterior" in choices else "map"
@@ -168,15 +179,19 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         raise ValueError(f"--init {init}: a {tm.kind} model initialises by "
                          f"{' or '.join(choices.get('init', ())) or 'no initialiser'}")
     options = _synthesis_options(choices, posterior, algorithm, init, n_draws, seed, sampler_options)
-    _check_speech(wav, recognise=labels is None and text is None and transcript is None)
+    with stage("reading audio", unit="files"):
+        _check_speech(wav, recognise=labels is None and text is None and transcript is None)
     derived = None
     if labels is None:
-        derived = _derived_labels(model_dir, wav, text, transcript, align_method)
+        with stage("labelling" if text is None and transcript is None else "aligning the transcript",
+                   unit="files"):
+            derived = _derived_labels(model_dir, wav, text, transcript, align_method)
     elif text is not None or transcript is not None:
         raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
     front = front_end(tm.audio)
-    utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
-           else utterance_from_intervals(wav, derived, tm.fps, **front))
+    with stage("featurising audio", unit="files"):
+        utt = (read_utterance(wav, labels, tm.fps, tier=tier, **front) if derived is None
+               else utterance_from_intervals(wav, derived, tm.fps, **front))
     if truth is not None:
         truth = read_truth(truth, (utt.mfcc.shape[0], len(tm.offset)))
     out = Path(out_dir)
@@ -201,16 +216,37 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     model = tm.model if calibrated else tm.uncalibrated
     if not calibrated and getattr(model, "face_noise_", None) is not None:
         options = {**options, "face_noise": False}
-    res = model.predict_dist(utt, **options)
-    post_filter_hz = lowpass_hz if tm.model.post_filter else None
-    if post_filter_hz is not None:
-        res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
+    with stage("synthesis", total=utt.mfcc.shape[0], unit="frames") as synthesis:
+        res = model.predict_dist(utt, **options)
+        post_filter_hz = lowpass_hz if tm.model.post_filter else None
+        if post_filter_hz is not None:
+            res = res.shift(lowpass(res.mean, float(post_filter_hz), fps=tm.fps) - res.mean)
+        synthesis.update(res.n_frames)
     segs = [{"state": list(s.state), "start": s.start, "stop": s.stop} for s in res.segments]
+    written = {}
+    to_render = video and tm.aam is not None
+    n_files = sum(k not in ("video", "uncertainty") and (k != "landmarks" or tm.aam is not None) for k in names)
+    with stage("writing outputs", total=n_files, unit="files") as writing:
+        written.update(_write_outputs(out, names, res, truth, tm, derived, posterior, seed, segs,
+                                      post_filter_hz, writing, exports))
+    if to_render:
+        n_frames = res.n_frames * (2 + VIDEO_DRAWS)   # face.mp4, the mean and the draws of uncertainty.mp4
+        with stage("rendering video", total=n_frames, unit="frames"):
+            written.update(_write_videos(out, names, res, tm, wav, seed))
+    outputs.commit(list(written.values()))
+    return written
+
+
+def _write_outputs(out: Path, names: dict, res, truth, tm: TrainedModel, derived, posterior: str, seed: int,
+                   segs: list, post_filter_hz, writing, exports: dict | None = None) -> dict[str, Path]:
+    """Every output of :func:`synth` but the videos, from the synthesis result ``res``, with the
+    per-frame export and the landmark track when ``exports`` names them; ``writing`` (a progress
+    stage) advances per file."""
     written = {}
     if derived is not None:
         write_lab(out / names["labels"], derived)
         written["labels"] = out / names["labels"]
-    written.update(_write_uncertainty(out, names, res, truth, tm, wav, video, seed))
+    written.update(_write_uncertainty(out, names, res, truth, tm, writing))
     if posterior != "map":
         problems = list(res.warnings)
         if problems:
@@ -227,45 +263,57 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
                                                 "pool_weight": _calibration_factors(res, tm, "pool_weight"),
                                                 "diagnostics": res.diagnostics})
         written.update(diagnostics=out / names["diagnostics"])
+        writing.advance()
     for key, arr in (("trajectory", res.mean), ("variance", res.var)):
         write_npy(out / names[key], arr)
         written[key] = out / names[key]
+        writing.advance()
     write_json(out / names["segments"], {"segments": segs, "fps": tm.fps,
                                          "post_filter_hz": post_filter_hz})
     written["segments"] = out / names["segments"]
+    writing.advance()
     if tm.aam is not None:
-        params = res.mean + tm.offset
-        lms, _ = tm.aam.reconstruct(params)
+        lms, _ = tm.aam.reconstruct(res.mean + tm.offset)
         write_npy(out / names["landmarks"], lms)
         written["landmarks"] = out / names["landmarks"]
-        if video:
-            write_video(out / names["video"], tm.aam.render(params), tm.fps, audio_path=wav, overwrite=True)
-            written["video"] = out / names["video"]
+        writing.advance()
     if exports:
         fx = frame_export(res, tm.fps, aam=tm.aam, offset=tm.offset if tm.aam is not None else None, seed=seed)
         written["export"] = fx.write(out / names["export"])
+        writing.advance()
         if fx.landmarks is not None:
             written["track"] = write_landmark_track(out / names["track"], fx.landmarks, tm.fps, tm.aam.image_shape)
-    outputs.commit(list(written.values()))
+            writing.advance()
     return written
 
 
-def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, wav, video: bool,
-                       seed: int) -> dict[str, Path]:
-    """bands.npz, posterior.nc, bands.png and (with a video and an AAM) uncertainty.mp4 of
-    the synthesis result ``res`` (see :func:`synth`)."""
+def _write_uncertainty(out: Path, names: dict, res, truth, tm: TrainedModel, writing) -> dict[str, Path]:
+    """bands.npz, posterior.nc and bands.png of the synthesis result ``res`` (see
+    :func:`synth`); ``writing`` (a progress stage) advances per file."""
     written = {}
     bands = {}
     for q in BAND_LEVELS:
         lo, hi = res.interval(q)
         bands[f"lower{round(100 * q)}"], bands[f"upper{round(100 * q)}"] = lo, hi
     written["bands"] = write_npz(out / names["bands"], bands)
+    writing.advance()
     written["posterior"] = write_posterior_netcdf(out / names["posterior"], res, truth)
+    writing.advance()
     written["plot"] = plot_bands(out / names["plot"], res, truth, fps=tm.fps)
-    if "uncertainty" in names:
-        frames = uncertainty_frames(tm.aam, res, tm.offset, seed=seed)
-        written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps,
-                                                   audio_path=wav, overwrite=True)
+    writing.advance()
+    return written
+
+
+def _write_videos(out: Path, names: dict, res, tm: TrainedModel, wav, seed: int) -> dict[str, Path]:
+    """uncertainty.mp4 (the mean face beside the per-pixel s.d. of rendered draws) and
+    face.mp4 (the mean face) with the audio, each rendered frame advancing the open
+    progress stage (:func:`bayes_talk.pipeline.uncertainty_outputs.render_frames`)."""
+    written = {}
+    frames = uncertainty_frames(tm.aam, res, tm.offset, seed=seed)
+    written["uncertainty"] = write_video(out / names["uncertainty"], frames, tm.fps, audio_path=wav, overwrite=True)
+    del frames
+    written["video"] = write_video(out / names["video"], render_frames(tm.aam, res.mean + tm.offset), tm.fps,
+                                   audio_path=wav, overwrite=True)
     return written
 
 

@@ -13,6 +13,9 @@ All three are drawn from the one synthesis result
   ``n_draws`` draws of the AAM predictive (the mixture) are rendered and the grey-level
   standard deviation of each pixel over them is shown, white = ``SD_FULL_SCALE`` grey levels
   or more, black = none.
+* :func:`render_frames` — an AAM trajectory rendered in chunks, each chunk advancing the open
+  progress stage (:func:`bayes_talk.base.progress.current`); :func:`uncertainty_frames`
+  renders through it too.
 """
 from __future__ import annotations
 
@@ -21,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_talk.base import progress
 from bayes_talk.base.files import atomic_write, write_figure
 from bayes_talk.synthesis.result import SynthesisResult
 
 __all__ = ["BAND_LEVELS", "PLOT_PARAMS", "SD_FULL_SCALE", "VIDEO_DRAWS", "plot_bands", "read_truth",
-           "uncertainty_frames", "write_posterior_netcdf"]
+           "render_frames", "uncertainty_frames", "write_posterior_netcdf"]
 
 #: the central bands synth writes and draws
 BAND_LEVELS = (0.5, 0.9)
@@ -92,6 +96,19 @@ def plot_bands(path: str | os.PathLike, result: SynthesisResult, truth: np.ndarr
     return write_figure(path, fig, dpi=100)
 
 
+def render_frames(aam, params: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """``aam.render(params)`` (frames (T, H, W) uint8) ``chunk`` frames at a time, each chunk
+    advancing the open progress stage by its frames (:func:`bayes_talk.base.progress.current`)."""
+    params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    parts = []
+    for a in range(0, params.shape[0], int(chunk)):
+        parts.append(aam.render(params[a:a + int(chunk)]))
+        progress.current().advance(parts[-1].shape[0])
+    if not parts:
+        return aam.render(params)
+    return np.concatenate(parts)
+
+
 def uncertainty_frames(aam, result: SynthesisResult, offset: np.ndarray, n_draws: int = VIDEO_DRAWS,
                        seed: int | None = None, chunk: int = 64) -> np.ndarray:
     """(T, H, 2W + gap) uint8: the mean face | the per-pixel standard deviation over
@@ -103,7 +120,7 @@ def uncertainty_frames(aam, result: SynthesisResult, offset: np.ndarray, n_draws
     if int(n_draws) < 2:
         raise ValueError(f"n_draws must be >= 2 for a standard deviation, got {n_draws}")
     offset = np.asarray(offset, dtype=np.float64)
-    mean_frames = aam.render(result.mean + offset)
+    mean_frames = render_frames(aam, result.mean + offset, chunk)
     draws = result.sample(int(n_draws), seed=seed) + offset  # (n, T, D)
     T = result.n_frames
     s1 = np.zeros(mean_frames.shape, dtype=np.float64)
@@ -113,6 +130,7 @@ def uncertainty_frames(aam, result: SynthesisResult, offset: np.ndarray, n_draws
             f = aam.render(draws[k, a:a + chunk]).astype(np.float64)
             s1[a:a + chunk] += f
             s2[a:a + chunk] += f * f
+            progress.current().advance(f.shape[0])
     n = float(n_draws)
     sd = np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0) * n / (n - 1))
     panel = np.clip(np.rint(sd * (255.0 / SD_FULL_SCALE)), 0, 255).astype(np.uint8)

@@ -485,4 +485,6 @@ def test_progress_is_silent_off_a_terminal_and_logged_with_verbose(caplog):
     assert not caplog.records
     with caplog.at_level(logging.INFO, logger="bayes_talk.base.progress"):
         assert list(ProgressMapper(None, "training states", "state").map(abs, [-1, -2, 3])) == [1, 2, 3]
-    assert [r.getMessage() for r in caplog.records][-1] == "training states: 3/3 state"
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages[0] == "training states: started (3 state)"
+    assert messages[-1].startswith("training states: done in ") and messages[-1].endswith(" (3/3 state)")
