@@ -3,10 +3,10 @@
 Held-out utterances of ``--test-corpus`` are joined in order (cycled when the corpus is
 shorter) into WAV + label files of about ``--seconds`` each (whole utterances, the first total
 at or above the target), and ``bayes-talk synth MODEL --audio X.wav --labels X.lab`` runs on
-each in a fresh process with the defaults (``--synth-args`` adds options, e.g. ``--no-video``).
+each in a fresh process with the defaults and ``-v`` (``--synth-args`` adds options, e.g. ``--no-video``).
 Per length: the speech's seconds and frames, wall seconds, wall per second of speech and its
 ratio to the shortest length's, the process's peak resident memory (from ``/usr/bin/time``'s
-maximum RSS) and its ratio to the length's, the stage times ``diagnostics.json`` records, and
+maximum RSS) per minute of speech, each stage's wall seconds (``-v``'s "done in" lines), and
 the longest gap between two lines the run printed on its standard error (not a terminal), from
 its start to its end: the progress a user sees in a log.
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -86,8 +87,18 @@ def run_synth(cmd: list[str], timeout: float) -> dict:
     rss = next((int(x.split("=")[1]) for x in lines if x.startswith("MAXRSS_KB=")), None)
     gaps = np.diff(stamps + [t0 + wall])
     return {"wall_seconds": wall, "peak_rss_mb": None if rss is None else rss / 1024, "returncode": rc,
-            "stderr_lines": len(lines), "longest_silence_seconds": float(gaps.max()),
+            "stderr_lines": len(lines), "longest_silence_seconds": float(gaps.max()), "stderr_lines_all": lines,
             "stderr_tail": [x for x in lines if not x.startswith("MAXRSS_KB=")][-5:]}
+
+
+def stage_seconds(lines: list[str]) -> dict[str, float]:
+    """Each stage's wall seconds from synth's ``-v`` lines "NAME: done in 1 min 3.6 s (...)"."""
+    out = {}
+    for line in lines:
+        m = re.search(r"INFO: (.+?): done in (?:(\d+) min )?([\d.]+) s", line)
+        if m:
+            out[m.group(1)] = 60 * float(m.group(2) or 0) + float(m.group(3))
+    return out
 
 
 def main() -> None:
@@ -111,14 +122,13 @@ def main() -> None:
             base = Path(tmp) / f"joined_{target:g}s"
             row = {"target_seconds": target, **join_utterances(corpus, target, base)}
             out = Path(tmp) / f"out_{target:g}s"
-            cmd = [sys.executable, "-m", "bayes_talk.app.cli", "synth", str(model), "--audio", str(base.with_suffix(".wav")),
+            cmd = [sys.executable, "-m", "bayes_talk.app.cli", "-v", "synth", str(model), "--audio", str(base.with_suffix(".wav")),
                    "--labels", str(base.with_suffix(".lab")), "--out", str(out), *shlex.split(args.synth_args)]
             row.update(run_synth(cmd, args.timeout))
+            row["stage_seconds"] = stage_seconds(row.pop("stderr_lines_all"))
             diag_path = out / "diagnostics.json"
             if diag_path.is_file():
                 diag = json.loads(diag_path.read_text())
-                row["frames"] = diag.get("n_frames")
-                row["stage_seconds"] = diag.get("stage_seconds")
                 inner = diag.get("diagnostics", {})
                 row["map"] = {k: inner.get(k) for k in ("map_converged", "map_iter", "map_grad_norm",
                                                          "hessian_modified", "dim", "khat")}

@@ -1,6 +1,7 @@
 """Writing rendered faces to MP4 (with the speech) through imageio-ffmpeg's bundled ffmpeg."""
 from __future__ import annotations
 
+import itertools
 import os
 from pathlib import Path
 
@@ -45,9 +46,11 @@ def caption_strip(text: str, width: int, height: int = 16) -> np.ndarray:
     return np.asarray(img, dtype=np.uint8)
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 25.0,
+def write_video(path: str | os.PathLike, frames, fps: float = 25.0,
                 audio_path: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
-    """Write grayscale frames (T, H, W) uint8 as H.264 MP4, muxing the WAV if given.
+    """Write grayscale frames as H.264 MP4, muxing the WAV if given. ``frames``: a (T, H, W)
+    uint8 array, or an iterable of such arrays (chunks of frames, all of one H × W), which is
+    encoded as it comes, so a long video never has to be held in memory.
 
     Written to a temporary file beside ``path`` and moved into place, so a failure never
     leaves half a video; an existing ``path`` is refused unless ``overwrite``.
@@ -57,13 +60,25 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 25.0,
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; refusing to overwrite it")
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or frames.dtype != np.uint8:
-        raise ValueError(f"frames must be a (T, H, W) uint8 array, got {frames.dtype} {frames.shape}")
-    H, W = frames.shape[1:]
-    if H % 2 or W % 2:  # yuv420p needs even sizes
-        frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2)))
-    H, W = frames.shape[1:]
+    chunks = iter([frames] if isinstance(frames, np.ndarray) else frames)
+    first = next(chunks, None)
+    if first is None:
+        raise ValueError("frames: no frames to write")
+
+    def checked(chunk) -> np.ndarray:
+        chunk = np.asarray(chunk)
+        if chunk.ndim != 3 or chunk.dtype != np.uint8 or chunk.shape[1:] != first.shape[1:]:
+            raise ValueError(f"frames must be (T, H, W) uint8 arrays of one H x W {first.shape[1:]}, "
+                             f"got {chunk.dtype} {chunk.shape}")
+        H, W = chunk.shape[1:]
+        if H % 2 or W % 2:  # yuv420p needs even sizes
+            chunk = np.pad(chunk, ((0, 0), (0, H % 2), (0, W % 2)))
+        return chunk
+
+    first = np.asarray(first)
+    if first.ndim != 3 or first.dtype != np.uint8:
+        raise ValueError(f"frames must be a (T, H, W) uint8 array, got {first.dtype} {first.shape}")
+    H, W = checked(first).shape[1:]
     kw = {"fps": fps, "codec": "libx264", "pix_fmt_in": "gray", "pix_fmt_out": "yuv420p",
           "macro_block_size": 1, "quality": None, "output_params": ["-crf", "18"],
           "ffmpeg_log_level": "error"}  # no "Guessed Channel Layout" notices on stderr
@@ -73,8 +88,9 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 25.0,
     def encode(tmp: str) -> None:
         gen = imageio_ffmpeg.write_frames(tmp, (W, H), **kw)
         gen.send(None)
-        for f in frames:
-            gen.send(np.ascontiguousarray(f))
+        for chunk in itertools.chain([first], chunks):
+            for f in checked(chunk):
+                gen.send(np.ascontiguousarray(f))
         gen.close()
 
     atomic_write(path, encode, suffix=".mp4")

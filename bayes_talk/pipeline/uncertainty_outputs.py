@@ -20,6 +20,7 @@ All three are drawn from the one synthesis result
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -96,42 +97,43 @@ def plot_bands(path: str | os.PathLike, result: SynthesisResult, truth: np.ndarr
     return write_figure(path, fig, dpi=100)
 
 
-def render_frames(aam, params: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """``aam.render(params)`` (frames (T, H, W) uint8) ``chunk`` frames at a time, each chunk
-    advancing the open progress stage by its frames (:func:`bayes_talk.base.progress.current`)."""
+def render_frames(aam, params: np.ndarray, chunk: int = 64) -> Iterator[np.ndarray]:
+    """``aam.render(params)`` ``chunk`` frames at a time: a generator of (≤ chunk, H, W) uint8
+    arrays (what :func:`~bayes_talk.base.video.write_video` streams, so memory does not grow
+    with the length), each chunk advancing the open progress stage by its frames
+    (:func:`bayes_talk.base.progress.current`)."""
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
-    parts = []
     for a in range(0, params.shape[0], int(chunk)):
-        parts.append(aam.render(params[a:a + int(chunk)]))
-        progress.current().advance(parts[-1].shape[0])
-    if not parts:
-        return aam.render(params)
-    return np.concatenate(parts)
+        frames = aam.render(params[a:a + int(chunk)])
+        progress.current().advance(frames.shape[0])
+        yield frames
 
 
 def uncertainty_frames(aam, result: SynthesisResult, offset: np.ndarray, n_draws: int = VIDEO_DRAWS,
-                       seed: int | None = None, chunk: int = 64) -> np.ndarray:
-    """(T, H, 2W + gap) uint8: the mean face | the per-pixel standard deviation over
-    ``n_draws`` rendered draws of the AAM predictive (``result.sample``), scaled so that
-    ``SD_FULL_SCALE`` grey levels are white. ``offset`` is added to every parameter vector
-    before rendering (the model's AAM offset)."""
+                       seed: int | None = None, chunk: int = 64) -> Iterator[np.ndarray]:
+    """The frames (T, H, 2W + gap) uint8 of the mean face | the per-pixel standard deviation
+    over ``n_draws`` rendered draws of the AAM predictive (``result.sample``), scaled so that
+    ``SD_FULL_SCALE`` grey levels are white, as a generator of ``chunk``-frame arrays (memory
+    flat in the length; :func:`~bayes_talk.base.video.write_video` streams them). ``offset`` is
+    added to every parameter vector before rendering (the model's AAM offset)."""
     from bayes_talk.base.video import side_by_side
 
     if int(n_draws) < 2:
         raise ValueError(f"n_draws must be >= 2 for a standard deviation, got {n_draws}")
     offset = np.asarray(offset, dtype=np.float64)
-    mean_frames = render_frames(aam, result.mean + offset, chunk)
+    mean = result.mean + offset
     draws = result.sample(int(n_draws), seed=seed) + offset  # (n, T, D)
-    T = result.n_frames
-    s1 = np.zeros(mean_frames.shape, dtype=np.float64)
-    s2 = np.zeros(mean_frames.shape, dtype=np.float64)
-    for k in range(int(n_draws)):
-        for a in range(0, T, chunk):
-            f = aam.render(draws[k, a:a + chunk]).astype(np.float64)
-            s1[a:a + chunk] += f
-            s2[a:a + chunk] += f * f
-            progress.current().advance(f.shape[0])
     n = float(n_draws)
-    sd = np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0) * n / (n - 1))
-    panel = np.clip(np.rint(sd * (255.0 / SD_FULL_SCALE)), 0, 255).astype(np.uint8)
-    return side_by_side(mean_frames, panel)
+    for a in range(0, result.n_frames, int(chunk)):
+        b = min(a + int(chunk), result.n_frames)
+        mean_frames = aam.render(mean[a:b])
+        s1 = np.zeros(mean_frames.shape, dtype=np.float64)
+        s2 = np.zeros(mean_frames.shape, dtype=np.float64)
+        for k in range(int(n_draws)):
+            f = aam.render(draws[k, a:b]).astype(np.float64)
+            s1 += f
+            s2 += f * f
+        progress.current().advance((b - a) * (1 + int(n_draws)))
+        sd = np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0) * n / (n - 1))
+        panel = np.clip(np.rint(sd * (255.0 / SD_FULL_SCALE)), 0, 255).astype(np.uint8)
+        yield side_by_side(mean_frames, panel)

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from bayes_talk.base import progress
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.posterior.diagnostics import (
     convergence_problems,
@@ -154,9 +155,15 @@ def _sample(model, mfcc, labels, method, options, n_draws, seed, smoothness, war
     plan = make_plan(model, mfcc, labels, smoothness, audio_view, smooth_shift)
     dens = UtteranceDensity(plan)
     T, d = plan.n_frames, plan.latent_dim
-    start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
-                       audio_view=audio_view).latents
-    mp = maximise_utterance(dens, start, max_iter=map_iter)
+    with progress.stage("Algorithm 1 path", total=T, unit="frames") as st:
+        start = synthesize(model, mfcc, labels, algorithm="optimise", smoothness=smoothness,
+                           audio_view=audio_view).latents
+        st.update(T)
+    with progress.stage("joint MAP", total=T, unit="frames") as st:
+        # long paths report the frames their window sweeps have reached; short ones the end
+        mp = maximise_utterance(dens, start, max_iter=map_iter,
+                                progress=lambda kind, k: st.update(max(st.done, k)) if kind == "window" else None)
+        st.update(T)
     start_carried, start_rms_z = mp.carried, mp.start_rms_z
     start_rms_z = start_rms_z if np.isfinite(start_rms_z) else None      # no dynamics steps
     first_log_density = mp.log_density

@@ -61,6 +61,7 @@ Every GP predictive goes through Cholesky factors and triangular solves, float64
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar
 
@@ -315,11 +316,22 @@ class UtteranceDensity:
     and is kept so (:class:`~bayes_talk.synthesis.banded.BlockTridiagonal`).
     """
 
-    def __init__(self, plan: UtterancePlan):
+    def __init__(self, plan: UtterancePlan, terms: _Terms | None = None, n_frames: int | None = None):
         self.plan = plan
-        self.T, self.d = plan.n_frames, plan.latent_dim
+        self.T, self.d = plan.n_frames if n_frames is None else int(n_frames), plan.latent_dim
         self.n_evals = 0
-        self.terms = _Terms(plan)
+        self.terms = _Terms(plan) if terms is None else terms
+
+    def window(self, lo: int, hi: int) -> tuple[UtteranceDensity, slice]:
+        """The part of ln p that depends on frames [lo, hi): a density over frames
+        [lo − 1, hi + 1) ∩ [0, T) (the window and the neighbour each side, which its conditional
+        holds fixed) made of the terms that read a frame of the window, and where the window's
+        frames sit in it. Its gradient and Hessian in the window's frames are those of the
+        whole density (the other terms do not depend on them)."""
+        if not 0 <= lo < hi <= self.T:
+            raise ValueError(f"window [{lo}, {hi}) is not inside the utterance's {self.T} frames")
+        a, b = max(lo - 1, 0), min(hi + 1, self.T)
+        return UtteranceDensity(self.plan, self.terms.restricted(lo, hi, a), b - a), slice(lo - a, hi - a)
 
     def __call__(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         X = np.asarray(X, dtype=np.float64).reshape(self.T, self.d)
@@ -494,7 +506,35 @@ class _Terms:
         self.e_mean = np.array([b.entry_mean for b in entries]).reshape(len(entries), plan.latent_dim)
         self.e_chol_inv = np.array([np.linalg.inv(b.entry_chol) for b in entries]).reshape(
             len(entries), plan.latent_dim, plan.latent_dim)
-        self.e_const = sum(b.entry_logdet_half + 0.5 * plan.latent_dim * LOG_2PI for b in entries)
+        self.e_consts = np.array([b.entry_logdet_half + 0.5 * plan.latent_dim * LOG_2PI for b in entries])
+        self.e_const = float(self.e_consts.sum())
+
+    def restricted(self, lo: int, hi: int, shift: int) -> _Terms:
+        """The terms that read a frame of [lo, hi) (audio and entries there; the dynamics steps
+        and smoothness pairs with either frame there), their frame indices less ``shift``: the
+        window's own terms, which alone depend on its frames when the others are held fixed."""
+        sub = copy.copy(self)
+
+        def inside(idx: np.ndarray) -> np.ndarray:
+            return (idx >= lo) & (idx < hi)
+
+        m = inside(self.a_idx)
+        sub.a_idx, sub.a_Y, sub.a_runs = self.a_idx[m] - shift, self.a_Y[m], Runs.of(self.a_runs.row_gp()[m])
+        m = inside(self.d_dst) | inside(self.d_src)
+        sub.d_dst, sub.d_runs = self.d_dst[m] - shift, Runs.of(self.d_runs.row_gp()[m])
+        sub.d_src = sub.d_dst - 1
+        m = inside(self.e_idx)
+        sub.e_idx, sub.e_mean, sub.e_chol_inv = self.e_idx[m] - shift, self.e_mean[m], self.e_chol_inv[m]
+        sub.e_consts = self.e_consts[m]
+        sub.e_const = float(sub.e_consts.sum())
+        m = inside(self.s_idx) | inside(self.s_idx - 1)
+        vis_gp = np.empty(len(self.s_idx), dtype=np.int64)
+        vis_gp[self.s_order] = self.s_vis_runs.row_gp()                    # this block's visual GP, by row
+        sub.s_idx, sub.s_shift = self.s_idx[m] - shift, self.s_shift[m]
+        sub.s_prev_runs = Runs.of(self.s_prev_runs.row_gp()[m])
+        sub.s_order = np.argsort(vis_gp[m], kind="stable")
+        sub.s_vis_runs = Runs.of(vis_gp[m][sub.s_order])
+        return sub
 
     def entry_grad(self, Xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Σ_e ln N(x_e; μ_e, Σ_e) (K,) and its gradient (K, E, d) at the entry frames Xe (K, E, d)."""

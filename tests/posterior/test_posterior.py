@@ -791,3 +791,55 @@ def test_banded_map_and_laplace_equal_the_dense_ones(toy):
         for t in range(dens.T):
             np.testing.assert_allclose(S[t], cov[t * d:(t + 1) * d, t * d:(t + 1) * d], rtol=1e-7,
                                        atol=1e-9 * np.abs(cov).max())
+
+
+def test_a_window_of_the_density_has_its_gradient_hessian_and_differences(toy):
+    """``UtteranceDensity.window(lo, hi)``: the terms that read the window's frames. Its gradient
+    and Hessian in those frames are the whole density's, and a change of the window's frames
+    changes it by what it changes the whole density."""
+    model, test = toy
+    s = test[0]
+    mf = np.concatenate([u.mfcc for u in test])
+    lab = sum((list(u.labels) for u in test), [])
+    dens = UtteranceDensity(make_plan(model, mf, lab))
+    X = model.synthesize(mf, lab).latents
+    rng = np.random.default_rng(3)
+    f, G = dens(X)
+    H = dens.hessian(X)
+    for lo, hi in [(0, 7), (5, 19), (dens.T - 9, dens.T), (3, 4)]:
+        sub, inner = dens.window(lo, hi)
+        a = lo - inner.start
+        Xe = X[a:a + sub.T]
+        fs, Gs = sub(Xe)
+        np.testing.assert_allclose(Gs[inner], G[lo:hi], rtol=1e-10, atol=1e-10)
+        Hs = sub.hessian(Xe)
+        np.testing.assert_allclose(Hs.diag[inner], H.diag[lo:hi], rtol=1e-8, atol=1e-8 * np.abs(H.diag).max())
+        X2 = X.copy()
+        X2[lo:hi] += 0.01 * rng.standard_normal((hi - lo, dens.d))
+        fs2, _ = sub(X2[a:a + sub.T])
+        assert fs2 - fs == pytest.approx(dens(X2)[0] - f, rel=1e-9, abs=1e-9)
+    assert s.mfcc.shape[0] < dens.T
+
+
+def test_a_long_path_is_maximised_window_by_window_to_the_whole_path_s_tolerance(toy, monkeypatch):
+    """Past ``MAP_WINDOW[0]`` frames the MAP sweeps overlapping windows (each its conditional
+    density) before the whole path's Newton stage; the result passes the whole path's
+    convergence test and is at least as high as the start."""
+    from bayes_talk.synthesis import joint_map
+
+    model, test = toy
+    mf = np.concatenate([u.mfcc for u in test])
+    lab = sum((list(u.labels) for u in test), [])
+    dens = UtteranceDensity(make_plan(model, mf, lab))
+    monkeypatch.setattr(joint_map, "MAP_WINDOW", (20, 16, 12))
+    seen = []
+    X0 = model.synthesize(mf, lab).latents
+    with torch_threads(1):
+        r = maximise_utterance(dens, X0, progress=lambda stage, k: seen.append((stage, k)))
+        f, g = dens(r.latents)
+        H = dens.hessian(r.latents).dense()
+    assert dens.T > 20 and ("window", dens.T) in seen
+    assert r.converged and r.log_density >= r.start_log_density and f == pytest.approx(r.log_density, rel=1e-12)
+    g = g.reshape(-1)
+    lam = np.linalg.eigvalsh(-H)
+    assert np.abs(g).max() <= MAP_GTOL or (lam[0] > 0 and 0.5 * g @ np.linalg.solve(-H, g) <= MAP_DTOL)
