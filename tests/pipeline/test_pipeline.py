@@ -429,3 +429,32 @@ def test_train_defaults_to_right_context_states_with_the_calibration(monkeypatch
 
     with pytest.raises(ValueError, match="calibrated_model: expected one of holdout, refit, cv, found 'both'"):
         real_train("c", pl.DEFAULT_MODEL, "o", calibrate_bands=0.2, calibrated_model="both")
+
+
+def test_synth_of_room_noise_then_speech_with_recognised_labels_converges(model_dir, corpus_dir, tmp_path):
+    """A recording like a real one: 7 s of room noise (brown noise at about −45 dBFS, a 50 Hz
+    hum, a door's click) before two sentences, labelled by the recogniser, 300+ frames (the
+    window sweeps of the joint MAP): synth finishes, its joint MAP converges, and what
+    ``diagnostics.json`` says agrees with it (no MAP problem listed)."""
+    import soundfile as sf
+
+    wavs = sorted((corpus_dir / "utterances").rglob("*.wav"))[:2]
+    speech = [sf.read(w, dtype="float64") for w in wavs]
+    sr = speech[0][1]
+    rng = np.random.default_rng(7)
+    n = int(7.0 * sr)
+    brown = np.cumsum(rng.standard_normal(n))
+    brown = (brown - np.convolve(brown, np.ones(2001) / 2001, mode="same")) * 10 ** (-45 / 20) / brown.std()
+    hum = 10 ** (-50 / 20) * np.sin(2 * np.pi * 50 * np.arange(n) / sr)
+    noise = brown + hum
+    noise[int(3.1 * sr):int(3.1 * sr) + 200] += 0.3 * rng.standard_normal(200) * np.exp(-np.arange(200) / 40)
+    y = np.concatenate([noise] + [x for x, _ in speech])
+    wav = tmp_path / "room.wav"
+    sf.write(wav, np.clip(y, -1, 1), sr, subtype="PCM_16")
+    out = tmp_path / "out"
+    assert main(["synth", str(model_dir), "--audio", str(wav), "--no-video", "--out", str(out)]) == 0
+    diag = json.loads((out / "diagnostics.json").read_text())
+    assert diag["diagnostics"]["dim"] // 3 > 250                       # the windowed path (MAP_WINDOW[0])
+    assert diag["diagnostics"]["map_converged"], diag["problems"]
+    assert not [p for p in diag["problems"] if "MAP did not converge" in p]
+    assert np.all(np.isfinite(np.load(out / "trajectory.npy")))
