@@ -86,8 +86,10 @@ def run_synth(cmd: list[str], timeout: float) -> dict:
     wall = time.monotonic() - t0
     rss = next((int(x.split("=")[1]) for x in lines if x.startswith("MAXRSS_KB=")), None)
     gaps = np.diff(stamps + [t0 + wall])
+    before = ["(start)", *lines][int(np.argmax(gaps))]
     return {"wall_seconds": wall, "peak_rss_mb": None if rss is None else rss / 1024, "returncode": rc,
-            "stderr_lines": len(lines), "longest_silence_seconds": float(gaps.max()), "stderr_lines_all": lines,
+            "stderr_lines": len(lines), "longest_silence_seconds": float(gaps.max()),
+            "longest_silence_after": before, "stderr_lines_all": lines,
             "stderr_tail": [x for x in lines if not x.startswith("MAXRSS_KB=")][-5:]}
 
 

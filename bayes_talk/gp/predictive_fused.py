@@ -234,7 +234,7 @@ def predictive_mean_var_vjp(X: np.ndarray, A: np.ndarray, L: np.ndarray, alpha: 
 
 
 # ------------------------------------------------------------------ many GPs in one call
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)   # other threads (the progress heartbeat) run meanwhile
 def _packed_loglik(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, w2, mean,
                    Y, Xs, extra, ll, gx, gy):
     """:func:`predictive_loglik` over runs of rows [lo, hi) that share GP ``run_gp``."""
@@ -246,7 +246,7 @@ def _packed_loglik(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamm
                           Y[lo:hi], Xs[lo:hi], extra, ll[lo:hi], gx[lo:hi], gy[lo:hi])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)   # other threads (the progress heartbeat) run meanwhile
 def _packed_mean_var(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, mean, Xs, mu, s):
     """:func:`predictive_mean_var` over runs of rows that share a GP."""
     for r in range(run_gp.shape[0]):
@@ -257,7 +257,7 @@ def _packed_mean_var(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, ga
                             mu[lo:hi], s[lo:hi])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)   # other threads (the progress heartbeat) run meanwhile
 def _packed_mean_var_vjp(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha, gamma, beta, Xs, G, gs, out):
     """:func:`predictive_mean_var_vjp` over runs of rows that share a GP."""
     for r in range(run_gp.shape[0]):
@@ -268,7 +268,7 @@ def _packed_mean_var_vjp(run_gp, run_lo, run_hi, X, A, Lflat, offs, loffs, alpha
                                 gs[lo:hi], out[lo:hi])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)   # other threads (the progress heartbeat) run meanwhile
 def _packed_mean_vjp(run_gp, run_lo, run_hi, X, A, offs, alpha, gamma, Xs, G, out):
     """:func:`predictive_mean_vjp` over runs of rows that share a GP."""
     for r in range(run_gp.shape[0]):
