@@ -393,7 +393,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (>= 0)")
     b.add_argument("--sentences", default=None,
                    help="text file, one sentence a line (default: the built-in English sentences)")
-    b.add_argument("--voice", default="en", help="English espeak-ng voice (en, en-us, en-gb, ...)")
+    from bayes_talk.data.text_check import english_voices
+
+    b.add_argument("--voice", default="en",
+                   help=f"English espeak-ng voice: {', '.join(english_voices())}; +VARIANT picks one of "
+                        "espeak-ng's variants (en+f3)")
     b.add_argument("--image-size", type=_positive_int, default=128, help="frame width and height, pixels")
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
     b.add_argument("--rate", type=int, default=None,
@@ -583,13 +587,15 @@ def _main(argv: list[str] | None) -> int:
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
     _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
                    else "bayes-talk: %(levelname)s: %(message)s")
-    # hmmlearn logs "Model is not converging" for every EM step whose log-likelihood drops by
-    # rounding (the aligner, the recogniser, baselines): noise to a user; kept with -v
-    logging.getLogger("hmmlearn").setLevel(logging.INFO if verbose else logging.ERROR)
+    from bayes_talk.base import logs
+
+    # hmmlearn's "Model is not converging" (noise to a user) kept for -v; worker processes
+    # log the same way (bayes_talk.base.logs)
+    logs.quiet_third_party(verbose)
     logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
     import warnings
 
-    warnings.formatwarning = lambda message, category, *a, **k: f"{category.__name__}: {message}"
+    warnings.formatwarning = logs.brief_warning
     from bayes_talk.base.progress import set_enabled
 
     set_enabled(not quiet)
