@@ -14,6 +14,7 @@ Sub-commands::
     bayes-talk train CORPUS_DIR --model {ssgpdm-vlmm,ssgpdm-phone,ssgpdm-vlmm-rc,ssgpdm-phone-rc,sgplvm} --out MODEL_DIR
     bayes-talk synth MODEL_DIR --audio X.wav --labels X.lab --out OUT_DIR
                      [--algorithm {optimise,predict}] [--init {nn,hmm,back-constraint}]
+    bayes-talk synth MODEL_DIR (--audio-dir DIR | --audio-list FILE) --out OUT_DIR [--file-workers N]
     bayes-talk evaluate --protocol {deena2009,deena2010,englebienne2008} --corpus DIR ...
     bayes-talk demo [--out DIR]
     bayes-talk align WAV --model MODEL_DIR (--text "..." | --transcript FILE) --out X.lab|X.TextGrid
@@ -132,18 +133,46 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_synth(args: argparse.Namespace) -> int:
     from bayes_talk.pipeline import synth
 
-    written = synth(args.model_dir, args.audio, args.labels, args.out, algorithm=args.algorithm,
-                    init=args.init, force=args.force, video=not args.no_video, posterior=args.posterior,
-                    n_draws=args.draws, seed=args.seed, tier=args.tier, text=args.text,
-                    transcript=args.transcript, align_method=args.align_method, truth=args.truth,
-                    calibrated=not args.raw_bands, lowpass_hz=args.lowpass_hz or None, export=args.export,
-                    sampler_options={"chains": args.chains, "warmup": args.warmup,
-                                     "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
-                                     "pg_particles": args.pg_particles, "workers": args.workers,
-                                     "stop_at_targets": False if args.all_draws else None})
+    common = {"algorithm": args.algorithm, "init": args.init, "video": not args.no_video, "posterior": args.posterior,
+              "n_draws": args.draws, "seed": args.seed, "tier": args.tier, "calibrated": not args.raw_bands,
+              "lowpass_hz": args.lowpass_hz or None, "export": args.export,
+              "sampler_options": {"chains": args.chains, "warmup": args.warmup,
+                                  "target_accept": args.target_accept, "max_tree_depth": args.max_tree_depth,
+                                  "pg_particles": args.pg_particles, "workers": args.workers,
+                                  "stop_at_targets": False if args.all_draws else None}}
+    if args.audio is None:
+        return _synth_batch(args, common)
+    if args.file_workers != 1:
+        raise ValueError("--file-workers runs the files of --audio-dir/--audio-list in parallel; with one --audio "
+                         "use --workers (NUTS chains in parallel)")
+    written = synth(args.model_dir, args.audio, args.labels, args.out, force=args.force, text=args.text,
+                    transcript=args.transcript, align_method=args.align_method, truth=args.truth, **common)
     for k, p in written.items():
         print(f"{k:>10}: {p}")
     return 0
+
+
+def _synth_batch(args: argparse.Namespace, options: dict) -> int:
+    """``synth --audio-dir/--audio-list``: every file into OUT/<stem>/, a summary table; exit
+    status 1 when a file failed."""
+    from bayes_talk.pipeline.batch import (
+        inputs_from_dir,
+        inputs_from_list,
+        summary_table,
+        synth_many,
+    )
+
+    flag = "--audio-dir" if args.audio_dir is not None else "--audio-list"
+    for name in ("labels", "text", "transcript", "align_method", "truth"):
+        if getattr(args, name) is not None:
+            raise ValueError(f"--{name.replace('_', '-')} belongs to one --audio: with {flag} each WAV's labels "
+                             "are the .lab/.TextGrid beside it (or the list's second column), else the recogniser's")
+    inputs = inputs_from_dir(args.audio_dir) if args.audio_dir is not None else inputs_from_list(args.audio_list)
+    res = synth_many(args.model_dir, inputs, args.out, workers=args.file_workers, force=args.force, **options)
+    print(summary_table(res.rows))
+    print(f"{len(res.rows) - len(res.failed)} of {len(res.rows)} files synthesised; summary in {res.summary_json} "
+          f"and {res.summary_csv}")
+    return 1 if res.failed else 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -235,6 +264,8 @@ outputs in --out (docs/outputs.md):
   frames.json|csv  with --export: per frame time, parameter mean/sd/5-50-95 % quantiles,
                    landmarks and their sd (schema in docs/outputs.md)
   landmarks_track.json|csv  with --export: x, y of every landmark per frame (a 2-D tool's track)
+with --audio-dir/--audio-list: the above in OUT/<WAV stem>/ for every WAV, and
+  summary.json|csv every file's labels, output directory, frames, wall seconds, status, error
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
@@ -395,7 +426,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (>= 0)")
     b.add_argument("--sentences", default=None,
                    help="text file, one sentence a line (default: the built-in English sentences)")
-    b.add_argument("--voice", default="en", help="English espeak-ng voice (en, en-us, en-gb, ...)")
+    from bayes_talk.data.text_check import english_voices
+
+    b.add_argument("--voice", default="en",
+                   help=f"English espeak-ng voice: {', '.join(english_voices())}; +VARIANT picks one of "
+                        "espeak-ng's variants (en+f3)")
     b.add_argument("--image-size", type=_positive_int, default=128, help="frame width and height, pixels")
     b.add_argument("--force", action="store_true", help="allow building into a non-empty dir")
     b.add_argument("--rate", type=int, default=None,
@@ -461,11 +496,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "calibration fitted on out-of-fold syntheses of every utterance (1/FRACTION folds)")
     t.set_defaults(func=_cmd_train)
 
-    s = sub.add_parser("synth", help="synthesise a talking face for a WAV and its phone labels",
+    s = sub.add_parser("synth", help="synthesise a talking face for a WAV (or many) and its phone labels",
                        epilog=SYNTH_OUTPUTS, **_SUB_KW)
     s.add_argument("model_dir", help="directory written by train")
-    s.add_argument("--audio", required=True,
-                   help="WAV file (any rate: resampled to the model's; stereo downmixed)")
+    a = s.add_mutually_exclusive_group(required=True)
+    a.add_argument("--audio", help="WAV file (any rate: resampled to the model's; stereo downmixed)")
+    a.add_argument("--audio-dir", metavar="DIR",
+                   help="every *.wav of DIR, each into OUT/<its stem>/ with the model loaded once, labels from the "
+                        ".lab (or .TextGrid) beside it, else the recogniser; a file that fails is reported and "
+                        "skipped, OUT/summary.json and .csv list every file, exit status 1 if one failed")
+    a.add_argument("--audio-list", metavar="FILE",
+                   help="as --audio-dir for the WAVs FILE lists, one a line, each optionally followed by its "
+                        "labels file (relative paths: from FILE's directory)")
+    s.add_argument("--file-workers", type=_positive_int, default=1, metavar="N",
+                   help="--audio-dir/--audio-list: processes synthesising files at once, each loading the model "
+                        "once")
     s.add_argument("--labels", default=None,
                    help="HTK .lab or Praat .TextGrid (without it: --text/--transcript, else the recogniser)")
     s.add_argument("--tier", default=None,
@@ -475,7 +520,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--transcript", default=None, help="UTF-8 file holding the transcript")
     s.add_argument("--align-method", choices=("hmm", "dtw"), default=None,
                    help="aligner for --text/--transcript (default: dtw)")
-    s.add_argument("--out", required=True, help="output directory")
+    s.add_argument("--out", required=True,
+                   help="output directory (--audio-dir/--audio-list: one sub-directory per WAV and the summary)")
     s.add_argument("--algorithm", choices=("optimise", "predict"), default="optimise",
                    help="with --posterior map: deena2010 Algorithm 1 (optimise) or 2 (predict)")
     s.add_argument("--init", choices=("nn", "hmm", "back-constraint"), default=None,
@@ -504,8 +550,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{PG_NUTS_BUDGET['min_draws_per_chain']} draws per chain and every "
                         f"{PG_NUTS_BUDGET['check_every']} after")
     s.add_argument("--workers", type=_positive_int, default=None,
-                   help="nuts/pg-nuts: processes running the chains in parallel (default 1); the draws depend "
-                        "on --seed only, not on this")
+                   help="nuts/pg-nuts: processes running one file's chains in parallel (default 1); the draws "
+                        "depend on --seed only, not on this. Files in parallel: --file-workers")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="sampler seed (>= 0)")
     s.add_argument("--truth", default=None,
                    help="ground-truth AAM parameters, a .npy (T, n_params) in the space of trajectory.npy: "
@@ -585,13 +631,15 @@ def _main(argv: list[str] | None) -> int:
     level = logging.INFO if verbose else logging.ERROR if quiet else logging.WARNING
     _log_to_stderr(level, "%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
                    else "bayes-talk: %(levelname)s: %(message)s")
-    # hmmlearn logs "Model is not converging" for every EM step whose log-likelihood drops by
-    # rounding (the aligner, the recogniser, baselines): noise to a user; kept with -v
-    logging.getLogger("hmmlearn").setLevel(logging.INFO if verbose else logging.ERROR)
+    from bayes_talk.base import logs
+
+    # hmmlearn's "Model is not converging" (noise to a user) kept for -v; worker processes
+    # log the same way (bayes_talk.base.logs)
+    logs.quiet_third_party(verbose)
     logging.captureWarnings(True)  # library warnings (e.g. unseen phones) go through logging, one line each
     import warnings
 
-    warnings.formatwarning = lambda message, category, *a, **k: f"{category.__name__}: {message}"
+    warnings.formatwarning = logs.brief_warning
     from bayes_talk.base.progress import HEARTBEAT_LOGGER, set_enabled
 
     set_enabled(not quiet)

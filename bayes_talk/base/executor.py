@@ -105,12 +105,17 @@ def _run_pickled(payload: bytes) -> bytes:
     return pickle.dumps(run_task(fn, item), protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def _init_process_worker() -> None:
-    """Start-up of a ``processes`` worker: one BLAS thread; Ctrl-C is the parent's to
-    handle (it shuts the pool down), so a worker never prints a KeyboardInterrupt."""
+def _init_process_worker(log_setup: dict | None = None) -> None:
+    """Start-up of a ``processes`` worker: one BLAS thread; the parent's logging set-up
+    (``log_setup``, :func:`bayes_talk.base.logs.snapshot`: its levels, format and third-party
+    chatter held back); Ctrl-C is the parent's to handle (it shuts the pool down), so a
+    worker never prints a KeyboardInterrupt."""
     import signal
 
+    from bayes_talk.base import logs
+
     os.environ.update(BLAS_ENV)
+    logs.apply(log_setup)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -264,7 +269,8 @@ class LocalExecutor(Executor):
 
 class ProcessExecutor(Executor):
     """``concurrent.futures.ProcessPoolExecutor`` of ``n_workers`` fresh interpreters
-    (the "spawn" start method: no copy of this process's threads or state)."""
+    (the "spawn" start method: no copy of this process's threads or state), which log as
+    this process did when the pool was made (:mod:`bayes_talk.base.logs`)."""
 
     kind = "processes"
 
@@ -272,9 +278,11 @@ class ProcessExecutor(Executor):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        from bayes_talk.base import logs
+
         self.n_workers = _check_workers(n_workers)
         self._pool = ProcessPoolExecutor(self.n_workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init_process_worker)
+                                         initializer=_init_process_worker, initargs=(logs.snapshot(),))
 
     def map(self, fn, items, desc=None, unit="task"):
         """Run the tasks in the worker processes; results in input order."""

@@ -55,7 +55,10 @@ __all__ = [
     "DEFAULT_RATE",
     "SpeechRequest",
     "SpeechResult",
+    "espeak_variants",
+    "espeak_voices",
     "jittered_requests",
+    "resolve_voice",
     "synthesize",
     "synthesize_many",
     "write_wav",
@@ -138,10 +141,45 @@ def _espeak_paths() -> tuple[str, str]:
     return str(espeakng_loader.get_library_path()), str(espeakng_loader.get_data_path())
 
 
+def espeak_voices() -> dict[str, str]:
+    """Every voice name the bundled espeak-ng data answers to, lower-cased, mapped to the name
+    of the voice file that is loaded for it: each voice file's own name (``en-gb-scotland``,
+    ``en-us``) and each language code a voice file declares (``en-gb``, declared by the file
+    ``en``), the code going to the file that declares it with the highest priority (the lowest
+    number, espeak-ng's 5 when none is given). espeak-ng itself finds a voice by its file name
+    only: ``en-gb``, the language code of its British English voice, is no file name."""
+    base = Path(_espeak_paths()[1]) / "lang"
+    files: dict[str, str] = {}
+    codes: dict[str, tuple[int, str]] = {}
+    for f in sorted(p for p in base.rglob("*") if p.is_file()):
+        files[f.name.lower()] = f.name
+        for line in f.read_text(encoding="utf-8", errors="replace").splitlines():
+            words = line.split()
+            if len(words) >= 2 and words[0] == "language":
+                prio = int(words[2]) if len(words) > 2 and words[2].isdigit() else 5
+                code = words[1].lower()
+                if code not in codes or prio < codes[code][0]:
+                    codes[code] = (prio, f.name)
+    return {**{c: name for c, (_, name) in codes.items()}, **files}
+
+
+def espeak_variants() -> list[str]:
+    """The voice variants of the bundled espeak-ng data (``f3`` in ``en+f3``)."""
+    return sorted(p.name for p in (Path(_espeak_paths()[1]) / "voices" / "!v").iterdir() if p.is_file())
+
+
+def resolve_voice(voice: str) -> str:
+    """The name espeak-ng loads for ``voice`` (a voice file's name or a language code,
+    :func:`espeak_voices`, with an optional ``+variant``); a name neither is returned as given
+    (espeak-ng's own look-up, e.g. ``gmw/en``, then decides)."""
+    name, plus, variant = str(voice).partition("+")
+    return espeak_voices().get(name.strip().lower(), name) + plus + variant
+
+
 def synthesize_in_subprocess(request: SpeechRequest) -> SpeechResult:
     """Synthesise ``request`` in a fresh ``python`` subprocess and assemble the result."""
     lib_path, data_path = _espeak_paths()
-    payload = json.dumps({"text": request.text, "voice": request.voice,
+    payload = json.dumps({"text": request.text, "voice": resolve_voice(request.voice),
                           "rate": int(request.rate), "pitch": int(request.pitch),
                           "lib": lib_path, "data": data_path})
     # -I -S: isolated, no site-packages: the child needs only ctypes/json/sys (see _CHILD)
@@ -198,7 +236,8 @@ if sr <= 0:
     fail("espeak_Initialize failed (returned %d)" % sr)
 lib.espeak_SetVoiceByName.argtypes = [ctypes.c_char_p]
 if lib.espeak_SetVoiceByName(req["voice"].encode()) != 0:
-    fail("espeak-ng voice %r not found (try 'en')" % req["voice"], "ValueError")
+    fail("espeak-ng voice %r not found (try 'en'; bayes-talk corpus build --help lists the voices)" % req["voice"],
+         "ValueError")
 lib.espeak_SetParameter.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int]
 lib.espeak_SetParameter($p_rate, int(req["rate"]), 0)
 lib.espeak_SetParameter($p_pitch, int(req["pitch"]), 0)

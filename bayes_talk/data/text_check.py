@@ -2,8 +2,8 @@
 
 The corpus's phone set is English ARPAbet 39 (+ ``sil``) and espeak-ng's phonemes are
 mapped to it by :mod:`bayes_talk.data.espeak_phones`, a table for English voices only.
-So ``corpus build`` accepts the English espeak-ng voices (names ``en`` and ``en-...``,
-e.g. ``en-us``, ``en-gb``, ``en-gb-scotland``) and sentences written in Latin script:
+So ``corpus build`` accepts the English voices of the bundled espeak-ng (:func:`english_voices`:
+``en``, ``en-us``, ``en-gb``, ``en-gb-scotland``, ...) and sentences written in Latin script:
 other scripts (CJK, Cyrillic, Greek, Arabic, ...) would be read out letter by letter as
 "Chinese letter ..." and are refused, naming the sentence and the first such letter.
 """
@@ -12,7 +12,8 @@ from __future__ import annotations
 import re
 import unicodedata
 
-__all__ = ["check_pronounceable", "check_voice", "content_words", "is_english_voice", "template_overlap"]
+__all__ = ["check_pronounceable", "check_voice", "content_words", "english_voices", "is_english_voice",
+           "template_overlap"]
 
 #: function words left out of :func:`content_words`: two sentences built on one template
 #: ("The pilot announced a short delay because of ...") share their content words, not these
@@ -25,12 +26,31 @@ def is_english_voice(voice: str) -> bool:
     return name == "en" or name.startswith("en-")
 
 
+def english_voices() -> list[str]:
+    """The English voice names of the bundled espeak-ng (voice files and the language codes
+    they declare, :func:`bayes_talk.data.speech.espeak_voices`), ``en`` first."""
+    from bayes_talk.data.speech import espeak_voices
+
+    return sorted((v for v in espeak_voices() if is_english_voice(v)), key=lambda v: (v != "en", v))
+
+
 def check_voice(voice: str) -> str:
-    """``voice`` if it is an English espeak-ng voice name, else ValueError saying which are."""
+    """``voice`` if it is an English espeak-ng voice name (a voice or language of
+    :func:`english_voices`, optionally with a ``+variant`` of the bundled data), else
+    ValueError saying which are."""
+    from bayes_talk.data.speech import espeak_variants
+
+    voices = english_voices()
     if not is_english_voice(voice):
         raise ValueError(f"voice {voice!r} is not supported: the corpus's phone set is English "
-                         "(ARPAbet 39), so only English espeak-ng voices can be used: en, en-us, en-gb, "
-                         "en-gb-scotland, en-gb-x-rp, en-029, ...")
+                         "(ARPAbet 39), so only English espeak-ng voices can be used: " + ", ".join(voices))
+    name, _, variant = str(voice).partition("+")
+    if name.strip().lower().rsplit("/", 1)[-1] not in voices:   # gmw/en: espeak-ng's own path
+        raise ValueError(f"voice {voice!r}: espeak-ng has no English voice {name.strip()!r}; its English "
+                         "voices are " + ", ".join(voices) + " (a variant may follow: en+f3)")
+    if variant and variant not in espeak_variants():
+        raise ValueError(f"voice {voice!r}: espeak-ng has no variant {variant!r}; it has "
+                         + ", ".join(espeak_variants()))
     return voice
 
 

@@ -7,10 +7,12 @@ the command line's workflow, split by idea:
   front end, calibration);
 * :mod:`~bayes_talk.pipeline.front_end`: the audio front end, built in one place with its
   settings (what ``train`` records, what ``synth`` applies to new audio);
-* :mod:`~bayes_talk.pipeline.talking_face`: ``synth`` (WAV + labels -> face, bands, video).
+* :mod:`~bayes_talk.pipeline.talking_face`: ``synth`` (WAV + labels -> face, bands, video);
+* :mod:`~bayes_talk.pipeline.batch`: ``synth_many`` (many WAVs through one loaded model, with a
+  summary of every file).
 
 The model directory's descriptor is :mod:`bayes_talk.base.bundle`'s. The public names of the
-four modules are importable from here (on first access, PEP 562, so that importing the
+five modules are importable from here (on first access, PEP 562, so that importing the
 package for the command line's defaults loads no more than those).
 """
 from __future__ import annotations
@@ -25,11 +27,13 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(("audio_settings", "front_end", "read_utterance", "utterance_from_intervals"),
                     "bayes_talk.pipeline.front_end"),
     **dict.fromkeys(("SYNTH_OUTPUT_NAMES", "synth"), "bayes_talk.pipeline.talking_face"),
+    **dict.fromkeys(("BatchInput", "inputs_from_dir", "inputs_from_list", "synth_many"), "bayes_talk.pipeline.batch"),
 }
 
-__all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "TrainedModel", "aam_offset",
-           "audio_settings", "calibrates_bands", "fit_model", "front_end", "load_trained", "model_kinds", "new_model",
-           "read_utterance", "select_holdout", "synth", "train", "utterance_from_intervals"]
+__all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "BatchInput",
+           "TrainedModel", "aam_offset", "audio_settings", "calibrates_bands", "fit_model", "front_end",
+           "inputs_from_dir", "inputs_from_list", "load_trained", "model_kinds", "new_model", "read_utterance",
+           "select_holdout", "synth", "synth_many", "train", "utterance_from_intervals"]
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals(), __all__)

@@ -113,6 +113,10 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     """Synthesise a face for WAV + labels; writes the AAM trajectory, its variance, the
     landmarks, the segmentation and an MP4 with the audio into ``out_dir``.
 
+    ``model_dir``: a directory written by ``train``, or the :class:`TrainedModel` that
+    :func:`~bayes_talk.pipeline.trained.load_trained` read from one (used as it is: many
+    files synthesised with one load, :func:`bayes_talk.pipeline.batch.synth_many`).
+
     posterior: for a switching model, the whole-utterance synthesis posterior by "laplace"
     (the default), "nuts", "pg-nuts" (particle Gibbs ∘ NUTS ∘ mode jumps), "emcee" or "vi"
     (docs/uncertainty.md "Which sampler"): the trajectory and variance are
@@ -167,7 +171,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
         raise ValueError(f"--workers runs NUTS chains in parallel: it applies to --posterior nuts or pg-nuts, "
                          f"not {posterior!r}")
     with stage("loading model", unit="files"):
-        tm = load_trained(model_dir)
+        tm = model_dir if isinstance(model_dir, TrainedModel) else load_trained(model_dir)
     choices = tm.model.synthesis_options
     if posterior is None:
         posterior = DEFAULT_METHOD if "posterior" in choices else "map"
@@ -185,7 +189,7 @@ def synth(model_dir, wav, labels, out_dir, algorithm: str = "optimise", init: st
     if labels is None:
         with stage("labelling" if text is None and transcript is None else "aligning the transcript",
                    unit="files"):
-            derived = _derived_labels(model_dir, wav, text, transcript, align_method)
+            derived = _derived_labels(tm.directory, wav, text, transcript, align_method)
     elif text is not None or transcript is not None:
         raise ValueError("give either phone labels (--labels) or a transcript (--text/--transcript), not both")
     front = front_end(tm.audio)
@@ -365,5 +369,8 @@ def _check_speech(wav, recognise: bool) -> None:
 
 def _derived_labels(model_dir, wav, text, transcript, align_method) -> list[tuple[float, float, str]]:
     """Phone intervals from the alignment models of ``model_dir`` (aligner or recogniser)."""
+    if model_dir is None:
+        raise ValueError(f"{wav}: no phone labels given, and the model was not loaded from a directory, so "
+                         "it has no aligner or phone recogniser; give the labels")
     return label_audio(model_dir, wav, text=text, transcript=transcript,
                        method=align_method or DEFAULT_ALIGN_METHOD).intervals

@@ -36,7 +36,8 @@ class TrainedModel:
     when the model was trained with a band calibration), the corpus AAM (or None), the offset
     added back to its mean-removed parameters, the frame rate, the audio front end and the
     training corpus directory as ``train`` was given it (relative to where it ran; None when
-    the descriptor has none)."""
+    the descriptor has none) and the directory it was loaded from (its aligner and phone
+    recogniser are read from there; None for a model not loaded from one)."""
 
     kind: str
     model: Estimator
@@ -45,6 +46,7 @@ class TrainedModel:
     fps: float
     audio: AudioSettings | None = None
     corpus: str | None = None
+    directory: Path | None = None
 
     def training_corpus(self) -> Path:
         """The directory the model was trained on, checked to exist (benchmarks that rebuild the
@@ -98,4 +100,4 @@ def load_trained(model_dir: str | os.PathLike) -> TrainedModel:
         raise BundleError(f"{d / 'aam.npz'}: an AAM with {aam.n_params} parameters, but the model in {d} "
                           f"was trained on {len(desc['aam_offset'])}: the AAM does not belong to this model")
     return TrainedModel(kind, model, aam, np.asarray(desc["aam_offset"]), float(desc.get("fps", 25.0)),
-                        AudioSettings.from_dict(desc.get("audio"), where=str(d)), desc.get("corpus"))
+                        AudioSettings.from_dict(desc.get("audio"), where=str(d)), desc.get("corpus"), d)

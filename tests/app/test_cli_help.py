@@ -111,3 +111,37 @@ def test_hmmlearn_convergence_chatter_is_kept_out_of_the_output_unless_verbose(t
         logging.getLogger().removeHandler(cli._HANDLER)
         cli._HANDLER = None
         logging.getLogger("hmmlearn").setLevel(logging.NOTSET)
+
+
+def test_worker_processes_log_as_the_command_line_says(tmp_path, capfd, monkeypatch):
+    """The aligner's fit in ``train`` runs in a worker process: hmmlearn's chatter there is
+    held back unless -v as in the main process, and the worker's warnings come in the command
+    line's one-line format instead of Python's bare last-resort output."""
+    import logging
+    import warnings
+
+    from bayes_talk.app import cli
+    from bayes_talk.base.executor import ProcessExecutor
+
+    def in_workers(args):
+        with ProcessExecutor(2) as ex:
+            ex.map(logging.getLogger("hmmlearn.base").warning, ["Model is not converging.  Current: -1"])
+            ex.map(logging.getLogger("bayes_talk.test").warning, ["a warning of ours"])
+            ex.map(warnings.warn, ["a library warning"])
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_demo", in_workers)
+    try:
+        assert main(["demo", "--out", str(tmp_path)]) == 0
+        err = capfd.readouterr().err
+        assert "bayes-talk: WARNING: a warning of ours" in err
+        assert "bayes-talk: WARNING: UserWarning: a library warning" in err
+        assert "not converging" not in err
+        assert main(["-v", "demo", "--out", str(tmp_path)]) == 0
+        err = capfd.readouterr().err
+        assert "hmmlearn.base WARNING: Model is not converging" in err
+    finally:
+        logging.getLogger().removeHandler(cli._HANDLER)
+        cli._HANDLER = None
+        logging.getLogger("hmmlearn").setLevel(logging.NOTSET)
+        logging.captureWarnings(False)

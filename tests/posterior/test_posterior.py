@@ -800,7 +800,7 @@ def test_a_window_of_the_density_has_its_gradient_hessian_and_differences(toy):
     model, test = toy
     s = test[0]
     mf = np.concatenate([u.mfcc for u in test])
-    lab = sum((list(u.labels) for u in test), [])
+    lab = [p for u in test for p in u.labels]
     dens = UtteranceDensity(make_plan(model, mf, lab))
     X = model.synthesize(mf, lab).latents
     rng = np.random.default_rng(3)
@@ -829,7 +829,7 @@ def test_a_long_path_is_maximised_window_by_window_to_the_whole_path_s_tolerance
 
     model, test = toy
     mf = np.concatenate([u.mfcc for u in test])
-    lab = sum((list(u.labels) for u in test), [])
+    lab = [p for u in test for p in u.labels]
     dens = UtteranceDensity(make_plan(model, mf, lab))
     monkeypatch.setattr(joint_map, "MAP_WINDOW", (20, 16, 12))
     seen = []

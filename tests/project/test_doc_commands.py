@@ -399,7 +399,7 @@ def test_help_epilog_commands_parse():
 @dataclass(frozen=True)
 class PyBlock:
     """How one ```python block is covered: ``run`` here, with ``subs`` applied to its text,
-    in a directory holding the tiny CORPUS, after ``setup`` gave it the names it uses
+    in a directory holding the tiny CORPUS, MODEL, X.wav and X.lab, after ``setup`` gave it the names it uses
     without defining (USES_TOY, USES_SPLIT); or run verbatim by the test ``mapped`` names."""
 
     setup: str = ""
@@ -419,6 +419,8 @@ USES_TOY = "toy"
 USES_SPLIT = "split"
 
 PYTHON_BLOCKS: dict[tuple[str, str], PyBlock] = {
+    ("README.md", "from bayes_talk.pipeline import load_trained"): PyBlock(
+        subs=(('seed=0)', 'seed=0, n_draws=16)'),)),             # MODEL, X.wav, X.lab: the fixture's
     ("README.md", "from bayes_talk.corpus import load_corpus"): PyBlock(
         mapped="tests/project/test_readme_script.py::test_readme_python_section_runs_as_a_plain_script_on_a_fresh_corpus",
         reason="run verbatim as a plain script on a fresh 16-utterance corpus (the library-call issue)"),
@@ -618,7 +620,8 @@ def test_python_block_runs(block, docs_work, request, monkeypatch, tmp_path):
     spec = PYTHON_BLOCKS[block.key]
     code = block_source(block).replace('"MODEL_DIR"', f'"{docs_work / "MODEL"}"')
     code = code.replace('"OUT_DIR/', f'"{docs_work / "OUT"}/')
-    (tmp_path / "CORPUS").symlink_to(docs_work / "CORPUS")
+    for name in ("CORPUS", "MODEL", "X.wav", "X.lab"):
+        (tmp_path / name).symlink_to(docs_work / name)
     monkeypatch.chdir(tmp_path)
     ns: dict = {"__name__": "__main__"}
     if spec.setup == USES_TOY:

@@ -19,11 +19,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def readme_python_section() -> str:
-    """The ```python block under the README's "## Python" heading."""
+    """The ```python block of the README's "## Python" section that starts from a corpus
+    (``load_corpus``); the section's other block starts from a trained model directory
+    (tests/project/test_doc_commands.py runs it)."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    m = re.search(r"^## Python\n(?:(?!^## ).)*?```python\n(.*?)^```", text, re.DOTALL | re.MULTILINE)
-    assert m, "README.md: no ```python block under '## Python'"
-    return m.group(1)
+    m = re.search(r"^## Python\n(.*?)(?=^## )", text, re.DOTALL | re.MULTILINE)
+    assert m, "README.md: no '## Python' section"
+    blocks = re.findall(r"^```python\n(.*?)^```", m.group(1), re.DOTALL | re.MULTILINE)
+    block = next((b for b in blocks if "load_corpus(" in b), None)
+    assert block, "README.md: no ```python block with load_corpus under '## Python'"
+    return block
 
 
 @pytest.mark.slow
