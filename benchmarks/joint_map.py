@@ -12,7 +12,9 @@ training corpus's AAM ``--aam``), with a model written by ``bayes-talk train``:
   the eigen-decomposition of the precision, eigenvalues floored; scipy's ``trust-exact`` on the
   dense Hessian: cubic in the length), started from the same path: the difference of the two
   MAPs' ln p, their largest |Δx|, the largest relative difference of the latents' Laplace
-  marginal sds (banded selected inverse against the dense inverse), and both wall times;
+  marginal sds (banded selected inverse against the dense inverse), the AAM parameters' mean
+  square error at each MAP (the visual predictive mean against the utterance's own), and both
+  wall times;
 * ``--restarts K``: the MAP restarted from K draws of that Laplace approximation, each
   restart's converged flag, ln p, and distance from the first MAP (Euclidean in the
   whitened coordinates, i.e. in Laplace standard deviations; largest |Δx|; frames moved
@@ -40,6 +42,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from bayes_talk.gp.threads import torch_threads
 from bayes_talk.posterior.diagnostics import psis_diagnostics
+from bayes_talk.posterior.sampling import visual_predictive
 from bayes_talk.synthesis.joint import UtteranceDensity, make_plan
 from bayes_talk.synthesis.joint_map import (
     MAP_DTOL,
@@ -159,10 +162,14 @@ def main() -> None:
                 t0 = time.perf_counter()
                 xr, fr, cov = _dense_reference(dens, X0)
                 sd_new = np.sqrt(np.einsum("tii->ti", fac.marginal_covariances()).reshape(-1))
+                z_new = visual_predictive(plan, mp.latents[None, None])[0][0, 0]
+                z_ref = visual_predictive(plan, xr.reshape(1, 1, plan.n_frames, -1))[0][0, 0]
                 row["reference"] = {"seconds": time.perf_counter() - t0, "log_density": fr,
                                     "log_density_difference": mp.log_density - fr,
                                     "latents_max_abs_difference": float(np.abs(xr - x).max()),
-                                    "marginal_sd_max_rel_difference": float(np.max(np.abs(sd_new / np.sqrt(np.diag(cov)) - 1)))}
+                                    "marginal_sd_max_rel_difference": float(np.max(np.abs(sd_new / np.sqrt(np.diag(cov)) - 1))),
+                                    "aam_mse_at_map": float(np.mean((z_new - s.aam) ** 2)),
+                                    "aam_mse_at_reference_map": float(np.mean((z_ref - s.aam) ** 2))}
             rng = np.random.default_rng(args.seed)
             Z = rng.standard_normal((max(args.khat_draws, args.restarts), x.size))
             if args.khat_draws:
@@ -191,7 +198,11 @@ def main() -> None:
                           max(abs(r["reference"]["log_density_difference"]) for r in u),
                           "reference_marginal_sd_max_rel_difference":
                           max(r["reference"]["marginal_sd_max_rel_difference"] for r in u),
-                          "reference_seconds_mean": float(np.mean([r["reference"]["seconds"] for r in u]))}
+                          "reference_seconds_mean": float(np.mean([r["reference"]["seconds"] for r in u])),
+                          "same_mode": sum(abs(r["reference"]["log_density_difference"]) < 1e-3 for r in u),
+                          "aam_mse_at_map_mean": float(np.mean([r["reference"]["aam_mse_at_map"] for r in u])),
+                          "aam_mse_at_reference_map_mean":
+                              float(np.mean([r["reference"]["aam_mse_at_reference_map"] for r in u]))}
                          if args.reference else {}),
                       "loadavg_end": os.getloadavg()[0]}
     write_result(args.out, res)

@@ -266,6 +266,9 @@ outputs in --out (docs/outputs.md):
   landmarks_track.json|csv  with --export: x, y of every landmark per frame (a 2-D tool's track)
 with --audio-dir/--audio-list: the above in OUT/<WAV stem>/ for every WAV, and
   summary.json|csv every file's labels, output directory, frames, wall seconds, status, error
+time and memory grow linearly with the length of the speech: about 2-2.5 s per second of
+  speech on 2 cores with the defaults (a third of it the videos: --no-video), plus ~8 s of
+  start-up; 5 minutes of speech: 12.5 minutes, 1.9 GB (docs/benchmarks.md)
 frames in Python:
   from bayes_talk.pipeline import load_trained; import numpy as np
   tm = load_trained(MODEL_DIR); p = np.load("OUT/trajectory.npy") + tm.offset
