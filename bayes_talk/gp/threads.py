@@ -83,15 +83,11 @@ def problem_threads(n_points: int) -> Iterator[None]:
     thread's count is set (``torch.set_num_threads``: OpenMP's and MKL's thread-local
     counts), and restored; no BLAS other than torch's MKL is touched (unlike
     :func:`torch_threads`, so it costs microseconds and fits inside an objective)."""
-    prev = torch.get_num_threads()
-    if n_points >= THREADED_MIN_N or prev == 1:
+    if n_points >= THREADED_MIN_N:
         yield
         return
-    torch.set_num_threads(1)
-    try:
+    with one_thread():
         yield
-    finally:
-        torch.set_num_threads(prev)
 
 
 @contextlib.contextmanager
