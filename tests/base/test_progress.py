@@ -198,7 +198,7 @@ def test_synth_runs_every_stage(monkeypatch, tmp_path):
             return np.zeros((len(p), 4, 4), np.uint8)
 
     tm = SimpleNamespace(model=Model(), uncalibrated=Model(), kind="ssgpdm", fps=25.0, audio=None,
-                         offset=np.zeros(D), aam=AAM(), calibration=None)
+                         offset=np.zeros(D), aam=AAM(), calibration=None, directory="model")
     utt = SimpleNamespace(mfcc=np.zeros((T, 20)))
     monkeypatch.setattr(tf, "load_trained", lambda d: tm)
     monkeypatch.setattr(tf, "_check_speech", lambda wav, recognise: None)
@@ -207,7 +207,7 @@ def test_synth_runs_every_stage(monkeypatch, tmp_path):
     monkeypatch.setattr(tf, "_derived_labels", lambda *a: [(0.0, 0.28, "sil")])
     monkeypatch.setattr(tf, "utterance_from_intervals", lambda *a, **k: utt)
     monkeypatch.setattr(tf, "_write_uncertainty", lambda out, names, res, truth, tm, writing: {})
-    monkeypatch.setattr(tf, "write_video", lambda path, frames, fps, **k: path)
+    monkeypatch.setattr(tf, "write_video", lambda path, frames, fps, **k: (list(frames), path)[1])  # frames consumed
     monkeypatch.setattr(tf, "uncertainty_frames", lambda aam, res, offset, seed=None: tf.render_frames(
         aam, np.zeros((T * (1 + tf.VIDEO_DRAWS), D))))
     tf.synth("model", "a.wav", None, tmp_path / "out")
