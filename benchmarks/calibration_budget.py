@@ -56,13 +56,14 @@ _LOADED: dict = {}
 def _score_one(job: tuple[str, str, str, str]) -> dict:
     """The calibrated posterior of one test utterance and its scores (runs in a worker)."""
     from bayes_talk.corpus import load_corpus
-    from bayes_talk.pipeline import load_trained
+    from bayes_talk.pipeline import corpus_front_end, load_trained
 
     model_dir, test, name, posterior = job
     if (model_dir, test) not in _LOADED:
         _LOADED.clear()
-        _LOADED[(model_dir, test)] = (load_trained(model_dir).model,
-                                      {u.name: u for u in load_corpus(test, aam=Path(model_dir) / "aam.npz")})
+        tm = load_trained(model_dir)
+        _LOADED[(model_dir, test)] = (tm.model, {u.name: u for u in load_corpus(test, aam=Path(model_dir) / "aam.npz",
+                                                                                **corpus_front_end(tm.audio))})
     model, utts = _LOADED[(model_dir, test)]
     u = utts[name]
     r = model.predict_dist(u, posterior=posterior)

@@ -134,10 +134,11 @@ def main() -> None:
     args.aam = args.aam or bench_corpus("train", args.quick) / "aam.npz"
 
     from bayes_talk.corpus import load_corpus
-    from bayes_talk.pipeline import load_trained
+    from bayes_talk.pipeline import corpus_front_end, load_trained
 
-    model = load_trained(args.model).uncalibrated
-    seqs = load_corpus(args.test_corpus, aam=args.aam, cache=False).sequences
+    tm = load_trained(args.model)
+    model = tm.uncalibrated
+    seqs = load_corpus(args.test_corpus, aam=args.aam, cache=False, **corpus_front_end(tm.audio)).sequences
     if args.utterances:
         want = args.utterances.split(",")
         seqs = [s for s in seqs if s.name in want]

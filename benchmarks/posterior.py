@@ -92,10 +92,12 @@ def _efficiency_budget(args, method: str) -> dict:
 def efficiency(args) -> None:
     """The samplers side by side on one utterance (see the module docstring)."""
     from bayes_talk.corpus import load_corpus
-    from bayes_talk.pipeline import load_trained
+    from bayes_talk.pipeline import corpus_front_end, load_trained
 
-    model = load_trained(args.model).uncalibrated
-    seqs = {s.name: s for s in load_corpus(args.test_corpus, aam=args.aam, cache=False).sequences}
+    tm = load_trained(args.model)
+    model = tm.uncalibrated
+    seqs = {s.name: s for s in load_corpus(args.test_corpus, aam=args.aam, cache=False,
+                                           **corpus_front_end(tm.audio)).sequences}
     s = seqs[args.utterance]
     T = min(args.frames, s.n_frames) if args.frames else s.n_frames
     res = {"model": _rel(args.model), "test_corpus": _rel(args.test_corpus), "aam": _rel(args.aam),

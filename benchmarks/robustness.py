@@ -54,7 +54,7 @@ def variants(y: np.ndarray, sr: int) -> dict[str, tuple[np.ndarray, int]]:
 
 def synth_mean(tm, wav: Path, lab: Path) -> np.ndarray:
     utt = read_utterance(wav, lab, tm.fps, sample_rate=tm.audio.sample_rate, cmvn=tm.audio.cmvn,
-                         fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
+                         fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs, level_dbfs=tm.audio.level_dbfs)
     res = tm.uncalibrated.synthesize(utt.mfcc, utt.labels, algorithm="optimise")
     return np.asarray(res.mean)
 

@@ -38,7 +38,7 @@ from bayes_talk.corpus.workers import (
 from bayes_talk.data.labels import frame_labels
 from bayes_talk.data.phones import PHONE_INDEX, PHONES
 from bayes_talk.data.utterance import Utterance
-from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ
+from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, LEVEL_DBFS
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                 seed: int = 0, n_workers: int | None = None,
                 executor: Executor | str | None = None, scheduler: str | None = None,
                 aam: str | Path | None = None, cmvn: str = "mean",
-                fmax: float | None = FMAX_HZ, floor_dbfs: float | None = FLOOR_DBFS) -> Corpus:
+                fmax: float | None = FMAX_HZ, floor_dbfs: float | None = FLOOR_DBFS,
+                level_dbfs: float | None = LEVEL_DBFS) -> Corpus:
     """Load a built corpus (``manifest.json``) or a user corpus (docs/data.md) as Sequences.
 
     Each :class:`Utterance` gets ``mfcc`` (T, 20), ``aam`` (T, n_params) AAM parameters of
@@ -187,8 +188,10 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
     ``synth`` computes from the model's recorded setting. Recorded in ``meta["cmvn"]``.
     ``fmax``: the mel filterbank's upper edge (Hz; :data:`bayes_talk.features.mfcc.FMAX_HZ`,
     7.6 kHz; None: sr/2); ``floor_dbfs``: the absolute
-    mel-power floor (:data:`bayes_talk.features.frontend.FLOOR_DBFS`; None: none); both part
-    of the cache key (None for either keeps the key of a cache written without it).
+    mel-power floor (:data:`bayes_talk.features.frontend.FLOOR_DBFS`; None: none);
+    ``level_dbfs``: the active-speech level every recording is scaled to before its MFCCs
+    are computed (:data:`bayes_talk.features.frontend.LEVEL_DBFS`; None: none); all three
+    part of the cache key (None for any keeps the key of a cache written without it).
     """
     from bayes_talk.features.audio import cmvn as _cmvn
 
@@ -256,6 +259,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
         key = hashlib.sha256(f"{key}|fmax={float(fmax)}".encode()).hexdigest()
     if floor_dbfs is not None:  # its own key, likewise
         key = hashlib.sha256(f"{key}|floor={float(floor_dbfs)}".encode()).hexdigest()
+    if level_dbfs is not None:  # its own key, likewise
+        key = hashlib.sha256(f"{key}|level={float(level_dbfs)}".encode()).hexdigest()
     names = [it.name for it in items]
     cached = _read_cache(cpath, key, names) if cache else None
     if cached is None:
@@ -264,7 +269,8 @@ def load_corpus(path: str | Path, *, mean_removal: bool = True, cache: bool = Tr
                   "visual": None if it.visual is None else str(it.visual),
                   "landmarks": None if it.landmarks is None else str(it.landmarks),
                   "features": None if it.features is None else str(it.features),
-                  "aam": None if aam is None else str(aam_path), "fmax": fmax, "floor_dbfs": floor_dbfs} for it in items]
+                  "aam": None if aam is None else str(aam_path), "fmax": fmax, "floor_dbfs": floor_dbfs,
+                  "level_dbfs": level_dbfs} for it in items]
         if aam is not None:
             AAM_CACHE[str(aam_path)] = (aam_path.with_suffix(".json").read_bytes(), aam)
         results = run_tasks(features_task, "features", tasks, resolve_workers(n_workers, len(items)),

@@ -19,7 +19,7 @@ from bayes_talk.corpus.format import (
 )
 from bayes_talk.corpus.layouts import CorpusItem, load_visual
 from bayes_talk.data.labels import frame_labels, write_lab
-from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, frame_count, load_wav, mfcc
+from bayes_talk.features.mfcc import FLOOR_DBFS, FMAX_HZ, LEVEL_DBFS, frame_count, load_wav, mfcc
 
 
 def suggested_workers(n_tasks: int) -> int:
@@ -123,7 +123,7 @@ def features_task(a: dict) -> tuple[dict, dict]:
                features=None if a["features"] is None else Path(a["features"]))
     y, sr = load_wav(it.wav)
     mf = mfcc(y, sr, it.n_frames, fps=FPS, where=str(it.wav), fmax=a.get("fmax", FMAX_HZ),
-              floor_dbfs=a.get("floor_dbfs", FLOOR_DBFS))
+              floor_dbfs=a.get("floor_dbfs", FLOOR_DBFS), level_dbfs=a.get("level_dbfs", LEVEL_DBFS))
     frames, lm, feats = load_visual(it)
     if feats is not None:
         vis = feats

@@ -14,11 +14,29 @@ and when it synthesises (``pipeline.read_utterance``):
   in its bundle; audio at another rate is resampled to it with ``soxr`` (VHQ), with one
   INFO/WARNING log line. Without it the mel filterbank (0..sr/2) would cover other
   frequencies and the features would move as much as with silence.
+* **Level normalisation** (:func:`normalise_level`). Each recording is scaled so that its
+  active-speech level (:func:`active_level`) is ``LEVEL_DBFS`` (-20 dBFS) before its MFCCs
+  are computed. The active-speech level follows ITU-T P.56 (method B's definition, on
+  frames): the mean power of the frames louder than a threshold that lies
+  ``ACTIVITY_MARGIN_DB`` (15.9 dB) below that mean, over 30 ms frames (``LEVEL_FRAME_S``;
+  P.56 smooths a sample envelope with a 30 ms time constant and a 200 ms hangover instead).
+  The frames are ranked by power; the k loudest are taken, k the first for which the next
+  frame's power lies more than 15.9 dB below their mean power (all frames when none does),
+  so that they are exactly the frames above (their level - 15.9 dB). A gain g
+  multiplies every frame's power by g², so it selects the same frames and moves the level
+  by exactly 20 log10 g dB: the normalised waveform does not depend on the gain (up to the
+  recording's quantisation), and so neither does anything computed from it, the absolute
+  floor's effect included. Pauses and silence do not count, so a sentence with long pauses
+  is not boosted; digital silence (no frame with power) is left as it is. The reference
+  level is a model setting recorded in the bundle (``level_dbfs``; models trained before it
+  was recorded read as None, no normalisation).
 * **Cepstral mean (and variance) normalisation** (:func:`cmvn`), per utterance: subtract
   each coefficient's mean over the utterance (``"mean"``), and also divide by its standard
   deviation (``"mean+var"``). A gain change g scales every mel-band power by g², i.e. adds
   20 log10 g dB to every log band energy; the orthonormal DCT-II maps a constant to c0 only,
-  so gain is exactly a shift of c0 -- which the mean removal takes out. The option is a
+  so gain is exactly a shift of c0 -- which the mean removal takes out, in every mel band
+  above the absolute floor (a band at the floor does not move with the gain: hence the
+  level normalisation before it). The option is a
   model setting recorded in the bundle (``"mean"`` by default for new models; models
   trained before it was recorded read as ``"off"``).
 * **Level and content checks**. :func:`load_audio` warns when more than
@@ -47,11 +65,20 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.frontend import (
+    ACTIVITY_MARGIN_DB,
+    FLOOR_DBFS,
+    FMAX_HZ,
+    LEVEL_DBFS,
+    LEVEL_FRAME_S,
+    N_MELS,
+    N_MFCC,
+    WINDOW_S,
+)
 
 __all__ = ["CLIP_FRACTION", "CLIP_LEVEL", "CMVN_MODES", "CORRELATED_R", "DEFAULT_CMVN", "AudioSettings",
-           "clipped_fraction", "cmvn", "downmix", "feature_statistics", "load_audio",
-           "mp3_without_gapless_header", "resample", "speech_problem"]
+           "active_level", "clipped_fraction", "cmvn", "downmix", "feature_statistics", "load_audio",
+           "mp3_without_gapless_header", "normalise_level", "resample", "speech_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +219,41 @@ def load_audio(path: str | Path, target_sr: int | None = None) -> tuple[np.ndarr
     return y, sr
 
 
+def active_level(y: np.ndarray, sr: int) -> float | None:
+    """The active-speech level of the mono waveform ``y`` (full scale 1) at ``sr`` Hz, in dBFS
+    (10 log10 of a mean power; a full-scale sine is -3 dBFS), by the P.56-style rule of the
+    module docstring; None when no frame has any power (digital silence). Audio shorter than
+    one frame is one frame."""
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim != 1:
+        raise ValueError(f"active level: expected a 1-D waveform, found shape {y.shape}")
+    frame = max(1, round(LEVEL_FRAME_S * int(sr)))
+    n = y.size // frame
+    power = (y[: n * frame].reshape(n, frame) ** 2).mean(axis=1) if n else np.array([np.mean(y ** 2)])
+    power = np.sort(power[power > 0])[::-1]
+    if power.size == 0:
+        return None
+    mean = np.cumsum(power) / np.arange(1, power.size + 1)   # of the k loudest frames, k = 1..n
+    # the first k whose next frame lies more than the margin below their mean: the k loudest
+    # are then exactly the frames above (their level - margin)
+    below = np.flatnonzero(10 * np.log10(mean[:-1] / power[1:]) > ACTIVITY_MARGIN_DB)
+    k = int(below[0]) if below.size else power.size - 1
+    return float(10 * np.log10(mean[k]))
+
+
+def normalise_level(y: np.ndarray, sr: int, level_dbfs: float | None = LEVEL_DBFS) -> np.ndarray:
+    """``y`` scaled so that its :func:`active_level` is ``level_dbfs`` (dBFS); unchanged when
+    ``level_dbfs`` is None or ``y`` is digitally silent. The result may exceed full scale
+    (it is a float waveform, not written out)."""
+    y = np.asarray(y, dtype=np.float64)
+    if level_dbfs is None:
+        return y
+    level = active_level(y, sr)
+    if level is None:
+        return y
+    return y * 10.0 ** ((float(level_dbfs) - level) / 20.0)
+
+
 def cmvn(features: np.ndarray, mode: str = DEFAULT_CMVN) -> np.ndarray:
     """Per-utterance cepstral normalisation of ``(T, D)`` features.
 
@@ -231,6 +293,9 @@ class AudioSettings:
     fmax: float | None = FMAX_HZ
     #: absolute mel-power floor (dBFS, :data:`bayes_talk.features.frontend.FLOOR_DBFS`); None: none
     floor_dbfs: float | None = FLOOR_DBFS
+    #: active-speech level the audio is scaled to (dBFS, :data:`bayes_talk.features.frontend.LEVEL_DBFS`;
+    #: :func:`normalise_level`); None: no level normalisation (models that do not record it)
+    level_dbfs: float | None = LEVEL_DBFS
 
     def __post_init__(self) -> None:
         if self.cmvn not in CMVN_MODES:
@@ -243,12 +308,15 @@ class AudioSettings:
     @classmethod
     def from_dict(cls, d: dict | None, fallback_rate: int = 22050, where: str = "model") -> AudioSettings:
         """Settings from a bundle; a model that predates recorded settings reads as the
-        built-in corpus's front end (22050 Hz, no normalisation), with a warning."""
+        built-in corpus's front end of then (22050 Hz, mel bands up to sr/2, no cepstral or
+        level normalisation, no floor), with a warning; a setting a model does not record is
+        off (None), as it was when the model was trained."""
         if not d:
             log.warning("%s records no audio settings (trained before they were recorded); assuming "
                         "%d Hz, mel bands up to sr/2, no cepstral normalisation", where, fallback_rate)
-            return cls(sample_rate=int(fallback_rate), cmvn="off", fmax=None)
+            return cls(sample_rate=int(fallback_rate), cmvn="off", fmax=None, floor_dbfs=None, level_dbfs=None)
         known = {k: d[k] for k in ("sample_rate", "fps", "n_mfcc", "window_s", "n_mels", "cmvn", "fmax")
                  if k in d}
         known["floor_dbfs"] = d.get("floor_dbfs")   # absent from older models: they had no floor
+        known["level_dbfs"] = d.get("level_dbfs")   # likewise: no level normalisation
         return cls(**known)

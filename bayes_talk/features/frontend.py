@@ -6,7 +6,8 @@ A module of its own so that the audio loader and the MFCC code do not import eac
 """
 from __future__ import annotations
 
-__all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MELS", "N_MFCC", "WINDOW_S"]
+__all__ = ["ACTIVITY_MARGIN_DB", "FLOOR_DBFS", "FMAX_HZ", "LEVEL_DBFS", "LEVEL_FRAME_S", "N_MELS", "N_MFCC",
+           "WINDOW_S"]
 
 #: cepstral coefficients per frame (D_y = 20, deena2010 §3.3)
 N_MFCC = 20
@@ -28,3 +29,19 @@ FMAX_HZ = 7600.0
 #: the synthesised face by up to 1.5 sd (benchmarks/synth_stability.py). ``None``: no
 #: floor (what models that do not record it were trained with).
 FLOOR_DBFS = -50.0
+#: the active-speech level (dBFS) every recording is scaled to before its MFCCs are computed
+#: (:func:`bayes_talk.features.audio.normalise_level`), so that the absolute floor above sits
+#: at the same distance below the speech whatever the recording's gain. Without it the floor
+#: sits 6 dB nearer the speech of a recording 6 dB quieter, covers more of its mel bands,
+#: and the per-utterance mean removal no longer takes the gain out: held-out sentences 6 dB
+#: quieter moved the default model's trajectory by 0.25 of its standard deviation, 20 dB
+#: quieter by 0.55 (docs/audio.md, "Gain"). -20 dBFS is the level of the built-in corpus's
+#: recordings (median -19.4 dBFS, range -21.5 to -16.8 over 250 utterances), so the
+#: features of its utterances barely change. ``None``: no level normalisation (what models
+#: that do not record it were trained with).
+LEVEL_DBFS = -20.0
+#: the margin M of the active-speech level (dB), ITU-T P.56's: the level is the mean power of
+#: the frames louder than (level - M)
+ACTIVITY_MARGIN_DB = 15.9
+#: length of the (non-overlapping) frames whose powers the active-speech level is computed from (s)
+LEVEL_FRAME_S = 0.03

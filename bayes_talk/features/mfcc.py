@@ -4,6 +4,12 @@
 (40 mel bands of the power spectrum, ``librosa.feature.melspectrogram``; ``power_to_db``;
 DCT-II ortho, ``librosa.feature.mfcc``).
 
+Level. The waveform is first scaled so that its active-speech level is ``level_dbfs``
+(:func:`bayes_talk.features.audio.normalise_level`; default ``LEVEL_DBFS``, -20 dBFS), so
+that what follows -- the absolute floor in particular -- sees every recording at the same
+speech level, whatever its gain. ``level_dbfs=None``: the waveform as it is (models
+trained before it).
+
 Absolute floor. Before the logarithm each mel band's power S_b is raised to at least
 the expected power of white noise of rms σ = 10^(FLOOR_DBFS/20) in that band,
 
@@ -36,10 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_talk.features.audio import downmix, load_audio
-from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, N_MELS, N_MFCC, WINDOW_S
+from bayes_talk.features.audio import downmix, load_audio, normalise_level
+from bayes_talk.features.frontend import FLOOR_DBFS, FMAX_HZ, LEVEL_DBFS, N_MELS, N_MFCC, WINDOW_S
 
-__all__ = ["FLOOR_DBFS", "FMAX_HZ", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav", "noise_power", "samples_per_frame"]
+__all__ = ["FLOOR_DBFS", "FMAX_HZ", "LEVEL_DBFS", "N_MFCC", "frame_count", "load_wav", "mfcc", "mfcc_from_wav",
+           "noise_power", "samples_per_frame"]
 
 
 def samples_per_frame(sample_rate: int, fps: float = 25.0) -> int:
@@ -63,14 +70,15 @@ def frame_count(n_samples: int, sample_rate: int, fps: float = 25.0) -> int:
 def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: float = 25.0,
          n_mfcc: int = N_MFCC, window_s: float = WINDOW_S, n_mels: int = N_MELS,
          where: str = "audio", fmax: float | None = FMAX_HZ,
-         floor_dbfs: float | None = FLOOR_DBFS) -> np.ndarray:
+         floor_dbfs: float | None = FLOOR_DBFS, level_dbfs: float | None = LEVEL_DBFS) -> np.ndarray:
     """MFCCs aligned to video frames; returns ``(n_frames, n_mfcc)`` float64.
 
     ``y``: mono waveform (float in [-1, 1], or int16 scaled by 1/32768; a 2-D (n, channels)
     array is downmixed by :func:`bayes_talk.features.audio.downmix`). ``n_frames``: default
     :func:`frame_count`; a smaller value truncates, a larger one is an error. ``where`` names the source in errors.
     ``fmax``: the mel filterbank's upper edge (None: sr/2); ``floor_dbfs``: the absolute
-    floor (module docstring; None: none).
+    floor (module docstring; None: none); ``level_dbfs``: the active-speech level the whole
+    of ``y`` is scaled to first (module docstring; None: none).
     """
     y = np.asarray(y)
     if y.dtype == np.int16:
@@ -85,6 +93,7 @@ def mfcc(y: np.ndarray, sample_rate: int, n_frames: int | None = None, *, fps: f
     if not np.all(np.isfinite(y)):
         raise ValueError(f"{where}: audio contains NaN or inf")
     hop = samples_per_frame(int(sample_rate), fps)
+    y = normalise_level(y, int(sample_rate), level_dbfs)
     win = round(window_s * sample_rate)
     if win < hop:
         raise ValueError(f"window_s: expected >= 1/fps, found {window_s}")

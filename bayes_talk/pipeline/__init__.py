@@ -24,16 +24,16 @@ _EXPORTS: dict[str, str] = {
                      "fit_model", "model_kinds", "new_model", "select_holdout", "train"),
                     "bayes_talk.pipeline.training"),
     **dict.fromkeys(("TrainedModel", "load_trained"), "bayes_talk.pipeline.trained"),
-    **dict.fromkeys(("audio_settings", "front_end", "read_utterance", "utterance_from_intervals"),
+    **dict.fromkeys(("audio_settings", "corpus_front_end", "front_end", "read_utterance", "utterance_from_intervals"),
                     "bayes_talk.pipeline.front_end"),
     **dict.fromkeys(("SYNTH_OUTPUT_NAMES", "synth"), "bayes_talk.pipeline.talking_face"),
     **dict.fromkeys(("BatchInput", "inputs_from_dir", "inputs_from_list", "synth_many"), "bayes_talk.pipeline.batch"),
 }
 
 __all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "SYNTH_OUTPUT_NAMES", "BatchInput",
-           "TrainedModel", "aam_offset", "audio_settings", "calibrates_bands", "fit_model", "front_end",
-           "inputs_from_dir", "inputs_from_list", "load_trained", "model_kinds", "new_model", "read_utterance",
-           "select_holdout", "synth", "synth_many", "train", "utterance_from_intervals"]
+           "TrainedModel", "aam_offset", "audio_settings", "calibrates_bands", "corpus_front_end", "fit_model",
+           "front_end", "inputs_from_dir", "inputs_from_list", "load_trained", "model_kinds", "new_model",
+           "read_utterance", "select_holdout", "synth", "synth_many", "train", "utterance_from_intervals"]
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals(), __all__)

@@ -32,7 +32,13 @@ from bayes_talk.calibration.bands import CALIBRATED_MODELS, CALIBRATIONS, HOLDOU
 from bayes_talk.data.utterance import Utterance
 from bayes_talk.estimators.calibrated import calibrate_model
 from bayes_talk.estimators.registry import DEFAULT_MODEL, ESTIMATORS, make_estimator
-from bayes_talk.pipeline.front_end import DEFAULT_CMVN, FLOOR_DBFS, FMAX_HZ, audio_settings
+from bayes_talk.pipeline.front_end import (
+    DEFAULT_CMVN,
+    FLOOR_DBFS,
+    FMAX_HZ,
+    LEVEL_DBFS,
+    audio_settings,
+)
 
 __all__ = ["DEFAULT_CALIBRATED_MODEL", "DEFAULT_CALIBRATION", "DEFAULT_MODEL", "MODEL_KINDS", "aam_offset", "calibrates_bands", "fit_model",
            "model_kinds", "new_model", "select_holdout", "train"]
@@ -74,7 +80,7 @@ def fit_model(model, train: list[Utterance], workers: int = 1, executor=None, sc
 def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, workers: int = 1,
           force: bool = False, holdout: int | None = None,
           holdout_list: str | os.PathLike | None = None, cmvn: str = DEFAULT_CMVN, fmax: float | None = FMAX_HZ,
-          floor_dbfs: float | None = FLOOR_DBFS,
+          floor_dbfs: float | None = FLOOR_DBFS, level_dbfs: float | None = LEVEL_DBFS,
           alignment: bool = True, executor=None, scheduler: str | None = None,
           calibrate_bands: float | None = None, calibrated_model: str = DEFAULT_CALIBRATED_MODEL,
           calibration: str = "noise", **overrides) -> Path:
@@ -87,6 +93,8 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     ``cmvn``: per-utterance cepstral normalisation (bayes_talk.features.audio; ``DEFAULT_CMVN``, "mean");
     ``fmax``: mel filterbank edge (default ``features.frontend.FMAX_HZ``; None: sr/2, as before).
     ``floor_dbfs``: absolute mel-power floor (default ``features.frontend.FLOOR_DBFS``; None: none, as before).
+    ``level_dbfs``: active-speech level every recording is scaled to before its MFCCs
+    (default ``features.frontend.LEVEL_DBFS``; None: none, as before).
     The bundle records the audio front end (:func:`bayes_talk.pipeline.front_end.audio_settings`)
     and ends with ``bundle_manifest.json``, the SHA-256 of every file, written
     last (bayes_talk.base.bundle).
@@ -124,7 +132,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
     if calibration not in CALIBRATIONS:
         raise ValueError(f"calibration: expected one of {', '.join(CALIBRATIONS)}, found {calibration!r}")
     with executor_for(executor, workers, scheduler) as ex:
-        corpus = corpus_store.load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs,
+        corpus = corpus_store.load_corpus(corpus_dir, cmvn=cmvn, fmax=fmax, floor_dbfs=floor_dbfs, level_dbfs=level_dbfs,
                              executor=ex if executor is not None or ex.parallel else None)
         train_seqs, held_out = select_holdout(corpus.sequences, holdout, holdout_list, where=str(corpus_dir))
         corpus.sequences = train_seqs
@@ -140,7 +148,7 @@ def train(corpus_dir: str | os.PathLike, kind: str, out_dir: str | os.PathLike, 
         aligner = aligner.result() if aligner is not None else None
     out.mkdir(parents=True, exist_ok=True)
     bundle.begin_bundle(out, DESCRIPTOR)
-    audio = audio_settings(corpus, cmvn, fmax, floor_dbfs)
+    audio = audio_settings(corpus, cmvn, fmax, floor_dbfs, level_dbfs)
     cal_info, cal_names = None, []
     if calibrate_bands is not None:
         fitted = model.face_noise_ if calibration == "noise" else model.calibration_

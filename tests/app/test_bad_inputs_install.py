@@ -163,7 +163,7 @@ def test_synth_refuses_to_recognise_phones_in_noise_and_warns_with_labels(tmp_pa
 
     sr = 22050
     noise = _write(tmp_path / "noise.wav", 0.2 * np.random.default_rng(1).normal(size=2 * sr), sr)
-    audio = SimpleNamespace(sample_rate=sr, cmvn="mean", fmax=None, floor_dbfs=None)
+    audio = SimpleNamespace(sample_rate=sr, cmvn="mean", fmax=None, floor_dbfs=None, level_dbfs=None)
     model = pl.new_model("ssgpdm-phone-rc")   # unfitted: synth must stop before using it
     monkeypatch.setattr(talking_face, "load_trained", lambda d: SimpleNamespace(kind="ssgpdm-phone-rc", model=model,
                                                                         audio=audio, fps=25.0))

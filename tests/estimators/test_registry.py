@@ -129,6 +129,7 @@ def test_a_registered_familys_settings_are_its_constructor_arguments(registered)
 def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_built_corpus, tmp_path):
     from bayes_talk import pipeline
     from bayes_talk.corpus import load_corpus
+    from bayes_talk.pipeline.front_end import front_end as audio_front_end
 
     assert registered not in pipeline.MODEL_KINDS and registered in pipeline.model_kinds()
     out = pipeline.train(shared_built_corpus, registered, tmp_path / "model", alignment=False, extra_var=0.25)
@@ -139,8 +140,7 @@ def test_a_registered_dummy_estimator_trains_and_synthesises(registered, shared_
     wav = min((shared_built_corpus / "utterances").rglob("*.wav"))
     written = pipeline.synth(out, wav, wav.with_suffix(".lab"), tmp_path / "synth", video=False)
     assert "diagnostics" not in written                     # its own path ("map"): no posterior
-    utt = pipeline.read_utterance(wav, wav.with_suffix(".lab"), tm.fps, sample_rate=tm.audio.sample_rate,
-                                  cmvn=tm.audio.cmvn, fmax=tm.audio.fmax, floor_dbfs=tm.audio.floor_dbfs)
+    utt = pipeline.read_utterance(wav, wav.with_suffix(".lab"), tm.fps, **audio_front_end(tm.audio))
     want = tm.model.predict_dist(utt)
     np.testing.assert_array_equal(np.load(written["trajectory"]), want.mean)   # no post-filter for it
     np.testing.assert_array_equal(np.load(written["variance"]), want.var)
