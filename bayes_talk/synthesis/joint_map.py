@@ -349,7 +349,7 @@ def _trust_region_step(P: BlockTridiagonal, M: BandedFactor, g: np.ndarray, radi
         return float(np.linalg.norm(M.unscale_matvec(s)))
 
     lo, hi, best = 0.0, None, None
-    lam = 0.0
+    lam, s, ns = 0.0, np.zeros_like(g), 0.0
     g_white = float(np.linalg.norm(M.scale_rmatvec(g)))
     for _ in range(max_iter):
         try:
@@ -380,7 +380,7 @@ def _trust_region_step(P: BlockTridiagonal, M: BandedFactor, g: np.ndarray, radi
         lam = new
     if best is not None:
         return best, False
-    return s * (radius / ns), True
+    return (s * (radius / ns), True) if ns > 0 else (s, False)     # no positive definite λ met: no step
 
 
 def _newton_state(H: BlockTridiagonal, g: np.ndarray, gtol: float, dtol: float) -> dict:
